@@ -1,0 +1,61 @@
+"""The one configuration object shared by the CLI and the Python API, with documented defaults."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+
+@dataclass
+class Config:
+    # --- scans and local features -------------------------------------------------------------
+    voxel: float | None = None
+    """Voxel size in scene units. None: derived from the scene as 1/100 of the median scan's
+    bounding-box diagonal (about 3 cm for a 3DMatch fragment, 2 mm for the bunny)."""
+    min_points: int = 100
+    """A scan with fewer finite points (after loading) is skipped and reported."""
+    normal_radius: float = 2.0
+    """Normal-estimation radius, in voxels."""
+    fpfh_radius: float = 5.0
+    """FPFH feature radius, in voxels."""
+
+    # --- sparse pose graph ---------------------------------------------------------------------
+    k: int = 10
+    """Top-k partners per scan by overlap score (the paper: 10 indoor, 6 outdoor)."""
+    global_feature: str = "vlad"
+    """Global feature: 'vlad' (unsupervised VLAD codebook on the local descriptors)."""
+
+    # --- pairwise registration ---------------------------------------------------------------------
+    matcher: str = "kiss"
+    """Robust estimator on mutual-nearest-neighbour matches: 'kiss' (kiss-matcher) or 'ransac' (open3d)."""
+    icp_distance: float = 1.5
+    """ICP correspondence distance, in voxels."""
+
+    # --- synchronization -----------------------------------------------------------------------------
+    iters: int = 50
+    """IRLS iterations M with history reweighting."""
+    method: str = "history"
+    """Synchronization method (see ``sghr_gtsam.sync.METHODS``)."""
+    polish: bool = True
+    """Polish the IRLS poses with gtsam Levenberg-Marquardt."""
+    min_weight: float = 1e-3
+    """Edges whose final weight falls below this fraction of the largest weight are dropped; a
+    scan left without edges is reported as unregistered."""
+
+    # --- run ----------------------------------------------------------------------------------------
+    seed: int = 0
+    record: bool = True
+    """Write recording.rrd (rerun)."""
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), indent=2)
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> "Config":
+        data = json.loads(Path(path).read_text())
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown config keys: {sorted(unknown)}")
+        return cls(**data)

@@ -1,0 +1,60 @@
+"""Data passed between the pipeline stages. Frame convention: ``T_ij`` maps points of scan j into
+the frame of scan i; ``T_i`` maps scan i into the world; ``T_ij = inv(T_i) @ T_j`` (gtsam ``between``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class InputError(ValueError):
+    """Bad user input; the CLI prints its message on one line and exits non-zero."""
+
+
+@dataclass
+class PoseGraph:
+    """Relative-pose measurements between ``n`` nodes.
+
+    ``i, j``: (E,) node indices; ``T``: (E, 4, 4) measured ``T_ij``; ``weight``: (E,) initial weight
+    ``w0`` (SGHR: overlap score x inlier count); ``information``: optional (E, 6, 6) in gtsam's tangent
+    order [rotation, translation], used instead of ``weight`` by the least-squares back ends.
+    """
+
+    n: int
+    i: np.ndarray
+    j: np.ndarray
+    T: np.ndarray
+    weight: np.ndarray
+    information: np.ndarray | None = None
+
+    @property
+    def num_edges(self) -> int:
+        return int(len(self.i))
+
+
+@dataclass
+class IterationRecord:
+    """State after one IRLS or LM iteration, for the recording and the report."""
+
+    stage: str  # "irls" or "lm"
+    iteration: int
+    poses: np.ndarray  # (N, 4, 4) T_i
+    weights: np.ndarray  # (E,)
+    residual_deg: np.ndarray  # (E,) rotation residual of each edge, degrees
+    cost: float = float("nan")
+
+
+@dataclass
+class SyncResult:
+    """Output of synchronization: absolute poses, final edge weights and the per-iteration history.
+
+    ``component``: (N,) label of each node's connected part (0 = largest); every part is anchored at
+    its own first node, so poses of different parts are not comparable.
+    """
+
+    poses: np.ndarray  # (N, 4, 4)
+    weights: np.ndarray  # (E,)
+    residual_deg: np.ndarray  # (E,)
+    component: np.ndarray  # (N,)
+    history: list[IterationRecord] = field(default_factory=list)
