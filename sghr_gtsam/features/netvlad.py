@@ -1,0 +1,77 @@
+"""NetVLAD global feature (torch): local descriptors of one scan -> one unit vector ``F``.
+
+The head follows the NetVLAD layer the SGHR authors use (parameter names ``centroids``,
+``conv.weight``, ``conv.bias``): per-point L2-normalised descriptors, soft assignment to
+``clusters`` centres by a 1x1 convolution + softmax, residual sums intra-normalised per
+cluster, flattened and L2-normalised. Without trained weights it is initialised from an
+unsupervised k-means codebook of the scene's own descriptors (``from_codebook``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as nnf
+from torch import nn
+
+
+class NetVLAD(nn.Module):
+    def __init__(self, clusters: int = 64, dim: int = 32):
+        super().__init__()
+        self.centroids = nn.Parameter(torch.zeros(clusters, dim))
+        self.conv = nn.Conv2d(dim, clusters, kernel_size=1, bias=True)
+
+    def forward(self, desc: torch.Tensor) -> torch.Tensor:
+        """``desc``: (B, D, P) descriptors of B scans with P points each -> (B, clusters·D) unit vectors."""
+        x = nnf.normalize(desc, p=2, dim=1)
+        assign = torch.softmax(self.conv(x.unsqueeze(-1)).squeeze(-1), dim=1)  # (B, K, P)
+        # sum_p a_kp (x_p - c_k) = sum_p a_kp x_p - c_k sum_p a_kp
+        vlad = torch.einsum("bkp,bdp->bkd", assign, x) - self.centroids[None] * assign.sum(-1, keepdim=True)
+        vlad = nnf.normalize(vlad, p=2, dim=2)
+        return nnf.normalize(vlad.flatten(1), p=2, dim=1)
+
+    @classmethod
+    def from_codebook(cls, centres: np.ndarray, alpha: float = 100.0) -> "NetVLAD":
+        """The standard NetVLAD initialisation: soft assignment ~ nearest unit centre, sharpness ``alpha``."""
+        c = torch.as_tensor(centres, dtype=torch.float32)
+        c = nnf.normalize(c, p=2, dim=1)
+        model = cls(clusters=c.shape[0], dim=c.shape[1])
+        with torch.no_grad():
+            model.centroids.copy_(c)
+            model.conv.weight.copy_((2.0 * alpha * c)[:, :, None, None])
+            model.conv.bias.copy_(-alpha * (c * c).sum(1))
+        return model
+
+
+def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: int = 20000,
+                    iters: int = 25, seed: int = 0) -> np.ndarray:
+    """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors."""
+    rng = np.random.default_rng(seed)
+    X = np.concatenate(descriptors).astype(np.float32)
+    X /= np.linalg.norm(X, axis=1, keepdims=True) + 1e-12
+    if len(X) > samples:
+        X = X[rng.choice(len(X), samples, replace=False)]
+    clusters = min(clusters, len(X))
+    C = X[rng.choice(len(X), clusters, replace=False)]
+    for _ in range(iters):
+        labels = np.argmax(X @ C.T, axis=1)
+        for c in range(clusters):
+            members = X[labels == c]
+            if len(members):
+                C[c] = members.sum(0) / (np.linalg.norm(members.sum(0)) + 1e-12)
+    return C
+
+
+def global_features(model: NetVLAD, descriptors: list[np.ndarray], max_points: int = 5000,
+                    seed: int = 0) -> np.ndarray:
+    """Unit global feature (N, K·D) of each scan's descriptors (P_i, D); at most ``max_points`` per scan
+    (the paper samples 5000 keypoints), sampled with a fixed seed so reruns give identical scores."""
+    rng = np.random.default_rng(seed)
+    out = []
+    with torch.no_grad():
+        for d in descriptors:
+            if len(d) > max_points:
+                d = d[rng.choice(len(d), max_points, replace=False)]
+            x = torch.as_tensor(np.ascontiguousarray(d.T), dtype=torch.float32)[None]
+            out.append(model(x)[0].numpy())
+    return np.stack(out).astype(np.float64)

@@ -1,0 +1,206 @@
+"""The SGHR pipeline, stage by stage: scans -> local features -> global features and top-k graph ->
+pairwise registration on graph edges -> history-reweighted IRLS -> gtsam polish -> poses."""
+
+from __future__ import annotations
+
+import hashlib
+import resource
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .config import Config
+from .features.local import ScanFeatures, compute_features, default_voxel
+from .features.netvlad import NetVLAD, global_features, kmeans_codebook
+from .graph import overlap_scores, top_k_edges
+from .io.scans import finite_points, list_scans, load_scan
+from .pairwise import PairResult, register_pair
+from .recording import Recorder
+from .se3 import inv_T, transform_points
+from .sync import synchronize
+from .types import InputError, PoseGraph, SyncResult
+
+Log = Callable[[str], None]
+
+
+@dataclass
+class Scan:
+    name: str
+    points: np.ndarray  # (P, 3) finite points in the scan's own frame
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
+    first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose."""
+
+    names: list[str]
+    poses: np.ndarray
+    voxel: float
+    scores: np.ndarray
+    graph: PoseGraph
+    pairs: list[PairResult]
+    sync: SyncResult
+    unregistered: list[str]
+    skipped: dict[str, str]
+    features: list[ScanFeatures]
+    timings: dict[str, float] = field(default_factory=dict)
+    global_feature: str = ""
+
+    @property
+    def registered(self) -> list[int]:
+        bad = set(self.unregistered)
+        return [k for k, n in enumerate(self.names) if n not in bad]
+
+
+class _Timer:
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def stage(self, name: str):
+        t0 = time.perf_counter()
+        yield
+        self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[list[Scan], dict[str, str]]:
+    """Read every scan of ``folder``; unusable files are skipped with a reason instead of failing the run."""
+    scans: list[Scan] = []
+    skipped: dict[str, str] = {}
+    digests: dict[str, str] = {}
+    for path in list_scans(folder):
+        try:
+            P, dropped = finite_points(load_scan(path))
+        except InputError as e:
+            skipped[path.name] = str(e)
+            log(f"skipped {path.name}: {e}")
+            continue
+        if dropped:
+            log(f"{path.name}: dropped {dropped} non-finite points")
+        if len(P) < config.min_points:
+            skipped[path.name] = f"only {len(P)} finite points (< {config.min_points})"
+            log(f"skipped {path.name}: {skipped[path.name]}")
+            continue
+        digest = hashlib.sha1(np.ascontiguousarray(P).tobytes()).hexdigest()
+        if digest in digests:
+            log(f"note: {path.name} holds the same points as {digests[digest]}")
+        digests.setdefault(digest, path.name)
+        scans.append(Scan(path.name, P))
+    if len(scans) < 2:
+        raise InputError(f"{folder}: need at least 2 usable scans, found {len(scans)}"
+                         + (f" ({len(skipped)} skipped)" if skipped else ""))
+    return scans, skipped
+
+
+def _global_scores(features: list[ScanFeatures], config: Config) -> tuple[np.ndarray, str]:
+    descriptors = [f.fpfh for f in features]
+    codebook = kmeans_codebook(descriptors, seed=config.seed)
+    model = NetVLAD.from_codebook(codebook)
+    F = global_features(model, descriptors, seed=config.seed)
+    return overlap_scores(F), f"unsupervised VLAD codebook ({len(codebook)} clusters of FPFH, k-means on this scene)"
+
+
+def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
+             log: Log = print, skipped: dict[str, str] | None = None) -> RunResult:
+    """Register ``scans`` (at least two) into one frame. The recorder, if any, only observes."""
+    if len(scans) < 2:
+        raise InputError(f"need at least 2 scans, got {len(scans)}")
+    timer = _Timer()
+    names = [s.name for s in scans]
+    voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
+    if not np.isfinite(voxel) or voxel <= 0:
+        raise InputError(f"voxel size must be a positive number, got {voxel}")
+    log(f"{len(scans)} scans, voxel {voxel:.4g}")
+
+    with timer.stage("features"):
+        features = [compute_features(s.points, voxel, config.normal_radius, config.fpfh_radius) for s in scans]
+    if recorder:
+        recorder.log_scans(names, [f.points for f in features])
+
+    with timer.stage("global_graph"):
+        scores, feature_kind = _global_scores(features, config)
+        edges = top_k_edges(scores, config.k)
+    n, n_all = len(scans), len(scans) * (len(scans) - 1) // 2
+    log(f"pose graph: {len(edges)} of {n_all} pairs (top-{config.k})")
+
+    pairs: list[PairResult] = []
+    with timer.stage("pairwise"):
+        for a, b in edges:
+            pairs.append(register_pair(features[a], features[b], voxel, matcher=config.matcher,
+                                       icp_distance=config.icp_distance, seed=config.seed))
+    s = scores[edges[:, 0], edges[:, 1]]
+    r = np.array([p.inliers for p in pairs], dtype=float)
+    info = [p.information for p in pairs]
+    graph = PoseGraph(
+        n=n, i=edges[:, 0].copy(), j=edges[:, 1].copy(),
+        T=np.stack([p.T for p in pairs]) if pairs else np.zeros((0, 4, 4)),
+        weight=s * r,
+        information=np.stack(info) if pairs and all(x is not None for x in info) else None,
+    )
+    if recorder:
+        recorder.log_graph(graph, scores)
+
+    if not np.any(graph.weight > 0):
+        raise InputError("no pair of scans could be registered (do the scans overlap?)")
+    with timer.stage("sync"):
+        result = synchronize(graph, method=config.method, iters=config.iters, polish=config.polish,
+                             min_weight=config.min_weight,
+                             on_iteration=recorder.on_iteration if recorder else None)
+
+    # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
+    main = np.flatnonzero(result.component == 0)
+    poses = inv_T(result.poses[main[0]])[None] @ result.poses
+    unregistered = [names[k] for k in range(n) if result.component[k] != 0]
+    for name in unregistered:
+        log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
+    if recorder:
+        recorder.log_final(poses, unregistered)
+    return RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=pairs,
+                     sync=result, unregistered=unregistered, skipped=dict(skipped or {}), features=features,
+                     timings=timer.seconds, global_feature=feature_kind)
+
+
+def merged_cloud(result: RunResult) -> np.ndarray:
+    """All registered scans under their poses, voxel-downsampled once more where they overlap."""
+    import open3d as o3d
+
+    parts = [transform_points(result.poses[k], result.features[k].points) for k in result.registered]
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(parts)))
+    return np.asarray(pcd.voxel_down_sample(result.voxel).points)
+
+
+def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print) -> RunResult:
+    """Load ``scene_dir``, register its scans and write every output into ``out_dir``."""
+    from .io.results import write_results
+
+    started = time.perf_counter()
+    timer = _Timer()
+    with timer.stage("load"):
+        scans, skipped = load_scene(scene_dir, config, log)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    partial = out / "recording.rrd.partial"
+    recorder = Recorder(partial) if config.record else None
+    try:
+        result = register(scans, config, recorder, log, skipped)
+    except BaseException:
+        if recorder:
+            recorder.close()
+            partial.unlink(missing_ok=True)
+        raise
+    if recorder:
+        recorder.close()
+        partial.replace(out / "recording.rrd")
+    result.timings = {**timer.seconds, **result.timings}
+    write_results(out, result, config, started, merged_cloud(result))
+    return result
