@@ -5,9 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 
-def overlap_scores(F: np.ndarray) -> np.ndarray:
-    """``s_ij = (F_iᵀF_j + 1) / 2`` for unit global features ``F`` (N, D); the diagonal is 1."""
-    return (F @ F.T + 1.0) / 2.0
+def overlap_scores(F: np.ndarray, form: str = "paper") -> np.ndarray:
+    """Overlap scores of unit global features ``F`` (N, D); the diagonal is 1.
+
+    ``paper``: ``s_ij = (F_iᵀF_j + 1) / 2``; ``authors``: ``(2 − ‖F_i − F_j‖) / 2`` as the authors' released
+    code computes it (same ranking, since ‖F_i − F_j‖² = 2 − 2F_iᵀF_j).
+    """
+    G = np.clip(F @ F.T, -1.0, 1.0)
+    if form == "paper":
+        return (G + 1.0) / 2.0
+    if form == "authors":
+        return (2.0 - np.sqrt(np.maximum(2.0 - 2.0 * G, 0.0))) / 2.0
+    raise ValueError(f"unknown score form {form!r} (paper, authors)")
 
 
 def top_k_edges(scores: np.ndarray, k: int) -> np.ndarray:

@@ -110,11 +110,21 @@ def _global_scores(features: list[ScanFeatures], config: Config) -> tuple[np.nda
     return overlap_scores(F), f"unsupervised VLAD codebook ({len(codebook)} clusters of FPFH, k-means on this scene)"
 
 
+def _also_recorded(log: Log, recorder: Recorder) -> Log:
+    def both(message: str) -> None:
+        log(message)
+        recorder.log_message(message)
+
+    return both
+
+
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
              log: Log = print, skipped: dict[str, str] | None = None) -> RunResult:
     """Register ``scans`` (at least two) into one frame. The recorder, if any, only observes."""
     if len(scans) < 2:
         raise InputError(f"need at least 2 scans, got {len(scans)}")
+    if recorder:
+        log = _also_recorded(log, recorder)
     timer = _Timer()
     names = [s.name for s in scans]
     voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
@@ -131,7 +141,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         scores, feature_kind = _global_scores(features, config)
         edges = top_k_edges(scores, config.k)
     n, n_all = len(scans), len(scans) * (len(scans) - 1) // 2
-    log(f"pose graph: {len(edges)} of {n_all} pairs (top-{config.k})")
+    log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(edges)} of {n_all} pairs "
+        f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")
 
     pairs: list[PairResult] = []
     with timer.stage("pairwise"):
@@ -147,6 +158,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         weight=s * r,
         information=np.stack(info) if pairs and all(x is not None for x in info) else None,
     )
+    log(f"pairwise: {len(pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
     if recorder:
         recorder.log_graph(graph, scores)
 
@@ -157,6 +169,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
                              min_weight=config.min_weight,
                              on_iteration=recorder.on_iteration if recorder else None)
 
+    log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
     # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
     main = np.flatnonzero(result.component == 0)
     poses = inv_T(result.poses[main[0]])[None] @ result.poses

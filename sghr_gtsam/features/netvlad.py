@@ -43,6 +43,18 @@ class NetVLAD(nn.Module):
         return model
 
 
+def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> NetVLAD:
+    """A NetVLAD head from a checkpoint of the authors' overlap network (``network_state_dict`` with
+    keys ``vlador.pool.*``; saved on cuda, so mapped to the CPU) or from one of ours (the same keys)."""
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = state.get("network_state_dict", state)
+    state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+    clusters, dim = state["centroids"].shape
+    model = NetVLAD(clusters, dim)
+    model.load_state_dict(state)
+    return model.eval()
+
+
 def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: int = 20000,
                     iters: int = 25, seed: int = 0) -> np.ndarray:
     """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors."""
