@@ -61,15 +61,19 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 @contextlib.contextmanager
-def atomic_write(path: str | Path, mode: str = "w", encoding: str | None = None) -> Iterator[IO[Any]]:
-    """``open(path, mode)`` that only replaces ``path`` when the block completes without error.
+def atomic_write(
+    path: str | Path, mode: str = "w", encoding: str | None = None, newline: str | None = None
+) -> Iterator[IO[Any]]:
+    """``open(path, mode, encoding=..., newline=...)`` that only replaces ``path`` when the block
+    completes without error.
 
-    ``mode``: "w"/"wt" (text, UTF-8 unless ``encoding`` is given) or "wb".
+    ``mode``: "w"/"wt" (text, UTF-8 unless ``encoding`` is given) or "wb". ``newline=""`` is what
+    the csv module wants.
     """
     if mode not in ("w", "wt", "wb"):
         raise ValueError(f"atomic_write supports modes 'w', 'wt' and 'wb', not {mode!r}")
     if "b" not in mode and encoding is None:
         encoding = "utf-8"
     with atomic_path(path) as tmp:
-        with open(tmp, mode, encoding=encoding) as f:
+        with open(tmp, mode, encoding=encoding, newline=newline) as f:
             yield f

@@ -14,7 +14,8 @@ import numpy as np
 
 from .atomic import atomic_write
 from .g2o import write_g2o
-from .poses import write_kitti, write_ply, write_poses
+from .poses import write_kitti, write_poses
+from .scans import write_ply
 
 if TYPE_CHECKING:
     from ..config import Config

@@ -1,0 +1,187 @@
+"""Robustness to outlier edges: every synchronization method on pose graphs of the 8 real 3DMatch test scenes.
+
+Graphs: ``data_tools.outlier_graphs.make_graph`` (top-10 GT-overlap graph, inliers with 2° / 5 cm noise, a
+fraction ρ of edges replaced by ``random`` or ``structured`` outliers; see that module). Methods: the
+project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones with both
+reweightings, ``authors`` and ``paper``; ``history/authors`` also without the gtsam polish), every baseline of
+``sghr_gtsam.sync.baselines`` and the oracle (gtsam LM told the inlier edges). HARA and LITS have no public
+code and are not run.
+
+Scores per run (one scene, one seed): the paper's registration recall over the scene's 3DMatch ``gt.log``
+pairs with |i − j| > 1 (``evaluate.registration_recall``), and the mean and median rotation error of the same
+pairs; each averaged over scenes and seeds. Seconds: wall time of the method per scene, averaged over all runs.
+At ρ = 0 both kinds are the same graph (the generator's inlier stream does not depend on the kind), so it is
+run once and reported under both.
+
+BLAS threads are set to 1 unless OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is already set (tiny dense blocks;
+a multithreaded BLAS on a busy 2-core machine spends its time synchronising threads); ``--jobs`` runs
+graphs in parallel processes instead.
+
+Run from the repository root (installed, or with ``PYTHONPATH=.``):
+``python benchmarks/bench_robustness.py [--quick] [--seeds 5] [--ratios 0 0.1 ...] [--methods ...]
+[--kinds random structured] [--noisy-overlap] [--jobs 2] [--records runs.jsonl]``
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "1"))
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # open3d's OpenMP, same reason
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
+from dataclasses import asdict, dataclass  # noqa: E402
+from multiprocessing import Pool  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from data_tools.outlier_graphs import KINDS, SCENES, load_scene, make_graph  # noqa: E402
+from sghr_gtsam.evaluate import registration_recall  # noqa: E402
+from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
+from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
+from sghr_gtsam.sync import METHODS, synchronize  # noqa: E402
+from sghr_gtsam.sync.baselines import BASELINES, oracle  # noqa: E402
+from sghr_gtsam.sync.irls import REWEIGHTS  # noqa: E402
+from sghr_gtsam.types import PoseGraph, SyncResult  # noqa: E402
+
+RATIOS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6)
+IRLS_METHODS = ("history", "constant", "current")  # the METHODS entries that take a reweighting
+
+Runner = Callable[[PoseGraph, np.ndarray], SyncResult]  # (graph, outlier mask) -> result
+
+
+def _project(method: str, reweight: str = "authors", polish: bool = True) -> Runner:
+    return lambda graph, _: synchronize(graph, method=method, reweight=reweight, polish=polish)
+
+
+def _baseline(name: str) -> Runner:
+    return lambda graph, _: BASELINES[name](graph)
+
+
+def all_methods() -> dict[str, Runner]:
+    """Every method of the table, by row name, in the table's order."""
+    methods: dict[str, Runner] = {}
+    for method in METHODS:
+        if method in IRLS_METHODS:
+            for reweight in REWEIGHTS:
+                methods[f"{method}/{reweight}"] = _project(method, reweight)
+        else:
+            methods[method] = _project(method, polish=False)
+    methods["history/authors, no polish"] = _project("history", "authors", polish=False)
+    for name in BASELINES:
+        methods[name] = _baseline(name)
+    methods["oracle"] = lambda graph, outlier: oracle(graph, ~outlier)
+    return methods
+
+
+@dataclass
+class Run:
+    """One method on one graph."""
+
+    method: str
+    scene: str
+    seed: int
+    kind: str
+    ratio: float
+    recall: float
+    rot_mean_deg: float
+    rot_median_deg: float
+    seconds: float
+
+
+def run_graph(task: tuple[str, int, str, float, bool, list[str]]) -> list[Run]:
+    """Every method in ``names`` on one generated graph."""
+    scene, seed, kind, ratio, noisy_overlap, names = task
+    methods = all_methods()
+    gt = load_scene(scene)
+    graph, _, outlier = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
+    runs = []
+    for name in names:
+        start = time.perf_counter()
+        result = methods[name](graph, outlier)
+        seconds = time.perf_counter() - start
+        recall = registration_recall(gt.ids, result.poses, gt.gt_log, gt.gt_info)
+        index = {f: k for k, f in enumerate(gt.ids)}
+        a = np.array([index[p] for p, _ in recall.pairs])
+        b = np.array([index[q] for _, q in recall.pairs])
+        estimated = inv_T(result.poses[a]) @ result.poses[b]
+        rot, _ = relative_errors(estimated, np.stack([gt.gt_log[p] for p in recall.pairs]))
+        runs.append(Run(name, scene, seed, kind, ratio, recall.recall, float(rot.mean()), float(np.median(rot)),
+                        seconds))
+    return runs
+
+
+def tables(runs: list[Run], names: list[str], kinds: list[str], ratios: list[float]) -> str:
+    """Markdown: per kind, registration recall, then mean / median rotation error, by method and ratio."""
+    out = []
+    for kind in kinds:
+        mine = [r for r in runs if r.kind == kind]
+        cell = {(r.method, r.ratio): [] for r in mine}
+        for r in mine:
+            cell[(r.method, r.ratio)].append(r)
+        header = "| method | " + " | ".join(f"ρ={x:g}" for x in ratios)
+        rule = "|---|" + "---:|" * len(ratios)
+        out += [f"\n### {kind} outliers: registration recall\n", header + " | s / scene |", rule + "---:|"]
+        for name in names:
+            rs = [cell.get((name, x), []) for x in ratios]
+            seconds = np.mean([r.seconds for group in rs for r in group]) if any(rs) else float("nan")
+            row = " | ".join(f"{np.mean([r.recall for r in g]):.3f}" if g else "–" for g in rs)
+            out.append(f"| {name} | {row} | {seconds:.2f} |")
+        out += [f"\n### {kind} outliers: rotation error of the gt.log pairs, mean / median (°)\n", header + " |", rule]
+        for name in names:
+            rs = [cell.get((name, x), []) for x in ratios]
+            row = " | ".join(
+                f"{np.mean([r.rot_mean_deg for r in g]):.2f} / {np.mean([r.rot_median_deg for r in g]):.2f}"
+                if g else "–" for g in rs)
+            out.append(f"| {name} | {row} |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, default=5, help="seeds per scene (default 5)")
+    parser.add_argument("--ratios", type=float, nargs="+", default=list(RATIOS), help="outlier ratios")
+    parser.add_argument("--methods", nargs="+", help="row names (default: all); see --list")
+    parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
+    parser.add_argument("--quick", action="store_true", help="1 seed, ratios 0 and 0.5")
+    parser.add_argument("--noisy-overlap", action="store_true",
+                        help="top-k by overlap + N(0, 0.1) instead of the GT overlap (make_graph's variant)")
+    parser.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
+    parser.add_argument("--records", help="write every run as a JSON line to this file")
+    parser.add_argument("--list", action="store_true", help="list the methods and exit")
+    args = parser.parse_args()
+    names = list(all_methods())
+    if args.list:
+        print("\n".join(names))
+        return
+    if args.methods:
+        unknown = sorted(set(args.methods) - set(names))
+        if unknown:
+            parser.error(f"unknown methods {unknown}; --list shows them")
+        names = [n for n in names if n in args.methods]
+    seeds, ratios = (1, [0.0, 0.5]) if args.quick else (args.seeds, sorted(args.ratios))
+
+    # Ratio 0 is the same graph for both kinds: run it once, under the first kind.
+    tasks = [(scene, seed, kind, ratio, args.noisy_overlap, names) for kind in args.kinds for ratio in ratios
+             if ratio > 0 or kind == args.kinds[0] for scene in SCENES for seed in range(seeds)]
+    start = time.perf_counter()
+    runs: list[Run] = []
+    with Pool(args.jobs) as pool:
+        for k, batch in enumerate(pool.imap_unordered(run_graph, tasks), 1):
+            runs += batch
+            print(f"\r{k}/{len(tasks)} graphs, {time.perf_counter() - start:.0f} s", end="", flush=True)
+    print()
+    runs += [Run(**{**asdict(r), "kind": kind}) for r in runs if r.ratio == 0 for kind in args.kinds[1:]]
+    if args.records:
+        with atomic_write(args.records) as f:
+            f.writelines(json.dumps(asdict(r)) + "\n" for r in runs)
+    print(f"{len(SCENES)} scenes × {seeds} seeds, top-k by {'noisy' if args.noisy_overlap else 'GT'} overlap, "
+          f"{args.jobs} processes, {time.perf_counter() - start:.0f} s")
+    print(tables(runs, names, args.kinds, ratios))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,112 @@
+"""Speed of full synchronization (M = 50 IRLS iterations with history reweighting + gtsam LM polish).
+
+Scenes: N scans at random positions, random orientations; each scan is linked to its k = 10 nearest
+scans, as SGHR's top-k overlap graph links scans that see the same place. Layout ``plane`` (default): the
+scans are spread over a floor (one per ~4 m², 1 m of height jitter), as a sensor carried through a
+building; ``cube``: filled in 3-D (one per ~8 m³), a harder case for the sparse solvers (larger separators).
+Uniformly random partners are not realistic, and their factor graphs have no sparse elimination order
+(gtsam needs 7 s per LM iteration at N = 1000). Measurements: inliers with 1° rotation noise per
+axis and 2 cm translation noise, 20 % outliers (random rotations, 2 m translations) with lower initial
+weights on average, as overlap × inlier count gives them.
+
+BLAS threads are set to 1 unless OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is already set: the dense
+blocks are tiny, and a multithreaded BLAS on a busy 2-core machine spends its time synchronising threads.
+
+Run from the repository root (installed, or with ``PYTHONPATH=.``):
+``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors]``
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "1"))
+
+import argparse  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+from scipy.spatial import cKDTree  # noqa: E402
+from scipy.spatial.transform import Rotation  # noqa: E402
+
+from sghr_gtsam.se3 import inv_T, make_T, relative_errors  # noqa: E402
+from sghr_gtsam.sync import synchronize  # noqa: E402
+from sghr_gtsam.types import PoseGraph  # noqa: E402
+
+K = 10
+OUTLIERS = 0.2
+ROT_NOISE_DEG = 1.0
+TRANS_NOISE = 0.02
+
+
+def make_scene(n: int, seed: int, layout: str = "plane") -> tuple[np.ndarray, PoseGraph, np.ndarray]:
+    """Ground-truth poses, the measured k-nearest-neighbour graph and its outlier mask."""
+    rng = np.random.default_rng(seed)
+    if layout == "plane":
+        side = 2.0 * np.sqrt(n)
+        positions = rng.uniform(0.0, 1.0, (n, 3)) * [side, side, 1.0]
+    else:
+        positions = rng.uniform(0.0, 2.0 * n ** (1 / 3), (n, 3))
+    poses = make_T(Rotation.random(n, random_state=rng).as_matrix(), positions)
+    _, near = cKDTree(positions).query(positions, K + 1)
+    pairs = np.unique(np.sort(np.stack([np.repeat(np.arange(n), K), near[:, 1:].ravel()], 1), axis=1), axis=0)
+    i, j = pairs[:, 0], pairs[:, 1]
+    E = len(i)
+    T = inv_T(poses[i]) @ poses[j]
+    noise = Rotation.from_rotvec(rng.normal(scale=np.radians(ROT_NOISE_DEG), size=(E, 3))).as_matrix()
+    T[:, :3, :3] = T[:, :3, :3] @ noise
+    T[:, :3, 3] += rng.normal(scale=TRANS_NOISE, size=(E, 3))
+    outlier = rng.random(E) < OUTLIERS
+    T[outlier] = make_T(Rotation.random(int(outlier.sum()), random_state=rng).as_matrix(),
+                        rng.normal(scale=2.0, size=(int(outlier.sum()), 3)))
+    overlap = np.where(outlier, rng.uniform(0.2, 0.7, E), rng.uniform(0.4, 1.0, E))
+    inliers = np.where(outlier, rng.uniform(10, 100, E), rng.uniform(50, 500, E))
+    return poses, PoseGraph(n=n, i=i, j=j, T=T, weight=overlap * inliers), outlier
+
+
+def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str) -> dict[str, float]:
+    stamps: list[tuple[str, float]] = []
+    start, cpu = time.perf_counter(), time.process_time()
+    result = synchronize(graph, reweight=reweight, on_iteration=lambda r: stamps.append((r.stage, time.perf_counter())))
+    total, cpu = time.perf_counter() - start, time.process_time() - cpu
+    irls_end = max(t for stage, t in stamps if stage == "irls")
+    main = result.component == 0
+    anchor = np.flatnonzero(main)[0]
+    rel = inv_T(result.poses[anchor]) @ result.poses[main]
+    rot, trans = relative_errors(rel, inv_T(truth[anchor]) @ truth[main])
+    return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start, "lm": total - (irls_end - start),
+            "lm_iters": sum(stage == "lm" for stage, _ in stamps), "rot_max": rot.max(), "trans_max": trans.max(),
+            "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum())}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 1000, 5000])
+    parser.add_argument("--reweight", default="authors", choices=["authors", "paper"])
+    parser.add_argument("--layout", default="plane", choices=["plane", "cube"])
+    parser.add_argument("--repeats", type=int, default=3, help="best of this many runs (1 for N >= 1000)")
+    args = parser.parse_args()
+
+    synchronize(make_scene(20, 0)[1], iters=2)  # imports gtsam and warms caches outside the timings
+    print(f"layout = {args.layout}, k = {K}, {OUTLIERS:.0%} outliers, noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, "
+          f"M = 50, reweight = {args.reweight}, BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
+          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    print(f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'LM s':>7} {'LM it':>5} "
+          f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10}")
+    edges, totals = [], []
+    for n in args.sizes:
+        scene = make_scene(n, seed=n, layout=args.layout)
+        repeats = args.repeats if n < 1000 else 1
+        best = min((run(*scene, args.reweight) for _ in range(repeats)), key=lambda r: r["total"])
+        edges.append(best["edges"])
+        totals.append(best["total"])
+        print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} {best['lm']:>7.3f} "
+              f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
+              f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10}")
+    if len(edges) > 1:
+        slope = np.polyfit(np.log(edges), np.log(totals), 1)[0]
+        print(f"fitted exponent (least squares on log-log, all sizes): total time ∝ edges^{slope:.2f}")
+
+
+if __name__ == "__main__":
+    main()

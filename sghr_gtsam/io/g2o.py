@@ -1,0 +1,150 @@
+"""3D g2o pose graphs (``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT``) and the SE-Sync objective used to score them.
+
+g2o stores each edge's 6×6 information as its 21 upper-triangular values, row by row, in the order
+[translation, rotation]; ``PoseGraph.information`` is in gtsam's order [rotation, translation]. The rotation
+block is used as written, as gtsam's ``readG2o`` and SE-Sync do.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ..se3 import make_T
+from ..types import InputError, PoseGraph
+from .atomic import atomic_write
+
+_UPPER = np.triu_indices(6)
+_G2O_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # gtsam index k holds g2o index _G2O_TO_GTSAM[k]
+
+
+def _pose(x: np.ndarray, where: str) -> np.ndarray:
+    """``x y z qx qy qz qw`` as a 4×4 transform."""
+    norm = np.linalg.norm(x[3:7])
+    if not np.all(np.isfinite(x)) or norm < 1e-12:
+        raise InputError(f"{where}: pose is not finite or its quaternion is zero")
+    return make_T(Rotation.from_quat(x[3:7] / norm).as_matrix(), x[:3])
+
+
+def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
+    """Integer ids and float values of a vertex (1 id, 7 values) or edge (2 ids, 28 values) line."""
+    n_ids = {"VERTEX_SE3:QUAT": 1, "EDGE_SE3:QUAT": 2}.get(tok[0])
+    if n_ids is None or len(tok) != 1 + n_ids + (7 if n_ids == 1 else 28):
+        raise InputError(f"{where}: not a VERTEX_SE3:QUAT or EDGE_SE3:QUAT line with the right number of "
+                         f"values: {' '.join(tok)[:60]!r}")
+    try:
+        return [int(t) for t in tok[1:1 + n_ids]], np.array(tok[1 + n_ids:], dtype=float)
+    except ValueError:
+        raise InputError(f"{where}: malformed number in {' '.join(tok)[:60]!r}") from None
+
+
+def read_g2o(path: str | Path) -> tuple[list[int], np.ndarray, PoseGraph]:
+    """Vertex ids (file order), their poses (N, 4, 4) and the edges as a ``PoseGraph`` (weight 1).
+
+    ``FIX`` lines (gauge hints), blank lines and ``#`` comments are skipped; anything else that is not a
+    well-formed vertex or edge raises ``InputError`` naming the line.
+    """
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read g2o file {path}: {exc}") from None
+    ids: list[int] = []
+    poses: list[np.ndarray] = []
+    ends: list[tuple[int, int, str]] = []
+    T: list[np.ndarray] = []
+    info: list[np.ndarray] = []
+    for line_no, line in enumerate(lines, start=1):
+        tok = line.split()
+        if not tok or tok[0].startswith("#") or tok[0] == "FIX":
+            continue
+        where = f"{path}: line {line_no}"
+        keys, x = _parse(tok, where)
+        if len(keys) == 1:
+            ids.append(keys[0])
+            poses.append(_pose(x, where))
+            continue
+        ends.append((keys[0], keys[1], where))
+        T.append(_pose(x[:7], where))
+        if not np.all(np.isfinite(x[7:])):
+            raise InputError(f"{where}: information is not finite")
+        omega = np.zeros((6, 6))
+        omega[_UPPER] = x[7:]
+        omega = omega + np.triu(omega, 1).T
+        info.append(omega[np.ix_(_G2O_TO_GTSAM, _G2O_TO_GTSAM)])
+    index = {v: k for k, v in enumerate(ids)}
+    if len(index) != len(ids):
+        raise InputError(f"{path}: duplicate vertex ids")
+    for a, b, where in ends:
+        if a not in index or b not in index:
+            raise InputError(f"{where}: edge {a}-{b} refers to a vertex that is not defined")
+    E = len(ends)
+    graph = PoseGraph(
+        n=len(ids),
+        i=np.array([index[a] for a, _, _ in ends], dtype=int),
+        j=np.array([index[b] for _, b, _ in ends], dtype=int),
+        T=np.array(T).reshape(E, 4, 4),
+        weight=np.ones(E),
+        information=np.array(info).reshape(E, 6, 6),
+    )
+    return ids, np.array(poses).reshape(len(ids), 4, 4), graph
+
+
+def _quat_line(T: np.ndarray) -> str:
+    x, y, z = T[:3, 3]
+    qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+    return " ".join(repr(float(v)) for v in (x, y, z, qx, qy, qz, qw))
+
+
+def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray, graph: PoseGraph) -> None:
+    """Write vertices ``ids`` at ``poses`` and the measured edges, atomically.
+
+    Without ``graph.information`` an edge's information is written as ``weight · I``. Numbers are written
+    with ``repr`` so that reading the file back gives the same values.
+    """
+    if len(ids) != len(poses) or len(ids) != graph.n:
+        raise InputError(f"write_g2o: {len(ids)} ids, {len(poses)} poses and {graph.n} graph nodes differ")
+    info = graph.information
+    if info is None:
+        info = graph.weight[:, None, None] * np.eye(6)
+    back = np.argsort(_G2O_TO_GTSAM)
+    with atomic_write(path) as f:
+        for v, T in zip(ids, poses):
+            f.write(f"VERTEX_SE3:QUAT {v} {_quat_line(T)}\n")
+        for a, b, T, omega in zip(graph.i, graph.j, graph.T, info):
+            upper = omega[np.ix_(back, back)][_UPPER]
+            f.write(f"EDGE_SE3:QUAT {ids[a]} {ids[b]} {_quat_line(T)} "
+                    + " ".join(repr(float(x)) for x in upper) + "\n")
+
+
+def sesync_precisions(information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """SE-Sync's isotropic precisions ``(κ, τ)`` (E,) from information matrices in gtsam order.
+
+    ``τ = 3 / tr(Ω_tt⁻¹)``, ``κ = 3 / (2 tr(Ω_rr⁻¹))`` (Rosen et al. 2019).
+    """
+    kappa = 3.0 / (2.0 * np.trace(np.linalg.inv(information[:, :3, :3]), axis1=1, axis2=2))
+    tau = 3.0 / np.trace(np.linalg.inv(information[:, 3:, 3:]), axis1=1, axis2=2)
+    return kappa, tau
+
+
+def isotropic_information(information: np.ndarray) -> np.ndarray:
+    """The gtsam information ``diag(2κ, 2κ, 2κ, τ, τ, τ)`` whose graph error is half the SE-Sync objective
+    (to second order in the residuals: gtsam measures rotations on the manifold, SE-Sync by chords)."""
+    kappa, tau = sesync_precisions(information)
+    out = np.zeros((len(kappa), 6, 6))
+    out[:, [0, 1, 2], [0, 1, 2]] = 2.0 * kappa[:, None]
+    out[:, [3, 4, 5], [3, 4, 5]] = tau[:, None]
+    return out
+
+
+def sesync_objective(poses: np.ndarray, graph: PoseGraph) -> float:
+    """``f = Σ κ‖R_j − R_i R̃_ij‖²_F + τ‖t_j − t_i − R_i t̃_ij‖²`` (no ½) with κ, τ from ``graph.information``."""
+    if graph.information is None:
+        raise InputError("the SE-Sync objective needs the edges' information matrices")
+    kappa, tau = sesync_precisions(graph.information)
+    Ri, Rj = poses[graph.i, :3, :3], poses[graph.j, :3, :3]
+    rot = np.sum((Rj - Ri @ graph.T[:, :3, :3]) ** 2, axis=(1, 2))
+    trans = poses[graph.j, :3, 3] - poses[graph.i, :3, 3] - np.einsum("eab,eb->ea", Ri, graph.T[:, :3, 3])
+    return float(np.sum(kappa * rot) + np.sum(tau * np.sum(trans**2, axis=1)))

@@ -1,0 +1,77 @@
+"""The command line on good and bad input: one line and a non-zero exit, never a traceback."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from sghr_gtsam.cli import app
+from sghr_gtsam.synthetic import make_scene, write_scene
+
+runner = CliRunner()
+
+
+def _run(*args):
+    result = runner.invoke(app, [str(a) for a in args])
+    assert "Traceback" not in result.output
+    return result
+
+
+def test_empty_folder_is_one_line_error(tmp_path):
+    (tmp_path / "scene").mkdir()
+    r = _run("run", tmp_path / "scene", "--out", tmp_path / "out")
+    assert r.exit_code == 2
+    assert r.output.strip().startswith("error:") and len(r.output.strip().splitlines()) == 1
+    assert not (tmp_path / "out" / "report.json").exists()
+
+
+def test_missing_folder_is_one_line_error(tmp_path):
+    r = _run("run", tmp_path / "nowhere", "--out", tmp_path / "out")
+    assert r.exit_code == 2 and "error:" in r.output
+
+
+def test_single_scan_is_an_error(tmp_path):
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    np.save(scene / "a.npy", np.random.default_rng(0).random((500, 3)))
+    r = _run("run", scene, "--out", tmp_path / "out")
+    assert r.exit_code == 2 and "at least 2" in r.output
+
+
+def test_bad_scans_are_skipped_and_reported(tmp_path):
+    """A corrupt file, a NaN-only scan and a tiny scan are skipped; the rest is registered."""
+    scene = make_scene(kind="room", n_scans=3, seed=1)
+    d = tmp_path / "scene"
+    write_scene(scene, d)
+    (d / "zz_corrupt.ply").write_text("ply\nformat binary_little_endian 1.0\nelement vertex 1000\n")
+    np.save(d / "zz_nan.npy", np.full((500, 3), np.nan))
+    np.save(d / "zz_tiny.npy", np.random.default_rng(0).random((20, 3)))
+    out = tmp_path / "out"
+    r = _run("run", d, "--out", out, "--no-record")
+    assert r.exit_code == 0, r.output
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    assert set(report["skipped"]) == {"zz_corrupt.ply", "zz_nan.npy", "zz_tiny.npy"}
+    assert len(report["registered"]) == 3
+
+
+def test_scans_that_do_not_overlap_are_not_placed(tmp_path):
+    """Two unrelated random blobs: no reliable pair, so nothing useful is written."""
+    rng = np.random.default_rng(3)
+    d = tmp_path / "scene"
+    d.mkdir()
+    np.save(d / "a.npy", rng.random((3000, 3)))
+    np.save(d / "b.npy", rng.random((3000, 3)) * [5, 0.1, 1] + 10)
+    r = _run("run", d, "--out", tmp_path / "out", "--no-record")
+    assert r.exit_code == 2, r.output
+    assert not (tmp_path / "out" / "poses.txt").exists()
+
+
+def test_module_entry_point_prints_no_traceback(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(tmp_path / "none")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().startswith("error:") and "Traceback" not in proc.stderr

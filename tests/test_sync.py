@@ -1,0 +1,261 @@
+"""Synchronization maths: exact recovery, gauge and labelling invariance, components, the IRLS formula, and
+outlier rejection. Synthetic graphs only (no data needed)."""
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+from scipy.spatial.transform import Rotation
+
+from sghr_gtsam.se3 import inv_T, make_T, relative_errors
+from sghr_gtsam.sync import METHODS, synchronize
+from sghr_gtsam.sync.irls import irls, schedule_weights
+from sghr_gtsam.sync.rotation import DENSE_NODES, rotation_residuals, spectral_rotations
+from sghr_gtsam.types import InputError, PoseGraph
+
+FAST = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def random_graph(seed: int, n: int, extra: int = 2, rot_deg: float = 0.0, trans_sigma: float = 0.0,
+                 outliers: float = 0.0, extent: float = 5.0) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+    """Random poses; a random spanning tree plus ``extra · n`` random chords; weights in [1, 100].
+    Outliers (random transforms) only on chords, so the inlier edges stay connected. Returns the graph,
+    the true poses and the outlier mask."""
+    rng = np.random.default_rng(seed)
+    poses = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-extent, extent, (n, 3)))
+    order = rng.permutation(n)
+    tree = np.stack([order[1:], order[rng.integers(0, np.arange(1, n))]], axis=1)
+    chords = rng.integers(0, n, (extra * n, 2))
+    chords = chords[chords[:, 0] != chords[:, 1]]
+    pairs = np.vstack([tree, chords])
+    is_chord = np.arange(len(pairs)) >= len(tree)
+    i, j = pairs.T
+    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_deg), (len(i), 3))).as_matrix(),
+                   rng.normal(0.0, trans_sigma, (len(i), 3)))
+    T = inv_T(poses[i]) @ poses[j] @ noise
+    bad = is_chord & (rng.random(len(i)) < outliers)
+    T[bad] = make_T(Rotation.random(int(bad.sum()), random_state=rng).as_matrix(),
+                    rng.uniform(-extent, extent, (int(bad.sum()), 3)))
+    return PoseGraph(n=n, i=i, j=j, T=T, weight=rng.uniform(1.0, 100.0, len(i))), poses, bad
+
+
+def gauge_free(poses: np.ndarray, anchor: int = 0) -> np.ndarray:
+    """Poses relative to ``anchor``: what synchronization determines."""
+    return inv_T(poses[anchor]) @ poses
+
+
+def max_errors(est: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    rot, trans = relative_errors(gauge_free(est), gauge_free(truth))
+    return float(rot.max()), float(trans.max())
+
+
+# --- exact recovery --------------------------------------------------------------------------------------
+
+
+@FAST
+@given(seed=st.integers(0, 10**6), n=st.integers(2, 2 * DENSE_NODES), extra=st.integers(0, 3))
+def test_noise_free_graphs_are_recovered_exactly(seed, n, extra):
+    graph, truth, _ = random_graph(seed, n, extra)
+    for method in ("spectral", "history"):
+        result = synchronize(graph, method=method, iters=3, polish=False)
+        np.testing.assert_allclose(gauge_free(result.poses), gauge_free(truth), atol=1e-8)
+        assert np.all(result.component == 0)
+        np.testing.assert_allclose(result.poses[0], np.eye(4), atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [DENSE_NODES + 1, 400])
+def test_noise_free_large_graphs_are_recovered_exactly_by_every_method(n):
+    """Above ``DENSE_NODES`` the sparse eigen-solver runs; every method, with the gtsam polish."""
+    graph, truth, _ = random_graph(1, n, extra=3)
+    for method in METHODS:
+        result = synchronize(graph, method=method, iters=5)
+        np.testing.assert_allclose(gauge_free(result.poses), gauge_free(truth), atol=1e-7)
+        assert result.residual_deg.max() < 1e-4
+
+
+def test_spectral_rotations_handle_any_node_count():
+    R = Rotation.random(1, random_state=0).as_matrix()
+    np.testing.assert_allclose(spectral_rotations(1, np.zeros(0, int), np.zeros(0, int), R[:0], np.zeros(0)),
+                               np.eye(3)[None])
+    out = spectral_rotations(2, np.array([0]), np.array([1]), R, np.array([1.0]))
+    np.testing.assert_allclose(out[1], R[0], atol=1e-12)
+
+
+# --- invariances -----------------------------------------------------------------------------------------
+
+
+@FAST
+@given(seed=st.integers(0, 10**6), n=st.sampled_from([12, 2 * DENSE_NODES]), common=st.booleans())
+def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common):
+    """Re-orienting the scans about their origins (``T_k → T_k S_k``, S_k a rotation; one global rotation
+    for all scans when ``common``), relabelling the nodes and shuffling the edges gives the same
+    registration: the output moves with the frames and the labels. (A transform of the world,
+    ``T_k → G T_k``, leaves every measurement and so the output unchanged. Moving a scan's origin is not
+    a symmetry with noisy rotations: the measured translation then has a different lever arm.)"""
+    graph, _, _ = random_graph(seed, n, extra=3, rot_deg=2.0, trans_sigma=0.05, outliers=0.15)
+    rng = np.random.default_rng(seed + 1)
+    S = make_T(Rotation.random(n, random_state=rng).as_matrix(), np.zeros((n, 3)))
+    if common:
+        S[:] = S[0]
+    perm = rng.permutation(n)  # old node k is new node perm[k]
+    shuffle = rng.permutation(graph.num_edges)
+    moved = PoseGraph(n=n, i=perm[graph.i][shuffle], j=perm[graph.j][shuffle],
+                      T=(inv_T(S[graph.i]) @ graph.T @ S[graph.j])[shuffle], weight=graph.weight[shuffle])
+    # Without the polish the maths is exactly equivariant; LM stops within its tolerance of the optimum.
+    for method, polish, atol in (("spectral", False, 1e-6), ("history", False, 1e-6), ("history", True, 1e-3)):
+        a = synchronize(graph, method=method, iters=10, polish=polish)
+        b = synchronize(moved, method=method, iters=10, polish=polish)
+        np.testing.assert_allclose(gauge_free(b.poses[perm]), gauge_free(a.poses @ S), atol=atol)
+        np.testing.assert_allclose(b.weights[np.argsort(shuffle)], a.weights, rtol=1e-5, atol=1e-12)
+
+
+# --- parts of the graph ----------------------------------------------------------------------------------
+
+
+def test_disconnected_graph_gives_anchored_components_and_no_nan():
+    big, big_truth, _ = random_graph(5, 8, extra=2)
+    small, small_truth, _ = random_graph(6, 3, extra=1)
+    # Nodes 0-7: big part; 8-10: small part; 11: no edge; 12-13: joined by a zero-weight edge only.
+    truth = np.concatenate([big_truth, small_truth, np.tile(np.eye(4), (3, 1, 1))])
+    graph = PoseGraph(n=14, i=np.r_[big.i, small.i + 8, 12], j=np.r_[big.j, small.j + 8, 13],
+                      T=np.concatenate([big.T, small.T, np.eye(4)[None]]), weight=np.r_[big.weight, small.weight, 0.0])
+    for method in METHODS:
+        result = synchronize(graph, method=method, iters=5)
+        assert np.all(np.isfinite(result.poses)) and np.all(np.isfinite(result.residual_deg))
+        assert list(result.component[:8]) == [0] * 8 and list(result.component[8:11]) == [1] * 3
+        assert len(set(result.component[11:])) == 3 and min(result.component[11:]) == 2
+        for c in np.unique(result.component):
+            nodes = np.flatnonzero(result.component == c)
+            np.testing.assert_allclose(result.poses[nodes[0]], np.eye(4), atol=1e-12)
+            np.testing.assert_allclose(gauge_free(result.poses[nodes]), gauge_free(truth[nodes]), atol=1e-8)
+        assert result.weights[-1] == 0.0
+
+
+def test_a_scan_with_only_wrong_edges_ends_in_its_own_component():
+    graph, truth, _ = random_graph(7, 25, extra=3, rot_deg=1.0, trans_sigma=0.02)
+    rng = np.random.default_rng(8)
+    lost = PoseGraph(n=26, i=np.r_[graph.i, [25, 25, 25]], j=np.r_[graph.j, [0, 5, 9]],
+                     T=np.concatenate([graph.T, make_T(Rotation.random(3, random_state=rng).as_matrix(),
+                                                       rng.normal(size=(3, 3)))]),
+                     weight=np.r_[graph.weight, [50.0, 50.0, 50.0]])
+    result = synchronize(lost)
+    assert result.component[25] != 0 and np.all(result.component[:25] == 0)
+    assert np.all(result.weights[-3:] == 0)
+    assert max_errors(result.poses[:25], truth)[0] < 1.0
+
+
+# --- bad input -------------------------------------------------------------------------------------------
+
+
+def _edit(graph: PoseGraph, **changes) -> PoseGraph:
+    fields = dict(n=graph.n, i=graph.i, j=graph.j, T=graph.T, weight=graph.weight, information=graph.information)
+    fields.update(changes)
+    return PoseGraph(**fields)
+
+
+def _bad_T(graph: PoseGraph, value: float) -> np.ndarray:
+    T = graph.T.copy()
+    T[1, 0, 3] = value
+    return T
+
+
+@pytest.mark.parametrize("change, words", [
+    (dict(n=1), "at least 2 nodes"),
+    (dict(i=np.zeros(0, int), j=np.zeros(0, int), T=np.zeros((0, 4, 4)), weight=np.zeros(0)), "no edges"),
+    ("nan_T", "not finite"),
+    ("inf_T", "not finite"),
+    ("nan_w", "weight"),
+    ("negative_w", "weight"),
+    ("out_of_range", "out of range"),
+    ("self_loop", "itself"),
+    ("shear", "rigid"),
+    ("short_weights", "disagree"),
+    ("float_index", "integers"),
+    ("bad_information", "positive definite"),
+])
+def test_bad_input_raises_a_one_line_input_error(change, words):
+    graph, _, _ = random_graph(0, 6)
+    E = graph.num_edges
+    if isinstance(change, dict):
+        bad = _edit(graph, **change)
+    else:
+        bad = {
+            "nan_T": lambda: _edit(graph, T=_bad_T(graph, np.nan)),
+            "inf_T": lambda: _edit(graph, T=_bad_T(graph, np.inf)),
+            "nan_w": lambda: _edit(graph, weight=np.r_[np.nan, graph.weight[1:]]),
+            "negative_w": lambda: _edit(graph, weight=np.r_[-1.0, graph.weight[1:]]),
+            "out_of_range": lambda: _edit(graph, j=np.r_[6, graph.j[1:]]),
+            "self_loop": lambda: _edit(graph, j=np.r_[graph.i[0], graph.j[1:]]),
+            "shear": lambda: _edit(graph, T=np.concatenate([graph.T[:1] @ np.diag([1.0, 1.5, 1.0, 1.0]), graph.T[1:]])),
+            "short_weights": lambda: _edit(graph, weight=graph.weight[:-1]),
+            "float_index": lambda: _edit(graph, i=graph.i.astype(float)),
+            "bad_information": lambda: _edit(graph, information=np.zeros((E, 6, 6))),
+        }[change]()
+    with pytest.raises(InputError) as info:
+        synchronize(bad)
+    message = str(info.value)
+    assert words in message and "\n" not in message
+
+
+def test_unknown_method_or_reweighting_is_an_input_error():
+    graph, _, _ = random_graph(0, 6)
+    with pytest.raises(InputError, match="method"):
+        synchronize(graph, method="magic")
+    with pytest.raises(InputError, match="reweight"):
+        synchronize(graph, reweight="magic")
+
+
+# --- IRLS ------------------------------------------------------------------------------------------------
+
+
+def test_history_schedule_sums_to_one_and_grows():
+    g = schedule_weights(50, "history")
+    assert np.isclose(g.sum(), 1.0) and np.all(np.diff(g) > 0)
+    np.testing.assert_allclose(g[[0, 49]], [2 / 2550, 100 / 2550])
+    np.testing.assert_allclose(schedule_weights(50, "constant"), 1 / 50)
+
+
+@pytest.mark.parametrize("reweight, scale, unit", [("paper", 1.0, np.radians), ("authors", 2.0, lambda d: d)])
+@pytest.mark.parametrize("schedule", ["history", "constant", "current"])
+def test_irls_weights_follow_the_formula(reweight, scale, unit, schedule):
+    """wⁿ = w⁰ exp(−c Σ_{m≤n} g(m) δᵐ) from the recorded residuals (no history: wⁿ = w⁰ exp(−c δⁿ))."""
+    graph, _, _ = random_graph(2, 20, extra=3, rot_deg=3.0, trans_sigma=0.05, outliers=0.1)
+    seen = []
+    result = irls(graph, iters=8, reweight=reweight, schedule=schedule, on_iteration=seen.append)
+    assert [r.iteration for r in seen] == list(range(1, 9)) and {r.stage for r in seen} == {"irls"}
+    assert seen == result.history
+    g = schedule_weights(8, schedule)
+    exponent = np.zeros(graph.num_edges)
+    for m, record in enumerate(result.history):
+        delta = unit(record.residual_deg)
+        exponent = scale * delta if schedule == "current" else exponent + scale * g[m] * delta
+        np.testing.assert_allclose(record.weights, graph.weight * np.exp(-exponent), rtol=1e-10)
+        # The recorded residuals are those of the recorded poses.
+        R = record.poses[:, :3, :3]
+        np.testing.assert_allclose(np.degrees(rotation_residuals(R, graph.i, graph.j, graph.T[:, :3, :3])),
+                                   record.residual_deg, atol=1e-6)
+    np.testing.assert_allclose(result.weights, result.history[-1].weights)
+
+
+def test_history_reweighting_rejects_gross_outliers_and_recovers_the_truth():
+    graph, truth, bad = random_graph(11, 60, extra=4, rot_deg=1.0, trans_sigma=0.02, outliers=0.3)
+    assert bad.sum() > 40
+    records = []
+    result = synchronize(graph, on_iteration=records.append)
+    assert np.all(result.weights[bad] == 0)  # every outlier dropped
+    assert np.mean(result.weights[~bad] > 0) > 0.9
+    assert np.all(result.component == 0)
+    rot, trans = max_errors(result.poses, truth)
+    assert rot < 1.0 and trans < 0.1
+    assert [r.stage for r in records] == ["irls"] * 50 + ["lm"] * (len(records) - 50)
+    # Plain spectral synchronization with the same weights is far off: the reweighting does the work.
+    assert max_errors(synchronize(graph, method="spectral", polish=False).poses, truth)[0] > 5.0
+
+
+def test_paper_units_keep_outliers_weighted():
+    """Why the default is the authors' units: δ in radians with Σg = 1 lowers an outlier's weight by at
+    most e^π against an inlier, so outliers keep pulling the solution."""
+    graph, truth, bad = random_graph(11, 60, extra=4, rot_deg=1.0, trans_sigma=0.02, outliers=0.3)
+    paper = synchronize(graph, reweight="paper", polish=False)
+    assert np.all(paper.weights[bad] > 0)
+    authors = synchronize(graph, reweight="authors", polish=False)
+    assert max_errors(paper.poses, truth)[0] > 2 * max_errors(authors.poses, truth)[0]
