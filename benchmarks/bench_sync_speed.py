@@ -74,7 +74,8 @@ def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str)
     anchor = np.flatnonzero(main)[0]
     rel = inv_T(result.poses[anchor]) @ result.poses[main]
     rot, trans = relative_errors(rel, inv_T(truth[anchor]) @ truth[main])
-    return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start, "lm": total - (irls_end - start),
+    return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start,
+            "lm": total - (irls_end - start),
             "lm_iters": sum(stage == "lm" for stage, _ in stamps), "rot_max": rot.max(), "trans_max": trans.max(),
             "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum())}
 
@@ -100,7 +101,8 @@ def main() -> None:
         best = min((run(*scene, args.reweight) for _ in range(repeats)), key=lambda r: r["total"])
         edges.append(best["edges"])
         totals.append(best["total"])
-        print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} {best['lm']:>7.3f} "
+        print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} "
+              f"{best['lm']:>7.3f} "
               f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
               f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10}")
     if len(edges) > 1:

@@ -37,6 +37,9 @@ class Config:
     """IRLS iterations M with history reweighting."""
     method: str = "history"
     """Synchronization method (see ``sghr_gtsam.sync.METHODS``)."""
+    reweight: str = "authors"
+    """History-reweighting units: 'authors' (residual in degrees, factor 2, as the authors' code; drops
+    outliers) or 'paper' (residual in radians as the paper writes it; too weak to reject outliers)."""
     polish: bool = True
     """Polish the IRLS poses with gtsam Levenberg-Marquardt."""
     min_weight: float = 1e-3

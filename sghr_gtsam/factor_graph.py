@@ -3,13 +3,18 @@
 Every kept edge becomes ``BetweenFactorPose3(i, j, Pose3(T_ij), Gaussian.Information(Ω'_e))``; its error is
 ``½ r_eᵀ Ω'_e r_e`` with ``r_e = Log(T_ij⁻¹ T_i⁻¹ T_j)`` in gtsam's tangent order [rotation, translation].
 
-Weight → noise (``edge_information``): ``Ω'_e = (w_e / ŵ) · Ω_e`` where ``w_e`` is the edge's (history)
-weight, ``ŵ`` the median weight of the kept edges (so a typical kept edge keeps its base information and
-the scale of the problem does not depend on the weights' units), and ``Ω_e`` the edge's own information
-(``PoseGraph.information``) or, without one, ``diag(σ_r⁻² I₃, σ_t⁻² I₃)``. Dropped edges (``w_e = 0``) get no
-factor. Each connected part gets a prior on its anchor (its first node), which pins the gauge without moving
-the optimum: the between factors are invariant to a common transform, so at the optimum the prior's
-residual is zero.
+Weight → noise (``edge_information``): ``Ω'_e = (w_e / ŵ) · Ω_e`` where ``w_e`` is the weight the caller
+gives the edge, ``ŵ`` the median of the nonzero ones (so a typical edge keeps its base information and the
+scale of the problem does not depend on the weights' units), and ``Ω_e`` the edge's own information
+(``PoseGraph.information``) or, without one, ``diag(σ_r⁻² I₃, σ_t⁻² I₃)``. Edges with ``w_e = 0`` get no
+factor. ``synchronize`` passes the initial weight ``w⁰`` (overlap × inliers) of the edges the history
+reweighting kept and 0 for the dropped ones: on synthetic graphs with 20-30 % outliers this polish lands
+within 0.1-0.5° (worst scan) of least squares on the true inliers, while the history weights themselves as
+precisions (they span e^(−2 × residual in degrees)) leave it 0.8-1.4° further off.
+
+Each connected part gets a prior on its anchor (its first node), which pins the gauge without moving the
+optimum: the between factors are invariant to a common transform, so at the optimum the prior's residual
+is zero.
 """
 
 from __future__ import annotations
@@ -28,6 +33,10 @@ ROT_SIGMA_DEG = 2.0
 """Base rotation sigma of an edge without information: a typical pairwise-registration error."""
 _PRIOR_SCALE = 1e4
 """Anchor prior precision relative to the largest edge precision: stiff, yet well conditioned."""
+_METIS_NODES = 500
+"""From this many poses, a connected graph is eliminated in METIS order: 1.2-2× faster LM iterations than
+COLAMD at 5000 scans (measured). gtsam's METIS ordering crashes on some disconnected graphs, hence only
+connected ones."""
 _ABSOLUTE_TOL = 1e-12
 """LM also stops when the error decreases by less than this per factor (an error is ~3 per edge at the
 noise level), so that noise-free graphs, whose error is ~1e-26, do not iterate on rounding noise."""
@@ -86,6 +95,8 @@ def graph_error(graph: PoseGraph, poses: np.ndarray, information: np.ndarray) ->
 
 @dataclass
 class PolishResult:
+    """The polished poses, gtsam's error before and after, and one record per LM iteration."""
+
     poses: np.ndarray  # (N, 4, 4), every part re-anchored so its first node is the identity
     initial_error: float
     final_error: float
@@ -110,7 +121,8 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
     for a in anchors:
         factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(poses[a]), prior))
     params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iters)
+    if len(anchors) == 1 and graph.n >= _METIS_NODES:
+        params.setOrderingType("METIS")
     optimizer = gtsam.LevenbergMarquardtOptimizer(factors, _values(poses), params)
     record_weights = np.zeros(graph.num_edges) if weights is None else weights
     initial = previous = error = optimizer.error()
@@ -132,7 +144,7 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
             converged = True
             break
         previous = error
-    # The priors hold the anchors to within ~1e-4 of the lightest edge's sigma; make them exact.
+    # The stiff but finite priors leave the anchors a hair off their start: re-anchor every part exactly.
     current = current.copy()
     for c, a in enumerate(anchors):
         members = component == c

@@ -16,13 +16,16 @@ from sghr_gtsam.features.local import NUM_THREADS, ScanFeatures
 from sghr_gtsam.types import InputError
 
 MATCHERS = ("kiss", "ransac")
-# A match counts towards r_ij when the final T_ij brings its two points within this many voxels.
+# Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 1.0
+# matching is 3x faster and registers the same pairs on the kitchen and the bunny.
+MATCH_EPS = 1.0
+# A match counts towards r_ij when the final T_ij brings its two points this close (voxels).
 INLIER_DISTANCE = 1.5
-# open3d RANSAC: inlier distance (voxels), and a budget that keeps it near a second a pair.
+# open3d RANSAC on the matches: inlier distance (voxels) and its stopping rule.
 RANSAC_DISTANCE = 1.5
 RANSAC_MAX_ITERATION = 100_000
 RANSAC_CONFIDENCE = 0.999
-# GICP stops at this many iterations or when an update moves less than these (rad; voxels).
+# GICP stops after this many iterations or when an update is below these (radians; voxels).
 GICP_MAX_ITERATIONS = 30
 GICP_ROTATION_EPS = 1e-4
 GICP_TRANSLATION_EPS = 1e-3
@@ -33,11 +36,11 @@ class PairResult:
     """Registration of scan j onto scan i.
 
     ``T``: (4, 4) ``T_ij``. ``inliers``: FPFH matches that ``T`` brings within ``INLIER_DISTANCE``
-    voxels (SGHR's ``r_ij``). ``fitness``: fraction of scan j's refinement points with a scan-i point
-    within the ICP distance; ``rmse``: RMS distance of those. ``information``: (6, 6) in gtsam's
-    tangent order [rotation, translation] for the perturbation ``T_ij @ exp(xi)``, from those ICP
-    correspondences with unit point noise (open3d's convention, scaled by 1/sigma^2 to taste);
-    None when there are fewer than 3. ``seconds``: wall time of ``register_pair``.
+    voxels (SGHR's ``r_ij``). ``fitness``: fraction of scan j's grid points with a scan-i point within
+    the ICP distance after ``T``; ``rmse``: RMS distance of those pairs. ``information``: (6, 6) in
+    gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, the sum of J^T J over those
+    pairs with unit point noise (open3d's ``get_information_matrix_from_point_clouds``, moved from its
+    left perturbation to gtsam's right one); None with fewer than 3 pairs. ``seconds``: wall time.
     """
 
     T: np.ndarray
@@ -49,25 +52,29 @@ class PairResult:
 
 
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (a, b) of FPFH mutual nearest neighbours: ``target_i.points[a]`` <-> ``source_j.points[b]``."""
-    _, nn_in_i = target_i.fpfh_tree.query(source_j.fpfh, k=1, workers=NUM_THREADS)
-    _, nn_in_j = source_j.fpfh_tree.query(target_i.fpfh, k=1, workers=NUM_THREADS)
+    """Indices (a, b): ``target_i.points[a]`` and ``source_j.points[b]`` are mutual FPFH nearest neighbours."""
+    _, nn_in_i = target_i.fpfh_tree.query(source_j.fpfh, k=1, eps=MATCH_EPS, workers=NUM_THREADS)
+    _, nn_in_j = source_j.fpfh_tree.query(target_i.fpfh, k=1, eps=MATCH_EPS, workers=NUM_THREADS)
     b = np.flatnonzero(nn_in_j[nn_in_i] == np.arange(len(nn_in_i)))
     return nn_in_i[b], b
 
 
 def _kiss(p_i: np.ndarray, p_j: np.ndarray, voxel: float) -> np.ndarray:
-    # In voxel units: kiss-matcher's noise bounds are multiples of its voxel size, and it refuses
-    # voxels under 5 mm (the bunny's is ~2 mm).
+    # Solved in voxel units: kiss-matcher's noise bounds are multiples of its voxel size, and it
+    # refuses voxels under 5 mm (the bunny's is 2.5 mm).
     solver = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(1.0))
-    solution = solver.prune_and_solve(list((p_j / voxel).astype(np.float32)), list((p_i / voxel).astype(np.float32)))
+    solution = solver.prune_and_solve(
+        list((p_j / voxel).astype(np.float32)), list((p_i / voxel).astype(np.float32))
+    )
     T = np.eye(4)
     T[:3, :3] = np.asarray(solution.rotation)
     T[:3, 3] = np.asarray(solution.translation).ravel() * voxel
     return T
 
 
-def _ransac(target_i: ScanFeatures, source_j: ScanFeatures, a: np.ndarray, b: np.ndarray, voxel: float, seed: int) -> np.ndarray:
+def _ransac(
+    target_i: ScanFeatures, source_j: ScanFeatures, a: np.ndarray, b: np.ndarray, voxel: float, seed: int
+) -> np.ndarray:
     reg = o3d.pipelines.registration
     o3d.utility.random.seed(seed)
     distance = RANSAC_DISTANCE * voxel
@@ -84,16 +91,15 @@ def _ransac(target_i: ScanFeatures, source_j: ScanFeatures, a: np.ndarray, b: np
     return np.asarray(result.transformation)
 
 
-def _information(p: np.ndarray) -> np.ndarray:
-    """Sum of J^T J over source points p (frame j), J = [-[p]x, I] the derivative of T exp(xi) p."""
-    n = len(p)
+def point_information(p: np.ndarray) -> np.ndarray:
+    """Sum over points p (N, 3) of J^T J, J = [-[p]x, I] = d(exp(xi) p)/d xi, xi = [rotation, translation]."""
     s = p.sum(axis=0)
     S = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
-    info = np.empty((6, 6))
+    info = np.zeros((6, 6))
     info[:3, :3] = np.sum(p * p) * np.eye(3) - p.T @ p
     info[:3, 3:] = S
     info[3:, :3] = S.T
-    info[3:, 3:] = n * np.eye(3)
+    info[3:, 3:] = len(p) * np.eye(3)
     return info
 
 
@@ -105,21 +111,24 @@ def register_pair(
     icp_distance: float = 1.5,
     seed: int = 0,
 ) -> PairResult:
-    """Estimate ``T_ij`` (scan j into scan i's frame); distances in voxels as in ``Config``."""
+    """Estimate ``T_ij`` (scan j into scan i's frame). ``icp_distance`` in voxels, as in ``Config``;
+    ``seed`` drives RANSAC (kiss-matcher is deterministic)."""
     if matcher not in MATCHERS:
-        raise InputError(f"unknown matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+        raise InputError(f"unknown matcher {matcher!r}; choose one of: {', '.join(MATCHERS)}")
     start = time.perf_counter()
     a, b = mutual_matches(target_i, source_j)
-    p_i, p_j = target_i.points[a], source_j.points[b]
     if len(a) < 3:
         return PairResult(np.eye(4), 0, 0.0, 0.0, None, time.perf_counter() - start)
+    p_i, p_j = target_i.points[a], source_j.points[b]
     T = _kiss(p_i, p_j, voxel) if matcher == "kiss" else _ransac(target_i, source_j, a, b, voxel, seed)
 
+    # GICP on the matching grid itself: on the bunny it lands within 0.14 deg / 0.14 mm (median) of
+    # ground truth, and a 2x finer grid gained 0.02 deg for 7x the time.
     max_distance = icp_distance * voxel
     T = small_gicp.align(
-        target_i.refine_cloud,
-        source_j.refine_cloud,
-        target_i.refine_tree,
+        target_i.cloud,
+        source_j.cloud,
+        target_i.cloud_tree,
         init_T_target_source=T,
         registration_type="GICP",
         max_correspondence_distance=max_distance,
@@ -132,16 +141,16 @@ def register_pair(
     residual = np.linalg.norm(p_j @ T[:3, :3].T + T[:3, 3] - p_i, axis=1)
     inliers = int(np.count_nonzero(residual < INLIER_DISTANCE * voxel))
 
-    q = source_j.refine_points
-    _, sq = target_i.refine_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], num_threads=NUM_THREADS)
-    sq = np.asarray(sq)
-    close = sq < max_distance**2
+    q = source_j.points
+    _, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], NUM_THREADS)
+    sq_dist = np.asarray(sq_dist)
+    close = sq_dist < max_distance**2
     n = int(np.count_nonzero(close))
     return PairResult(
         T=T,
         inliers=inliers,
-        fitness=n / max(len(q), 1),
-        rmse=float(np.sqrt(sq[close].mean())) if n else 0.0,
-        information=_information(q[close]) if n >= 3 else None,
+        fitness=n / len(q),
+        rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
+        information=point_information(q[close]) if n >= 3 else None,
         seconds=time.perf_counter() - start,
     )

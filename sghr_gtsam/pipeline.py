@@ -165,7 +165,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     if not np.any(graph.weight > 0):
         raise InputError("no pair of scans could be registered (do the scans overlap?)")
     with timer.stage("sync"):
-        result = synchronize(graph, method=config.method, iters=config.iters, polish=config.polish,
+        result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
+                             polish=config.polish,
                              min_weight=config.min_weight,
                              on_iteration=recorder.on_iteration if recorder else None)
 

@@ -10,6 +10,7 @@ unsupervised k-means codebook of the scene's own descriptors (``from_codebook``)
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 import torch.nn.functional as nnf
 from torch import nn
@@ -59,18 +60,20 @@ def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: 
                     iters: int = 25, seed: int = 0) -> np.ndarray:
     """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors."""
     rng = np.random.default_rng(seed)
-    X = np.concatenate(descriptors).astype(np.float32)
-    X /= np.linalg.norm(X, axis=1, keepdims=True) + 1e-12
+    X = np.concatenate(descriptors)
     if len(X) > samples:
         X = X[rng.choice(len(X), samples, replace=False)]
+    X = X.astype(np.float32)
+    X /= np.linalg.norm(X, axis=1, keepdims=True) + 1e-12
     clusters = min(clusters, len(X))
     C = X[rng.choice(len(X), clusters, replace=False)]
+    rows = np.arange(len(X))
     for _ in range(iters):
         labels = np.argmax(X @ C.T, axis=1)
-        for c in range(clusters):
-            members = X[labels == c]
-            if len(members):
-                C[c] = members.sum(0) / (np.linalg.norm(members.sum(0)) + 1e-12)
+        sums = sp.csr_matrix((np.ones(len(X), np.float32), (labels, rows)), shape=(clusters, len(X))) @ X
+        norms = np.linalg.norm(sums, axis=1)
+        filled = norms > 0  # an empty cluster keeps its centre
+        C[filled] = sums[filled] / norms[filled, None]
     return C
 
 

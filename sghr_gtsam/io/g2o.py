@@ -20,12 +20,14 @@ _UPPER = np.triu_indices(6)
 _G2O_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # gtsam index k holds g2o index _G2O_TO_GTSAM[k]
 
 
-def _pose(x: np.ndarray, where: str) -> np.ndarray:
-    """``x y z qx qy qz qw`` as a 4×4 transform."""
-    norm = np.linalg.norm(x[3:7])
-    if not np.all(np.isfinite(x)) or norm < 1e-12:
-        raise InputError(f"{where}: pose is not finite or its quaternion is zero")
-    return make_T(Rotation.from_quat(x[3:7] / norm).as_matrix(), x[:3])
+def _poses(x: np.ndarray, where: list[str]) -> np.ndarray:
+    """Rows ``x y z qx qy qz qw`` as 4×4 transforms; ``where[k]`` names row k's line for errors."""
+    x = x.reshape(-1, 7)
+    norm = np.linalg.norm(x[:, 3:], axis=1)
+    bad = ~np.all(np.isfinite(x), axis=1) | (norm < 1e-12)
+    if bad.any():
+        raise InputError(f"{where[np.flatnonzero(bad)[0]]}: pose is not finite or its quaternion is zero")
+    return make_T(Rotation.from_quat(x[:, 3:] / norm[:, None]).as_matrix().reshape(-1, 3, 3), x[:, :3])
 
 
 def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
@@ -52,10 +54,11 @@ def read_g2o(path: str | Path) -> tuple[list[int], np.ndarray, PoseGraph]:
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"cannot read g2o file {path}: {exc}") from None
     ids: list[int] = []
-    poses: list[np.ndarray] = []
-    ends: list[tuple[int, int, str]] = []
-    T: list[np.ndarray] = []
-    info: list[np.ndarray] = []
+    vertices: list[np.ndarray] = []
+    vertex_lines: list[str] = []
+    ends: list[tuple[int, int]] = []
+    edges: list[np.ndarray] = []
+    edge_lines: list[str] = []
     for line_no, line in enumerate(lines, start=1):
         tok = line.split()
         if not tok or tok[0].startswith("#") or tok[0] == "FIX":
@@ -64,38 +67,39 @@ def read_g2o(path: str | Path) -> tuple[list[int], np.ndarray, PoseGraph]:
         keys, x = _parse(tok, where)
         if len(keys) == 1:
             ids.append(keys[0])
-            poses.append(_pose(x, where))
-            continue
-        ends.append((keys[0], keys[1], where))
-        T.append(_pose(x[:7], where))
-        if not np.all(np.isfinite(x[7:])):
-            raise InputError(f"{where}: information is not finite")
-        omega = np.zeros((6, 6))
-        omega[_UPPER] = x[7:]
-        omega = omega + np.triu(omega, 1).T
-        info.append(omega[np.ix_(_G2O_TO_GTSAM, _G2O_TO_GTSAM)])
+            vertices.append(x)
+            vertex_lines.append(where)
+        else:
+            ends.append((keys[0], keys[1]))
+            edges.append(x)
+            edge_lines.append(where)
+    poses = _poses(np.array(vertices), vertex_lines)
+    values = np.array(edges).reshape(-1, 28)
+    T = _poses(values[:, :7], edge_lines)
+    finite = np.all(np.isfinite(values[:, 7:]), axis=1)
+    if not finite.all():
+        raise InputError(f"{edge_lines[np.flatnonzero(~finite)[0]]}: information is not finite")
+    E = len(ends)
+    omega = np.zeros((E, 6, 6))
+    omega[:, _UPPER[0], _UPPER[1]] = values[:, 7:]
+    omega = omega + np.swapaxes(np.triu(omega, 1), 1, 2)
+    information = omega[:, _G2O_TO_GTSAM][:, :, _G2O_TO_GTSAM]
     index = {v: k for k, v in enumerate(ids)}
     if len(index) != len(ids):
         raise InputError(f"{path}: duplicate vertex ids")
-    for a, b, where in ends:
+    for (a, b), where in zip(ends, edge_lines):
         if a not in index or b not in index:
             raise InputError(f"{where}: edge {a}-{b} refers to a vertex that is not defined")
-    E = len(ends)
-    graph = PoseGraph(
-        n=len(ids),
-        i=np.array([index[a] for a, _, _ in ends], dtype=int),
-        j=np.array([index[b] for _, b, _ in ends], dtype=int),
-        T=np.array(T).reshape(E, 4, 4),
-        weight=np.ones(E),
-        information=np.array(info).reshape(E, 6, 6),
-    )
-    return ids, np.array(poses).reshape(len(ids), 4, 4), graph
+    graph = PoseGraph(n=len(ids), i=np.array([index[a] for a, _ in ends], dtype=int).reshape(E),
+                      j=np.array([index[b] for _, b in ends], dtype=int).reshape(E), T=T, weight=np.ones(E),
+                      information=information)
+    return ids, poses, graph
 
 
-def _quat_line(T: np.ndarray) -> str:
-    x, y, z = T[:3, 3]
-    qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
-    return " ".join(repr(float(v)) for v in (x, y, z, qx, qy, qz, qw))
+def _pose_fields(T: np.ndarray) -> list[str]:
+    """``x y z qx qy qz qw`` of each transform (E, 4, 4), formatted with ``repr`` (lossless)."""
+    values = np.hstack([T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_quat()])
+    return [" ".join(map(repr, row)) for row in values.tolist()]
 
 
 def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray, graph: PoseGraph) -> None:
@@ -110,13 +114,12 @@ def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray, graph: PoseGr
     if info is None:
         info = graph.weight[:, None, None] * np.eye(6)
     back = np.argsort(_G2O_TO_GTSAM)
+    upper = info[:, back][:, :, back][:, _UPPER[0], _UPPER[1]]
     with atomic_write(path) as f:
-        for v, T in zip(ids, poses):
-            f.write(f"VERTEX_SE3:QUAT {v} {_quat_line(T)}\n")
-        for a, b, T, omega in zip(graph.i, graph.j, graph.T, info):
-            upper = omega[np.ix_(back, back)][_UPPER]
-            f.write(f"EDGE_SE3:QUAT {ids[a]} {ids[b]} {_quat_line(T)} "
-                    + " ".join(repr(float(x)) for x in upper) + "\n")
+        for v, fields in zip(ids, _pose_fields(np.asarray(poses).reshape(-1, 4, 4))):
+            f.write(f"VERTEX_SE3:QUAT {v} {fields}\n")
+        for a, b, fields, values in zip(graph.i, graph.j, _pose_fields(graph.T), upper.tolist()):
+            f.write(f"EDGE_SE3:QUAT {ids[a]} {ids[b]} {fields} {' '.join(map(repr, values))}\n")
 
 
 def sesync_precisions(information: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -140,7 +143,8 @@ def isotropic_information(information: np.ndarray) -> np.ndarray:
 
 
 def sesync_objective(poses: np.ndarray, graph: PoseGraph) -> float:
-    """``f = Σ κ‖R_j − R_i R̃_ij‖²_F + τ‖t_j − t_i − R_i t̃_ij‖²`` (no ½) with κ, τ from ``graph.information``."""
+    """SE-Sync's ``f = Σ κ‖R_j − R_i R̃_ij‖²_F + τ‖t_j − t_i − R_i t̃_ij‖²`` (no ½) at ``poses``, with κ, τ
+    from ``graph.information``."""
     if graph.information is None:
         raise InputError("the SE-Sync objective needs the edges' information matrices")
     kappa, tau = sesync_precisions(graph.information)

@@ -34,8 +34,9 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
 
     ``method``: a key of ``METHODS``. ``iters``: IRLS iterations M. ``reweight``: ``"authors"`` (δ in degrees,
     factor 2, as the authors' code) or ``"paper"`` (δ in radians, as the paper writes it); see ``irls``.
-    ``polish``: refine with gtsam Levenberg-Marquardt (method ``"lm"`` always does). Edges whose final weight
-    is below ``min_weight`` times the largest are dropped (weight 0 in the result).
+    ``polish``: refine with gtsam Levenberg-Marquardt (method ``"lm"`` always does), every kept edge with
+    its initial weight as precision scale. Edges whose final weight is below ``min_weight`` times the
+    largest are dropped (weight 0 in the result).
 
     The nodes split into connected parts over the kept edges; ``SyncResult.component`` labels them (0 =
     the largest) and every part is anchored at its own first node (the identity). A node without kept
@@ -75,9 +76,12 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     if polish or method == "lm":
         from ..factor_graph import edge_information, polish as lm_polish
 
-        refined = lm_polish(graph, poses, edge_information(graph, weights), component, weights=weights,
-                            relative_tol=1e-9 if method == "lm" else 1e-6, on_iteration=keep_history)
-        poses = refined.poses
+        # The history weights decide which edges are kept; as precisions they are miscalibrated (an inlier
+        # 3° off has e⁻⁶ of the weight of a perfect one), which measurably costs accuracy, so the kept edges
+        # enter least squares with their initial weights (see factor_graph).
+        information = edge_information(graph, np.where(kept, graph.weight, 0.0))
+        poses = lm_polish(graph, poses, information, component, weights=weights,
+                          relative_tol=1e-9 if method == "lm" else 1e-6, on_iteration=keep_history).poses
     residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
     return SyncResult(poses=poses, weights=weights, residual_deg=np.degrees(residual), component=component,
                       history=history)

@@ -1,4 +1,4 @@
-"""IRLS with history reweighting (SGHR step 3, Wang et al. CVPR 2023, Eq. 6-7).
+"""IRLS with history reweighting (SGHR step 3, Wang et al., CVPR 2023).
 
 Iteration ``n = 1..M``: spectral rotations and least-squares translations with the weights ``wⁿ⁻¹``, the
 rotation residual ``δⁿ_ij = ∠(R_ijᵀ R_iᵀ R_j)`` of every edge, then
@@ -12,10 +12,12 @@ without a sustained good residual. A last solve with ``w^M`` gives the output po
 
 - ``"paper"``: ``δ`` in radians, ``c = 1``, as the paper writes it. The total exponent is a weighted mean
   residual, so an edge off by 90° loses only a factor e^1.6 against a perfect one: outliers keep influence.
-- ``"authors"``: as the authors' code (WHU-USI3DV/SGHR, ``TransSync/Laplacian_TS.py``): ``δ`` in degrees and
-  ``c = 2``; an edge 5° worse than another ends with e⁻¹⁰ of its relative weight. Translations are solved
-  only after the last iteration (they do not enter the weights), so the per-iteration records carry the
-  translations of the initial solve.
+- ``"authors"`` (default): as the authors' code (WHU-USI3DV/SGHR, ``TransSync/Laplacian_TS.py``): ``δ`` in
+  degrees and ``c = 2``; an edge 5° worse than another ends with e⁻¹⁰ of its relative weight. Translations
+  are solved only after the last iteration (they do not enter the weights), so the per-iteration records
+  carry the translations of the initial solve. On synthetic graphs with 30 % gross outliers it drops every
+  outlier, where ``"paper"`` keeps them all weighted and ends more than twice as far from the truth
+  (``tests/test_sync.py``); the paper's published numbers come from this code.
 
 ``schedule`` gives the paper's ablations: ``"history"`` (the ``g(m)`` above), ``"constant"`` (``g = 1/M``) and
 ``"current"`` (no history: ``wⁿ = w⁰ · exp(−c δⁿ)``).
@@ -34,19 +36,23 @@ import numpy as np
 
 from ..se3 import make_T
 from ..types import IterationRecord, PoseGraph
-from .rotation import connected_components, rotation_residuals, spectral_rotations
+from .rotation import rotation_residuals, spectral_rotations
 from .translation import solve_translations
 
 REWEIGHTS = ("paper", "authors")
+ITERATION_TOL = 1e-7
+"""Eigen-solver tolerance inside the iterations (the last solve uses the default): the residuals only feed
+the weights, and this moves the rotations by ~1e-3° at a third less time (measured, 5000 scans)."""
 SCHEDULES = ("history", "constant", "current")
 
 
 @dataclass
 class IrlsResult:
+    """Poses from the last solve (weights ``w^M``, kept edges only), the weights and the records."""
+
     poses: np.ndarray  # (N, 4, 4)
     weights: np.ndarray  # (E,) final weights w^M, before dropping
     kept: np.ndarray  # (E,) bool: w^M >= min_weight * max(w^M)
-    component: np.ndarray  # (N,) parts over the kept edges, 0 = largest
     history: list[IterationRecord] = field(default_factory=list)
 
 
@@ -78,7 +84,7 @@ def schedule_weights(M: int, schedule: str) -> np.ndarray:
     raise ValueError(f"unknown schedule {schedule!r}; choose from {SCHEDULES}")
 
 
-def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "paper", schedule: str = "history",
+def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedule: str = "history",
          min_weight: float = 1e-3,
          on_iteration: Callable[[IterationRecord], None] | None = None) -> IrlsResult:
     """Run ``iters`` reweighting iterations from the weights ``graph.weight`` (``w⁰``); see the module doc."""
@@ -97,7 +103,7 @@ def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "paper", schedule
     cache: dict = {}  # preconditioner factorizations, reused while the weights change slowly
     for m in range(1, iters + 1):
         used = np.where(kept_edges(w, min_weight), w, 0.0)
-        R = spectral_rotations(n, i, j, R_ij, used, init=R, cache=cache)
+        R = spectral_rotations(n, i, j, R_ij, used, init=R, cache=cache, tol=ITERATION_TOL)
         if reweight == "paper" or m == 1:
             t = solve_translations(n, i, j, R, graph.T[:, :3, 3], used)
         delta = rotation_residuals(R, i, j, R_ij)
@@ -114,5 +120,4 @@ def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "paper", schedule
     kept = kept_edges(w, min_weight)
     used = np.where(kept, w, 0.0)
     poses = solve_poses(graph, used, init=R, cache=cache)
-    return IrlsResult(poses=poses, weights=w, kept=kept, component=connected_components(n, i, j, kept),
-                      history=history)
+    return IrlsResult(poses=poses, weights=w, kept=kept, history=history)

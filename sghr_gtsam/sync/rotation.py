@@ -1,16 +1,20 @@
-"""Spectral rotation synchronization (SGHR step 3, Arrigoni et al.'s eigenvector relaxation).
+"""Spectral rotation synchronization (SGHR step 3; the eigenvector relaxation of Singer 2011, Arrigoni et al. 2016).
 
 With ``R_ij = R_iᵀ R_j`` the weighted connection Laplacian ``L = D ⊗ I₃ − W`` (blocks ``W_ij = w R_ij``,
 ``W_ji = w R_ijᵀ``) annihilates the stacked matrix ``X`` with blocks ``X_i = R_iᵀ``; its three eigenvectors of
 smallest eigenvalue span ``X Q`` for some 3×3 ``Q``, so each 3×3 block, transposed and projected onto SO(3),
 gives ``R_i`` up to one global rotation, fixed by anchoring the first node of each connected part at identity.
 
-Eigen-solver, chosen by measurement (2 cores): ARPACK ``which='SA'`` needs seconds on chains with loop
-closures; shift-invert is fast on chains but its sparse LU fills in on well-connected graphs (4 s for a
-15000×15000 k-nearest-neighbour Laplacian, minutes on random graphs). LOBPCG started from a rotation estimate
-and preconditioned with ``D (L_s + σI)⁻¹ Dᵀ`` (``L_s`` the scalar weighted graph Laplacian, ``D`` the estimate's
-rotations; exact in the noise-free case) converges in a few iterations everywhere, and IRLS gives it the
-previous iterate as the estimate. Shift-invert remains as the fallback, dense ``eigh`` for small parts.
+Eigen-solver, chosen by measurement on 2 cores. ARPACK ``which='SA'`` needs seconds on chains with loop
+closures. Shift-invert is fast on chains, but the sparse LU of the 3n×3n Laplacian fills in on
+well-connected graphs (4 s for a 15000×15000 k-nearest-neighbour Laplacian, minutes on random graphs), and
+ARPACK needs many solves when the bottom eigenvalues cluster. Used here: LOBPCG started from a rotation
+estimate (the previous IRLS iterate, else a maximum-weight spanning tree) and preconditioned with
+``D (L_s + σI)⁻¹ Dᵀ`` — ``L_s`` the n×n scalar weighted Laplacian, ``D`` the estimate's rotations — which is
+L's inverse when the edges agree with the estimate, so it converges in 3-9 iterations once outliers are
+down-weighted. While outliers still carry weight the spectrum is flat and that preconditioner fails; then
+the LU of L itself preconditions (and is the shift-invert fallback). Within IRLS the factorizations are
+reused across iterations while they keep working. Parts under ``DENSE_NODES`` use dense ``eigh``.
 """
 
 from __future__ import annotations
@@ -25,19 +29,23 @@ from scipy.sparse.linalg import LinearOperator, eigsh, lobpcg, splu
 
 from ..se3 import project_to_so3, rotation_angle
 
-DENSE_NODES = 80
-"""Parts with fewer nodes use a dense eigendecomposition (a 90×90 ``eigh`` is below a millisecond)."""
+DENSE_NODES = 30
+"""Parts with fewer nodes use a dense eigendecomposition: a 90×90 ``eigh`` takes under a millisecond, while
+from ~150×150 a multithreaded BLAS on a busy machine makes it 10-50× slower than warm LOBPCG (measured)."""
 _SHIFT = 1e-6
 """Preconditioner / shift-invert shift, relative to the mean weighted degree: it only has to make the
 singular Laplacian invertible, and a small shift amplifies the wanted bottom eigenspace."""
-_TOL = 1e-9
-"""LOBPCG residual tolerance relative to the largest weighted degree."""
+TOL = 1e-9
+"""Default LOBPCG residual tolerance, relative to the largest weighted degree."""
 _MAXITER = 20
+"""LOBPCG iterations per attempt; a good preconditioner needs 3-9."""
 _RESTARTS = 2
+"""Attempts with the scalar preconditioner, each from the rotations of the previous attempt."""
 _REFRESH = 8
 """A cached factorization is dropped after a solve that needed more preconditioner applications than this
 and than twice what it needed when fresh."""
 _PROBE = 5
+"""Iterations the scalar preconditioner gets right after the exact one was needed."""
 
 
 def connected_components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -117,14 +125,15 @@ def dense_connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarr
 
 
 def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                       init: np.ndarray | None = None, cache: dict | None = None) -> np.ndarray:
+                       init: np.ndarray | None = None, cache: dict | None = None, tol: float = TOL) -> np.ndarray:
     """Absolute rotations ``R_i`` (n, 3, 3) from relative rotations ``R_ij = R_iᵀR_j`` with weights ``w``.
 
     Edges with ``w <= 0`` are ignored; every connected part is solved on its own and its first node is
     the identity (a node without edges too). ``init``: optional (n, 3, 3) rotation estimate (the previous
     IRLS iterate) to start and precondition the eigen-solver. ``cache``: a dict the caller keeps across
     calls on one graph (IRLS) so that a part reuses its preconditioner factorization while it still
-    works. Both change the speed, not the result.
+    works. Both change the speed, not the result. ``tol``: LOBPCG residual tolerance relative to the
+    largest weighted degree (parts of ``DENSE_NODES`` or more).
     """
     out = np.tile(np.eye(3), (n, 1, 1))
     keep = w > 0
@@ -135,7 +144,7 @@ def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: n
             V = _dense_bottom(dense_connection_laplacian(m, li, lj, R[edges], w[edges]))
         else:
             V = _sparse_bottom(connection_laplacian(m, li, lj, R[edges], w[edges]), li, lj, R[edges], w[edges],
-                               None if init is None else init[nodes], cache, nodes.tobytes())
+                               None if init is None else init[nodes], cache, nodes.tobytes(), tol)
         Rs = _blocks_to_rotations(V)
         out[nodes] = Rs[0].T @ Rs
     return out
@@ -174,12 +183,12 @@ def _conjugated(factor, est: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 
 def _sparse_bottom(L: sp.csr_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                   init: np.ndarray | None, cache: dict | None, key: bytes) -> np.ndarray:
+                   init: np.ndarray | None, cache: dict | None, key: bytes, tol: float) -> np.ndarray:
     """Bottom eigenvectors by preconditioned LOBPCG; ``cache[key]`` keeps ``(kind, factor, applications)``."""
     n = L.shape[0] // 3
     degree = np.bincount(i, w, n) + np.bincount(j, w, n)
     shift = _SHIFT * degree.mean()
-    tol = _TOL * degree.max()
+    tol = tol * degree.max()
     est = spanning_tree_rotations(n, i, j, R, w) if init is None else init
     V = np.swapaxes(est, 1, 2).reshape(3 * n, 3)
     cache = {} if cache is None else cache
