@@ -15,6 +15,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multiview point-cloud registration: SGHR with a GTSAM back end.")
 
 _DEFAULT = Config()
+_METHOD_NAMES = ("history", "constant", "current", "spectral", "lm")
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -95,3 +96,31 @@ def demo(
         typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
     typer.echo(f"{len(result.registered)}/{len(result.names)} scans registered in "
                f"{result.timings['total']:.1f} s; results in {out / 'results'}")
+
+
+@app.command()
+def sync(
+    graph_file: Path = typer.Argument(..., help="A 3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."),
+    out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
+    method: str = typer.Option("lm", help="Synchronization method: " + ", ".join(_METHOD_NAMES) + "."),
+    iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods)."),
+    noise: str = typer.Option("information", help="information: each edge's own 6x6 information; "
+                              "isotropic: SE-Sync's precisions (2κ rotation, τ translation)."),
+) -> None:
+    """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
+    from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
+    from .sync import synchronize
+
+    def work() -> None:
+        if noise not in ("information", "isotropic"):
+            raise InputError(f"--noise must be 'information' or 'isotropic', got {noise!r}")
+        ids, _, graph = read_g2o(graph_file)
+        if noise == "isotropic":
+            graph.information = isotropic_information(graph.information)
+        result = synchronize(graph, method=method, iters=iters)
+        write_g2o(out, ids, result.poses, graph)
+        parts = int(result.component.max()) + 1
+        typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "
+                   f"SE-Sync objective {sesync_objective(result.poses, graph):.6g} -> {out}")
+
+    _guard(work)

@@ -75,3 +75,26 @@ def test_module_entry_point_prints_no_traceback(tmp_path):
                           capture_output=True, text=True)
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error:") and "Traceback" not in proc.stderr
+
+
+def test_sync_command_reaches_the_published_optimum(data_dir, tmp_path):
+    """`sync --noise isotropic` on parking-garage: SE-Sync objective at f* = 1.263 (4 digits published)."""
+    from sghr_gtsam.io.g2o import read_g2o, sesync_objective
+
+    out = tmp_path / "pg.g2o"
+    r = _run("sync", data_dir / "posegraph" / "parking-garage.g2o", "--out", out, "--noise", "isotropic")
+    assert r.exit_code == 0, r.output
+    ids, poses, graph = read_g2o(out)
+    _, _, original = read_g2o(data_dir / "posegraph" / "parking-garage.g2o")
+    assert len(ids) == 1661 and graph.num_edges == 6275
+    np.testing.assert_allclose(graph.T, original.T, atol=1e-6)
+    f = sesync_objective(poses, original)
+    assert abs(f - 1.263) <= 0.0005 + 1e-4 * 1.263
+
+
+def test_sync_command_rejects_a_bad_file(tmp_path):
+    bad = tmp_path / "bad.g2o"
+    bad.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nEDGE_SE3:QUAT 0 1 oops\n")
+    r = _run("sync", bad, "--out", tmp_path / "o.g2o")
+    assert r.exit_code == 2 and "error:" in r.output
+    assert not (tmp_path / "o.g2o").exists()
