@@ -7,7 +7,7 @@ time a pair takes, and how well the inlier count r_ij separates right pairs from
 A pair is *right* within 5 deg / 0.2 m (kitchen) or 1 deg / 1 mm (bunny). Its ground-truth overlap is
 the larger of the two fractions of grid points with a point of the other scan within 3 voxels after
 ground-truth alignment; pairs over 0.1 are the ones a registration can be asked to get. *Near* pairs
-are wrong but within 10 deg / 10 voxels (a refinement short of the bounds); *far* pairs are the rest.
+are wrong but within 5 deg / 5 voxels (a refinement short of the bounds); *far* pairs are the rest.
 ``frac`` is r_ij over the smaller scan's grid size, a scale-free form of r_ij. Times are wall clock.
 """
 
@@ -24,13 +24,11 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel  # noqa: E402
-from sghr_gtsam.io.poses import read_poses  # noqa: E402
-from sghr_gtsam.io.scans import load_scan  # noqa: E402
-from sghr_gtsam.pairwise import MATCHERS, register_pair  # noqa: E402
-from sghr_gtsam.se3 import inv_T, relative_errors, transform_points  # noqa: E402
+from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
+from sghr_gtsam.io.poses import read_poses
+from sghr_gtsam.io.scans import load_scan
+from sghr_gtsam.pairwise import MATCHERS, register_pair
+from sghr_gtsam.se3 import inv_T, relative_errors, transform_points
 
 DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 # scene: (folder, ground-truth file, rotation bound deg, translation bound in scene units)
@@ -40,7 +38,7 @@ SCENES = {
 }
 OVERLAP_RADIUS = 3.0  # voxels
 MIN_OVERLAP = 0.1
-NEAR = (10.0, 10.0)  # deg, voxels
+NEAR = (5.0, 5.0)  # deg, voxels
 
 
 @dataclass

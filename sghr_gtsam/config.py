@@ -12,7 +12,8 @@ class Config:
     # --- scans and local features -------------------------------------------------------------
     voxel: float | None = None
     """Voxel size in scene units. None: derived from the scene as 1/100 of the median scan's
-    bounding-box diagonal (about 3 cm for a 3DMatch fragment, 2 mm for the bunny)."""
+    bounding-box diagonal (4.2 cm on the 3DMatch kitchen, 2.5 mm on the Stanford bunny: where the
+    pairwise benchmark got the most pairs right on both)."""
     min_points: int = 100
     """A scan with fewer finite points (after loading) is skipped and reported."""
     normal_radius: float = 2.0
@@ -31,6 +32,11 @@ class Config:
     """Robust estimator on mutual-nearest-neighbour matches: 'kiss' (kiss-matcher) or 'ransac' (open3d)."""
     icp_distance: float = 1.5
     """ICP correspondence distance, in voxels."""
+    min_inliers: int = 15
+    """A pair whose final transform agrees with fewer descriptor matches than this counts as not
+    registered (initial weight 0). Measured (benchmarks/bench_pairwise.py): right pairs have >= 28
+    inliers and wrong ones <= 11 on both the kitchen and the bunny; a handful of matches agree with
+    a random pose by chance."""
 
     # --- synchronization -----------------------------------------------------------------------------
     iters: int = 50

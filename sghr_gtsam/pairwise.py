@@ -12,21 +12,25 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
-from sghr_gtsam.features.local import NUM_THREADS, ScanFeatures
+from sghr_gtsam.features.local import GICP_THREADS, NUM_THREADS, ScanFeatures
 from sghr_gtsam.types import InputError
 
 MATCHERS = ("kiss", "ransac")
-# Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 1.0
-# matching is 3x faster and registers the same pairs on the kitchen and the bunny.
-MATCH_EPS = 1.0
+# Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
+# matching is 4-6x faster than exact search and registers the same pairs (+-1) on the kitchen and
+# the bunny; with 3 both scenes lose pairs.
+MATCH_EPS = 2.0
 # A match counts towards r_ij when the final T_ij brings its two points this close (voxels).
 INLIER_DISTANCE = 1.5
 # open3d RANSAC on the matches: inlier distance (voxels) and its stopping rule.
 RANSAC_DISTANCE = 1.5
 RANSAC_MAX_ITERATION = 100_000
 RANSAC_CONFIDENCE = 0.999
-# GICP stops after this many iterations or when an update is below these (radians; voxels).
-GICP_MAX_ITERATIONS = 30
+# GICP stops after this many iterations or when an update is below these (radians; voxels). From a
+# robust estimate it converges in 2-7 iterations (36 of the 44 right kitchen and bunny pairs); the
+# rest creep along low-overlap surfaces, and a cap of 10 registers the same pairs as 30 at half the
+# cost (wrong pairs never converge, so they always use the whole cap).
+GICP_MAX_ITERATIONS = 10
 GICP_ROTATION_EPS = 1e-4
 GICP_TRANSLATION_EPS = 1e-3
 
@@ -61,7 +65,8 @@ def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.n
 
 def _kiss(p_i: np.ndarray, p_j: np.ndarray, voxel: float) -> np.ndarray:
     # Solved in voxel units: kiss-matcher's noise bounds are multiples of its voxel size, and it
-    # refuses voxels under 5 mm (the bunny's is 2.5 mm).
+    # refuses voxels under 5 mm (the bunny's is 2.5 mm). ROBIN's max-core pruning before the GNC
+    # solver matters: the solver alone got 14 kitchen pairs right where pruning got 17 (3 cm grid).
     solver = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(1.0))
     solution = solver.prune_and_solve(
         list((p_j / voxel).astype(np.float32)), list((p_i / voxel).astype(np.float32))
@@ -122,8 +127,10 @@ def register_pair(
     p_i, p_j = target_i.points[a], source_j.points[b]
     T = _kiss(p_i, p_j, voxel) if matcher == "kiss" else _ransac(target_i, source_j, a, b, voxel, seed)
 
-    # GICP on the matching grid itself: on the bunny it lands within 0.14 deg / 0.14 mm (median) of
-    # ground truth, and a 2x finer grid gained 0.02 deg for 7x the time.
+    # GICP on the matching grid itself: on the bunny's right pairs it lands 0.15 deg / 0.16 mm (median)
+    # from ground truth; a 2x finer grid gained 0.02 deg for 7x the time. Started at ground truth,
+    # open3d's point-to-plane ICP drifted 1.4-4 deg on bunny pairs of overlap 0.3-0.55 where GICP
+    # stayed within 0.2-0.7 deg, and took 9x longer.
     max_distance = icp_distance * voxel
     T = small_gicp.align(
         target_i.cloud,
@@ -132,7 +139,7 @@ def register_pair(
         init_T_target_source=T,
         registration_type="GICP",
         max_correspondence_distance=max_distance,
-        num_threads=NUM_THREADS,
+        num_threads=GICP_THREADS,
         max_iterations=GICP_MAX_ITERATIONS,
         rotation_epsilon=GICP_ROTATION_EPS,
         translation_epsilon=GICP_TRANSLATION_EPS * voxel,
@@ -142,7 +149,7 @@ def register_pair(
     inliers = int(np.count_nonzero(residual < INLIER_DISTANCE * voxel))
 
     q = source_j.points
-    _, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], NUM_THREADS)
+    _, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], GICP_THREADS)
     sq_dist = np.asarray(sq_dist)
     close = sq_dist < max_distance**2
     n = int(np.count_nonzero(close))

@@ -151,6 +151,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
                                        icp_distance=config.icp_distance, seed=config.seed))
     s = scores[edges[:, 0], edges[:, 1]]
     r = np.array([p.inliers for p in pairs], dtype=float)
+    r[r < config.min_inliers] = 0.0  # a failed pair is no measurement at all
     info = [p.information for p in pairs]
     graph = PoseGraph(
         n=n, i=edges[:, 0].copy(), j=edges[:, 1].copy(),

@@ -50,7 +50,7 @@ def test_numpy_baselines_recover_an_exact_graph(seed, n):
         np.testing.assert_allclose(result.poses[0], np.eye(4), atol=1e-9)
 
 
-@pytest.mark.parametrize("name", ["gnc_tls", "shonan", "open3d"])
+@pytest.mark.parametrize("name", ["gnc_tls", "shonan", "open3d", "open3d_all_uncertain"])
 def test_gtsam_and_open3d_baselines_recover_an_exact_graph(name):
     graph, poses, _ = _graph(1)
     result = BASELINES[name](graph)

@@ -15,6 +15,9 @@ from scipy.spatial import cKDTree
 from sghr_gtsam.types import InputError
 
 NUM_THREADS = len(os.sched_getaffinity(0))
+# small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
+# one thread ran GICP 2.5x faster (wall) than two. scipy's k-d queries use plain threads.
+GICP_THREADS = 1
 # Neighbour caps of open3d's hybrid searches (the values open3d's own FPFH pipeline uses); they
 # bound the cost per point. With 100 the FPFH neighbourhood still fills a 5-voxel radius on a surface.
 NORMAL_MAX_NN = 30
@@ -52,8 +55,8 @@ def compute_features(
 
     Normals point towards the scan's origin: the sensor for scans in sensor coordinates (3DMatch),
     the object's inside for object-centred scans (Stanford). Either way they are consistent across
-    scans, which FPFH needs (its angles change sign with the normals); unoriented normals lost 3 of
-    17 right kitchen pairs (3 cm grid) and 3 of 21 bunny pairs (2 mm).
+    scans, which FPFH needs (its angles change sign with the normals): unoriented normals lose 4 of
+    the 20 right kitchen pairs and 5 of the 24 right bunny pairs.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -72,8 +75,8 @@ def compute_features(
 
     grid = np.asarray(pcd.points)
     cloud = small_gicp.PointCloud(grid)
-    cloud_tree = small_gicp.KdTree(cloud, num_threads=NUM_THREADS)
-    small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, NUM_THREADS)
+    cloud_tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
+    small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
     return ScanFeatures(
         points=grid,
         normals=np.asarray(pcd.normals),
@@ -88,10 +91,10 @@ def compute_features(
 def default_voxel(scans: list[np.ndarray]) -> float:
     """Voxel size from the scene: 1/100 of the median scan's bounding-box diagonal.
 
-    4.2 cm on the 3DMatch kitchen and 2.5 mm on the Stanford bunny. Measured (kiss-matcher, FPFH at
-    5 voxels): the kitchen registers 17 / 19 / 20 of its 29 overlapping pairs at 3 / 4.2 / 5 cm, the
-    bunny 23-24 of 43 anywhere from 2 to 4 mm; FPFH needs a ~20 cm support indoors, which 5 x 4.2 cm
-    gives, and a coarser grid is cheaper to match.
+    4.2 cm on the 3DMatch kitchen and 2.5 mm on the Stanford bunny, where both scenes do best:
+    with kiss-matcher and FPFH at 5 voxels the kitchen gets 19 / 20 / 19 of its 29 overlapping pairs
+    right at 3 / 4.2 / 5 cm (3 cm costs 2.5x the time), the bunny 24 / 24 / 22 / 19 at 2 / 2.5 / 3 /
+    4 mm (coarser grids miss its 1 mm bound).
     """
     finite = [s[np.isfinite(s).all(axis=1)] for s in map(np.asarray, scans)]
     diagonals = [np.linalg.norm(np.ptp(s, axis=0)) for s in finite if len(s)]

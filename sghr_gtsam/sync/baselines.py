@@ -18,8 +18,9 @@ parts over the edges a method kept (final weight > 0), each anchored at its firs
   ``edge_information``) from the spectral rotations, then least-squares translations. Not robust: it shows
   what plain certifiable rotation averaging does with outliers.
 - ``open3d``: open3d's ``global_optimization`` with its line process (Choi et al. 2015), Levenberg–Marquardt,
-  ``edge_prune_threshold`` 0.25, consecutive nodes as certain odometry and every other edge uncertain, from the
-  spectral estimate.
+  ``edge_prune_threshold`` 0.25, from the spectral estimate; consecutive nodes as certain odometry and every
+  other edge uncertain, as open3d's reconstruction system does. ``open3d_all_uncertain``: every edge uncertain
+  (SGHR's graphs have no odometry: any edge can be a failed registration).
 - ``oracle``: gtsam Levenberg–Marquardt on the true inlier edges only (told by the caller), the reference row.
 
 HARA (Lee & Civera) and LITS (Yew & Lee) have no public code and are not reproduced.
@@ -28,6 +29,7 @@ HARA (Lee & Civera) and LITS (Yew & Lee) have no public code and are not reprodu
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import scipy.sparse as sp
@@ -110,9 +112,10 @@ def oracle(graph: PoseGraph, inliers: np.ndarray, iters: int = 100) -> SyncResul
     return _result(graph, poses, w)
 
 
-def open3d_line_process(graph: PoseGraph, iters: int = 100) -> SyncResult:
+def open3d_line_process(graph: PoseGraph, iters: int = 100, odometry: bool = True) -> SyncResult:
     """open3d's global optimization from the spectral estimate; each edge's information is the project's
-    (``factor_graph.edge_information``), whose translation block sets open3d's line-process scale."""
+    (``factor_graph.edge_information``), whose translation block sets open3d's line-process scale.
+    ``odometry``: edges between consecutive nodes are certain (never pruned); otherwise all are uncertain."""
     import open3d as o3d
 
     from ..factor_graph import edge_information
@@ -125,8 +128,8 @@ def open3d_line_process(graph: PoseGraph, iters: int = 100) -> SyncResult:
     for e in np.flatnonzero(graph.weight > 0):
         a, b = int(graph.i[e]), int(graph.j[e])
         # open3d's edge maps its source into its target: T_ij takes scan j (source) into scan i (target).
-        # As open3d's reconstruction system: consecutive scans are certain odometry, the rest uncertain.
-        pose_graph.edges.append(reg.PoseGraphEdge(b, a, graph.T[e], information[e], uncertain=abs(a - b) != 1))
+        uncertain = not (odometry and abs(a - b) == 1)
+        pose_graph.edges.append(reg.PoseGraphEdge(b, a, graph.T[e], information[e], uncertain=uncertain))
     option = reg.GlobalOptimizationOption(max_correspondence_distance=OPEN3D_MAX_CORRESPONDENCE,
                                           edge_prune_threshold=OPEN3D_PRUNE,
                                           preference_loop_closure=OPEN3D_PREFERENCE, reference_node=0)
@@ -272,5 +275,6 @@ BASELINES: dict[str, Callable[..., SyncResult]] = {
     "gnc_tls": gnc_tls,
     "shonan": shonan,
     "open3d": open3d_line_process,
+    "open3d_all_uncertain": partial(open3d_line_process, odometry=False),
 }
 """Every baseline with the signature ``fn(graph, iters=...)`` (``oracle`` also needs the inlier mask)."""

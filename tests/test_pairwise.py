@@ -1,0 +1,142 @@
+"""Local features and pairwise registration: a generated scene with a known transform, and real pairs
+of the 3DMatch kitchen and the Stanford bunny against their ground truth."""
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
+from sghr_gtsam.io.poses import read_poses
+from sghr_gtsam.io.scans import load_scan
+from sghr_gtsam.pairwise import register_pair
+from sghr_gtsam.se3 import inv_T, make_T, relative_errors, transform_points
+from sghr_gtsam.types import InputError
+
+
+def boxes_scene(seed: int, layout: int = 0, n_boxes: int = 12, density: float = 4000.0) -> np.ndarray:
+    """Points sampled (by ``seed``) on the surfaces of randomly sized, placed and rotated boxes (chosen
+    by ``layout``) in a 4 m cube."""
+    rng = np.random.default_rng(seed)
+    box_rng = np.random.default_rng(layout)
+    parts = []
+    for _ in range(n_boxes):
+        size = box_rng.uniform(0.2, 1.0, 3)
+        R = Rotation.random(random_state=box_rng.integers(1 << 31)).as_matrix()
+        centre = box_rng.uniform(-2.0, 2.0, 3)
+        for axis in range(3):
+            u, w = [a for a in range(3) if a != axis]
+            n = int(density * size[u] * size[w])
+            for side in (-0.5, 0.5):
+                p = rng.uniform(-0.5, 0.5, (n, 3)) * size
+                p[:, axis] = side * size[axis]
+                parts.append(p @ R.T + centre)
+    return np.concatenate(parts)
+
+
+def open3d_information(fi: ScanFeatures, fj: ScanFeatures, T: np.ndarray, distance: float) -> np.ndarray:
+    """open3d's information matrix (left perturbation, target points) moved to gtsam's right one."""
+    source, target = (o3d.geometry.PointCloud(o3d.utility.Vector3dVector(f.points)) for f in (fj, fi))
+    left = o3d.pipelines.registration.get_information_matrix_from_point_clouds(source, target, distance, T)
+    R, t = T[:3, :3], T[:3, 3]
+    adjoint = np.zeros((6, 6))
+    adjoint[:3, :3] = adjoint[3:, 3:] = R
+    adjoint[3:, :3] = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    return adjoint.T @ np.asarray(left) @ adjoint
+
+
+@pytest.fixture(scope="module")
+def boxes():
+    T_ij = make_T(Rotation.from_rotvec([0.3, -0.5, 0.8]).as_matrix(), np.array([0.7, -0.4, 0.3]))
+    scan_i = boxes_scene(seed=1)
+    scan_j = transform_points(inv_T(T_ij), boxes_scene(seed=2))  # same surfaces, other samples
+    voxel = default_voxel([scan_i, scan_j])
+    return T_ij, voxel, compute_features(scan_i, voxel), compute_features(scan_j, voxel)
+
+
+def test_features_are_well_formed(boxes):
+    _, _, fi, _ = boxes
+    assert fi.points.shape == fi.normals.shape == (len(fi), 3) and fi.points.dtype == np.float64
+    assert fi.fpfh.shape == (len(fi), 33) and fi.fpfh.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(fi.normals, axis=1), 1.0, atol=1e-6)
+    assert np.all(np.einsum("ij,ij->i", fi.normals, -fi.points) >= 0)  # towards the scan's origin
+
+
+@pytest.mark.parametrize("matcher", ["kiss", "ransac"])
+def test_known_transform_is_recovered(boxes, matcher):
+    T_ij, voxel, fi, fj = boxes
+    result = register_pair(fi, fj, voxel, matcher=matcher)
+    rot, trans = relative_errors(result.T, T_ij)
+    assert rot < 0.1 and trans < 0.05 * voxel, (rot, trans)
+    assert result.inliers > 100
+    assert result.fitness > 0.9 and result.rmse < 0.5 * voxel
+
+
+def test_information_matches_open3d(boxes):
+    _, voxel, fi, fj = boxes
+    result = register_pair(fi, fj, voxel)
+    expected = open3d_information(fi, fj, result.T, 1.5 * voxel)
+    np.testing.assert_allclose(result.information, expected, rtol=0, atol=1e-2 * np.abs(expected).max())
+    assert np.all(np.linalg.eigvalsh(result.information) > 0)
+
+
+def test_unrelated_scans_give_few_inliers(boxes):
+    _, voxel, fi, fj = boxes
+    other = compute_features(boxes_scene(seed=3, layout=1), voxel)
+    assert register_pair(fi, other, voxel).inliers < 0.05 * register_pair(fi, fj, voxel).inliers
+
+
+def test_bad_arguments_are_input_errors(boxes):
+    _, voxel, fi, fj = boxes
+    with pytest.raises(InputError):
+        register_pair(fi, fj, voxel, matcher="teaser")
+    with pytest.raises(InputError):
+        compute_features(np.zeros((10, 2)), voxel)
+    with pytest.raises(InputError):
+        default_voxel([])
+
+
+# --- real data ------------------------------------------------------------------------------------
+
+
+def _scene(data_dir, folder, gt_file):
+    names, poses = read_poses(data_dir / gt_file)
+    scans = {n: load_scan(data_dir / folder / n) for n in names}
+    return dict(zip(names, poses)), scans, default_voxel(list(scans.values()))
+
+
+@pytest.fixture(scope="module")
+def kitchen(data_dir):
+    return _scene(data_dir, "kitchen", "kitchen/gt/gt_poses.txt")
+
+
+@pytest.fixture(scope="module")
+def bunny(data_dir):
+    return _scene(data_dir, "bunny", "bunny/gt_poses.txt")
+
+
+@pytest.mark.data
+def test_default_voxel_fits_both_scenes(kitchen, bunny):
+    assert 0.025 <= kitchen[2] <= 0.045  # metres: 3DMatch fragments are a few metres across
+    assert 0.0015 <= bunny[2] <= 0.003  # the bunny is ~15 cm
+
+
+@pytest.mark.data
+def test_kitchen_pair_and_a_pair_without_overlap(kitchen):
+    gt, scans, voxel = kitchen
+    f = {n: compute_features(scans[n], voxel) for n in ("cloud_bin_0.ply", "cloud_bin_1.ply", "cloud_bin_21.ply")}
+    right = register_pair(f["cloud_bin_0.ply"], f["cloud_bin_1.ply"], voxel)
+    rot, trans = relative_errors(right.T, inv_T(gt["cloud_bin_0.ply"]) @ gt["cloud_bin_1.ply"])
+    assert rot < 5.0 and trans < 0.1, (rot, trans)
+    # Fragments 1 and 21 do not overlap at all (3DMatch gt_overlap.log: 0.0).
+    wrong = register_pair(f["cloud_bin_1.ply"], f["cloud_bin_21.ply"], voxel)
+    assert wrong.inliers < 0.1 * right.inliers, (wrong.inliers, right.inliers)
+
+
+@pytest.mark.data
+def test_bunny_pair_is_precise(bunny):
+    gt, scans, voxel = bunny
+    fi, fj = (compute_features(scans[n], voxel) for n in ("bun000.ply", "bun045.ply"))
+    result = register_pair(fi, fj, voxel)
+    rot, trans = relative_errors(result.T, inv_T(gt["bun000.ply"]) @ gt["bun045.ply"])
+    assert rot < 1.0 and trans < 0.001, (rot, trans)

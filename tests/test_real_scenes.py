@@ -1,0 +1,51 @@
+"""End to end on real scans with ground truth (../shared/data; skipped when absent)."""
+
+import pytest
+
+from sghr_gtsam.config import Config
+from sghr_gtsam.evaluate import fragment_id, registration_recall, scan_errors
+from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_poses
+from sghr_gtsam.pipeline import run
+
+
+def _errors(result, gt_file):
+    gt_names, gt = read_poses(gt_file)
+    return scan_errors(result.names, result.poses, gt[[gt_names.index(n) for n in result.names]])
+
+
+@pytest.fixture(scope="module")
+def kitchen(data_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("kitchen")
+    return run(data_dir / "kitchen", out, Config(record=False), log=lambda m: None)
+
+
+@pytest.fixture(scope="module")
+def bunny(data_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bunny")
+    return run(data_dir / "bunny", out, Config(record=False), log=lambda m: None)
+
+
+def test_kitchen_registration_recall_is_complete(kitchen, data_dir):
+    gt = data_dir / "kitchen" / "gt"
+    keep = kitchen.registered
+    ids = [fragment_id(kitchen.names[k]) for k in keep]
+    rr = registration_recall(ids, kitchen.poses[keep], read_gt_log(gt / "gt.log"), read_gt_info(gt / "gt.info"))
+    assert len(rr.pairs) >= 10
+    assert rr.recall == 1.0, dict(zip(rr.pairs, rr.rmse.round(3)))
+
+
+def test_kitchen_scans_within_5_deg_and_20_cm(kitchen, data_dir):
+    err = _errors(kitchen, data_dir / "kitchen" / "gt" / "gt_poses.txt")
+    ok = err.within(5.0, 0.2)
+    registered = set(kitchen.registered)
+    report = {n: (round(r, 2), round(t, 3)) for n, r, t in zip(err.names, err.rotation_deg, err.translation)}
+    assert ok.sum() >= 8, report
+    # Every scan the tool does not flag must be right: a wrong pose is worse than a flag.
+    assert all(ok[k] for k in registered), (report, kitchen.unregistered)
+
+
+def test_bunny_all_scans_within_1_deg_and_1_mm(bunny, data_dir):
+    err = _errors(bunny, data_dir / "bunny" / "gt_poses.txt")
+    assert bunny.unregistered == []
+    assert err.rotation_deg.max() <= 1.0, err.rotation_deg
+    assert err.translation.max() <= 1e-3, err.translation
