@@ -9,6 +9,8 @@ unsupervised k-means codebook of the scene's own descriptors (``from_codebook``)
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -90,3 +92,19 @@ def global_features(model: NetVLAD, descriptors: list[np.ndarray], max_points: i
             x = torch.as_tensor(np.ascontiguousarray(d.T), dtype=torch.float32)[None]
             out.append(model(x)[0].numpy())
     return np.stack(out).astype(np.float64)
+
+
+DEFAULT_HEAD = Path(__file__).resolve().parents[1] / "weights" / "netvlad_fpfh.pth"
+"""The head shipped with the package: trained on FPFH (``compute_features`` at the scene's default voxel)
+of simulated scans only (``sghr_gtsam/weights/README.md`` says how)."""
+
+
+def load_default_head(path: str | Path | None = None) -> NetVLAD:
+    """The shipped overlap head (``DEFAULT_HEAD``), or the head at ``path``; for FPFH descriptors (33-d)."""
+    return load_checkpoint(str(path or DEFAULT_HEAD))
+
+
+def learned_scores(descriptors: list[np.ndarray], path: str | Path | None = None, seed: int = 0) -> np.ndarray:
+    """Overlap scores ``(F_iᵀF_j + 1)/2`` (N, N) of scans from the learned head (shipped or ``path``)."""
+    F = global_features(load_default_head(path), descriptors, seed=seed)
+    return (np.clip(F @ F.T, -1.0, 1.0) + 1.0) / 2.0
