@@ -54,6 +54,7 @@ def run(
     k: int = typer.Option(_DEFAULT.k, help="Top-k partners per scan (10 indoor, 6 outdoor)."),
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (history reweighting)."),
     method: str = typer.Option(_DEFAULT.method, help="Synchronization method."),
+    global_feature: str = typer.Option(_DEFAULT.global_feature, help="Overlap scores: vlad (scene codebook) or learned (shipped head)."),
     seed: int = typer.Option(_DEFAULT.seed, help="Seed of every random choice."),
     record: bool = typer.Option(_DEFAULT.record, help="Write recording.rrd for the Rerun viewer."),
     config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options given here override it."),
@@ -61,7 +62,8 @@ def run(
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     from .pipeline import run as run_pipeline
 
-    cfg = _config(config_file, voxel=voxel, k=k, iters=iters, method=method, seed=seed, record=record)
+    cfg = _config(config_file, voxel=voxel, k=k, iters=iters, method=method, seed=seed, record=record,
+                  global_feature=global_feature)
     out = out or Path("results") / scene_dir.resolve().name
     result = _guard(run_pipeline, scene_dir, out, cfg, log=typer.echo)
     typer.echo(f"registered {len(result.registered)}/{len(result.names)} scans in "
@@ -124,3 +126,14 @@ def sync(
                    f"SE-Sync objective {sesync_objective(result.poses, graph):.6g} -> {out}")
 
     _guard(work)
+
+
+@app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+             add_help_option=False)
+def train(ctx: typer.Context) -> None:
+    """Train the NetVLAD overlap head on simulated scans (see `train --help`)."""
+    from .train import train_command  # torch training code loads only for this command
+
+    sub = typer.Typer(add_completion=False)
+    sub.command()(train_command)
+    sub(ctx.args, prog_name="python -m sghr_gtsam train")

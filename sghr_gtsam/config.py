@@ -25,7 +25,11 @@ class Config:
     k: int = 10
     """Top-k partners per scan by overlap score (the paper: 10 indoor, 6 outdoor)."""
     global_feature: str = "vlad"
-    """Global feature: 'vlad' (unsupervised VLAD codebook on the local descriptors)."""
+    """Global feature: 'vlad' (NetVLAD initialised from a k-means codebook of this scene's FPFH) or
+    'learned' (the NetVLAD head trained on simulated scans, shipped in sghr_gtsam/weights). 'vlad' is
+    the default because it ranks overlaps better on the kitchen and the bunny (docs/BENCHMARKS.md)."""
+    overlap_head: str | None = None
+    """Checkpoint of the 'learned' head; None: the shipped one."""
 
     # --- pairwise registration ---------------------------------------------------------------------
     matcher: str = "kiss"

@@ -15,7 +15,7 @@ import numpy as np
 
 from .config import Config
 from .features.local import ScanFeatures, compute_features, default_voxel
-from .features.netvlad import NetVLAD, global_features, kmeans_codebook
+from .features.netvlad import NetVLAD, global_features, kmeans_codebook, load_default_head
 from .graph import overlap_scores, top_k_edges
 from .io.scans import finite_points, list_scans, load_scan
 from .pairwise import PairResult, register_pair
@@ -104,6 +104,11 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
 
 def _global_scores(features: list[ScanFeatures], config: Config) -> tuple[np.ndarray, str]:
     descriptors = [f.fpfh for f in features]
+    if config.global_feature == "learned":
+        F = global_features(load_default_head(config.overlap_head), descriptors, seed=config.seed)
+        return overlap_scores(F), f"learned NetVLAD head ({config.overlap_head or 'shipped weights'})"
+    if config.global_feature != "vlad":
+        raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
     codebook = kmeans_codebook(descriptors, seed=config.seed)
     model = NetVLAD.from_codebook(codebook)
     F = global_features(model, descriptors, seed=config.seed)

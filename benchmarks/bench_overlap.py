@@ -1,0 +1,246 @@
+"""Overlap report: how well each global feature's scores rank the real pairs, and how fast scoring is.
+
+Scenes (real evaluation data, never trained on): the 3DMatch kitchen (9 fragments; GT overlap from its
+``gt/gt_overlap.log``) and the Stanford bunny (10 scans; GT overlap from ``data_tools.gt_overlap`` under the
+GT poses, kitchen calibration scaled to the scene's voxel: radius 0.72 voxel on a 0.24-voxel grid,
+symmetric mean). Local descriptors: FPFH from ``compute_features`` at the pipeline's default voxel.
+
+Scores compared:
+- **learned head**: the shipped ``sghr_gtsam/weights/netvlad_fpfh.pth`` (trained on simulated scans only);
+- **VLAD codebook**: the unsupervised feature ``pipeline._global_scores`` uses (k-means codebook of this
+  scene's own FPFH, ``NetVLAD.from_codebook``);
+- **random**: uniform random scores (mean ± std over 1000 draws);
+- **GT (oracle)**: the GT overlaps themselves, the best any score can do;
+- kitchen 0–5 only: the authors' NetVLAD head on their YOHO descriptors (``sghr-reference``), for scale.
+
+Metrics: Spearman correlation of the scores with GT overlap over all pairs; for k = 3 and 5 the sparse graph
+``graph.top_k_edges`` (each scan's k best partners) and the fraction of its edges whose GT overlap > 0.1.
+
+Speed: the global feature of one scan from its descriptors (5000 of them, as the pipeline samples), and the
+all-pairs scores plus top-10 graph for N = 5000 random unit features with ``graph.overlap_scores`` +
+``graph.top_k_edges``; also a proposed variant (float32 Gram matrix, ``argpartition`` top-k) that gives the
+same edges.
+
+Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH] [--no-speed]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from data_tools.gt_overlap import fragment_id, overlap_matrix, relative_params  # noqa: E402
+from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E402
+from sghr_gtsam.features.netvlad import (  # noqa: E402
+    DEFAULT_HEAD,
+    NetVLAD,
+    global_features,
+    kmeans_codebook,
+    load_checkpoint,
+)
+from sghr_gtsam.graph import overlap_scores, top_k_edges  # noqa: E402
+from sghr_gtsam.io.poses import read_gt_overlap, read_poses  # noqa: E402
+from sghr_gtsam.io.scans import load_scan  # noqa: E402
+
+DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+KS = (3, 5)
+THRESHOLD = 0.1
+RANDOM_DRAWS = 1000
+
+
+def kitchen(data: Path) -> tuple[list[str], list[np.ndarray], np.ndarray]:
+    names, _ = read_poses(data / "kitchen" / "gt" / "gt_poses.txt")
+    log = read_gt_overlap(data / "kitchen" / "gt" / "gt_overlap.log")
+    ids = [fragment_id(n) for n in names]
+    G = np.eye(len(names))
+    for a, b in itertools.combinations(range(len(names)), 2):
+        G[a, b] = G[b, a] = log[tuple(sorted((ids[a], ids[b])))]
+    return names, [load_scan(data / "kitchen" / n) for n in names], G
+
+
+def bunny(data: Path) -> tuple[list[str], list[np.ndarray], np.ndarray]:
+    names, poses = read_poses(data / "bunny" / "gt_poses.txt")
+    scans = [load_scan(data / "bunny" / n) for n in names]
+    radius, grid = relative_params(default_voxel(scans))
+    return names, scans, overlap_matrix(scans, poses, radius, grid, mode="mean")
+
+
+def codebook_scores(desc: list[np.ndarray], seed: int = 0) -> np.ndarray:
+    """What ``pipeline._global_scores`` computes."""
+    model = NetVLAD.from_codebook(kmeans_codebook(desc, seed=seed))
+    return overlap_scores(global_features(model, desc, seed=seed))
+
+
+def metrics(S: np.ndarray, G: np.ndarray) -> dict[str, float]:
+    iu = np.triu_indices(len(G), 1)
+    out = {"spearman": float(spearmanr(S[iu], G[iu]).statistic)}
+    for k in KS:
+        edges = top_k_edges(S, k)
+        out[f"p@{k}"] = float(np.mean(G[edges[:, 0], edges[:, 1]] > THRESHOLD))
+        out[f"e@{k}"] = len(edges)
+    return out
+
+
+def random_metrics(G: np.ndarray, draws: int = RANDOM_DRAWS, seed: int = 0) -> dict[str, tuple[float, float]]:
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(draws):
+        S = rng.uniform(size=G.shape)
+        S = np.triu(S, 1) + np.triu(S, 1).T + np.eye(len(G))
+        rows.append(metrics(S, G))
+    return {key: (float(np.mean([r[key] for r in rows])), float(np.std([r[key] for r in rows]))) for key in rows[0]}
+
+
+def _row(name: str, m: dict) -> str:
+    def cell(key: str, fmt: str) -> str:
+        v = m[key]
+        return f"{v[0]:{fmt}} ± {v[1]:{fmt}}" if isinstance(v, tuple) else f"{v:{fmt}}"
+
+    parts = [cell("spearman", ".3f")]
+    for k in KS:
+        parts.append(f"{cell(f'p@{k}', '.2f')} ({cell(f'e@{k}', '.0f')})")
+    return f"| {name} | " + " | ".join(parts) + " |"
+
+
+def report_scene(title: str, names: list[str], desc: list[np.ndarray], G: np.ndarray, head: NetVLAD,
+                 extra: dict[str, np.ndarray] | None = None) -> dict[str, dict]:
+    iu = np.triu_indices(len(G), 1)
+    n_pairs, n_good = len(iu[0]), int((G[iu] > THRESHOLD).sum())
+    results = {
+        "learned head": metrics(overlap_scores(global_features(head, desc)), G),
+        "VLAD codebook (pipeline now)": metrics(codebook_scores(desc), G),
+        "random": random_metrics(G),
+        "GT (oracle)": metrics(G, G),
+    }
+    for name, S in (extra or {}).items():
+        results[name] = metrics(S, G)
+    print(f"\n### {title}: {len(names)} scans, {n_pairs} pairs, {n_good} with GT overlap > {THRESHOLD}\n")
+    print("| scores | Spearman ρ | " + " | ".join(f"top-{k}: frac. GT > {THRESHOLD} (edges)" for k in KS) + " |")
+    print("|---|---:|" + "---:|" * len(KS))
+    for name, m in results.items():
+        print(_row(name, m))
+    return results
+
+
+def fast_scores_top_k(F: np.ndarray, k: int) -> np.ndarray:
+    """Proposed: float32 Gram matrix and ``argpartition`` (then a stable sort of the k candidates); the same
+    edges as ``top_k_edges(overlap_scores(F), k)`` when no two scores of a row tie at the k-th place."""
+    F32 = np.asarray(F, dtype=np.float32)
+    G = F32 @ F32.T
+    np.fill_diagonal(G, -np.inf)
+    n = len(G)
+    k = min(k, n - 1)
+    cand = np.argpartition(-G, k - 1, axis=1)[:, :k]
+    order = np.argsort(-np.take_along_axis(G, cand, 1), axis=1, kind="stable")
+    partners = np.take_along_axis(cand, order, 1)
+    pairs = np.sort(np.stack([np.repeat(np.arange(n), k), partners.ravel()], 1), axis=1)
+    return np.unique(pairs, axis=0)
+
+
+def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 3) -> None:
+    D = head.centroids.numel()
+    d5000 = [d if len(d) >= 5000 else np.concatenate([d] * (5000 // len(d) + 1))[:5000] for d in desc]
+    per_scan = {}
+    default_threads = torch.get_num_threads()
+    for threads in sorted({default_threads, 1}, reverse=True):
+        torch.set_num_threads(threads)
+        global_features(head, d5000[:1])  # warm-up
+        times = []
+        for _ in range(3):
+            for d in d5000:
+                t0 = time.perf_counter()
+                global_features(head, [d])
+                times.append(time.perf_counter() - t0)
+        per_scan[threads] = times
+    torch.set_num_threads(default_threads)
+    t0 = time.perf_counter()
+    codebook_scores(desc)
+    codebook_total = time.perf_counter() - t0
+
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(n, D))
+    F /= np.linalg.norm(F, axis=1, keepdims=True)
+    t_scores, t_topk, t_fast = [], [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        S = overlap_scores(F)
+        t1 = time.perf_counter()
+        edges = top_k_edges(S, 10)
+        t2 = time.perf_counter()
+        fast = fast_scores_top_k(F, 10)
+        t3 = time.perf_counter()
+        t_scores.append(t1 - t0)
+        t_topk.append(t2 - t1)
+        t_fast.append(t3 - t2)
+        del S
+    same = np.array_equal(edges, fast)
+    load = os.getloadavg()[0]
+    print(f"\n### Speed (this machine: {os.cpu_count()} cores, load average {load:.1f} when measured; medians)\n")
+    print("| what | time | target |")
+    print("|---|---:|---:|")
+    for threads, times in per_scan.items():
+        print(f"| global feature of one scan, learned head, 5000 FPFH descriptors ({len(d5000)} kitchen scans "
+              f"x 3), torch {threads} thread{'s' if threads > 1 else ''} | {1e3 * np.median(times):.1f} ms | ≤ 50 ms |")
+    print(f"| VLAD codebook, k-means + features of the whole kitchen ({len(desc)} scans) | "
+          f"{1e3 * codebook_total:.0f} ms ({1e3 * codebook_total / len(desc):.0f} ms a scan) | |")
+    print(f"| `graph.overlap_scores`, N = {n}, D = {D} (float64) | {np.median(t_scores):.2f} s | |")
+    print(f"| `graph.top_k_edges`, k = 10, N = {n} | {np.median(t_topk):.2f} s | |")
+    total = np.median(np.array(t_scores) + np.array(t_topk))
+    print(f"| **scores + top-k (current graph.py)** | **{total:.2f} s** | ≤ 1 s |")
+    print(f"| proposed: float32 Gram + argpartition top-k (same edges: {same}) | {np.median(t_fast):.2f} s | ≤ 1 s |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--head", type=Path, default=DEFAULT_HEAD, help="learned head checkpoint")
+    parser.add_argument("--no-speed", action="store_true")
+    parser.add_argument("--only-speed", action="store_true", help="skip the overlap tables")
+    args = parser.parse_args(argv)
+    if not (args.data / "MANIFEST.md").is_file():
+        print(f"real data not found at {args.data} (set SGHR_DATA)")
+        return 2
+    head = load_checkpoint(str(args.head))
+    print(f"# Overlap report\n\nlearned head: `{args.head.name}` ({head.centroids.shape[0]} clusters × "
+          f"{head.centroids.shape[1]}-d FPFH); GT overlap > {THRESHOLD} counts as a good edge.")
+
+    names, scans, G = kitchen(args.data)
+    voxel = default_voxel(scans)
+    desc = [compute_features(P, voxel).fpfh for P in scans]
+    if args.only_speed:
+        speed(head, desc)
+        return 0
+    report_scene(f"3DMatch kitchen (voxel {100 * voxel:.2f} cm; GT: gt_overlap.log)", names, desc, G, head)
+
+    # The authors' head on their YOHO descriptors exists for fragments 0-5 only: the same 6 scans, all scores.
+    ref = args.data / "sghr-reference"
+    six = [names.index(f"cloud_bin_{i}.ply") for i in range(6)]
+    authors = load_checkpoint(str(ref / "netvlad_overlap_model_best.pth"))
+    yoho = [np.load(ref / "yoho" / f"cloud_bin_{i}.desc.npy") for i in range(6)]
+    report_scene("kitchen fragments 0–5 only", [names[k] for k in six], [desc[k] for k in six],
+                 G[np.ix_(six, six)], head,
+                 extra={"authors' head on YOHO (reference)": overlap_scores(global_features(authors, yoho))})
+
+    b_names, b_scans, b_G = bunny(args.data)
+    b_voxel = default_voxel(b_scans)
+    b_desc = [compute_features(P, b_voxel).fpfh for P in b_scans]
+    report_scene(f"Stanford bunny (voxel {1000 * b_voxel:.2f} mm; GT: gt_overlap tool, symmetric)", b_names,
+                 b_desc, b_G, head)
+
+    if not args.no_speed:
+        speed(head, desc)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

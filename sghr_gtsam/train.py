@@ -1,0 +1,311 @@
+"""Training the NetVLAD overlap head on FPFH descriptors (the SGHR recipe), from a cache of simulated scenes.
+
+Recipe (Wang et al., CVPR 2023, Sec. 3.1 and their ``train.py``): every step takes one scene, α ∈ [8, 60] of
+its scans and β ∈ [1024, 5000] keypoints a scan (their descriptors), computes the unit global features ``F``
+with the NetVLAD head, the scores ``s_ij = (F_iᵀF_j + 1)/2`` of all α(α−1)/2 pairs, and the L1 loss between
+them and the pairs' GT overlap ratios; Adam, learning rate 1e-3, ×0.7 every 50 epochs. An epoch is one step
+per training scene. The head starts from a k-means codebook of the training descriptors
+(``NetVLAD.from_codebook``), i.e. from the unsupervised feature, and learns from there.
+
+Descriptors: FPFH from ``features.local.compute_features`` at the scene's default voxel — what the pipeline
+computes at run time. The simulated scenes and their descriptors are made once and cached by
+``python -m data_tools.simulate CACHE_DIR`` (one ``scene_XXXXX.npz`` a scene, see ``write_cache_scene``);
+training reads only that folder, so it takes minutes, not hours.
+
+Outputs in ``out_dir``: ``last.pth`` (model, optimizer, scheduler, epoch, history: what ``resume`` continues
+from), ``best.pth`` (the head with the lowest validation loss: every 10th scene of the cache is held out) and
+``netvlad_fpfh.pth`` (that head alone, in the key layout ``features.netvlad.load_checkpoint`` reads, for
+shipping). Runs are seeded: the draws of epoch e depend only on (seed, e), so an interrupted and resumed run
+ends with the same weights as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import torch
+import typer
+
+from sghr_gtsam.features.netvlad import NetVLAD, global_features, kmeans_codebook
+from sghr_gtsam.graph import overlap_scores
+from sghr_gtsam.io.atomic import atomic_write
+from sghr_gtsam.types import InputError
+
+PREFIX = "vlador.pool."  # the authors' key prefix, which load_checkpoint strips
+ALPHA = (8, 60)  # scans a step
+BETA = (1024, 5000)  # keypoints a scan
+VAL_EVERY = 10  # every 10th cached scene (by index) is held out for validation
+
+Log = Callable[[str], None]
+
+
+# --- the cache -----------------------------------------------------------------------------------------------
+
+
+def cache_path(folder: str | Path, index: int) -> Path:
+    return Path(folder) / f"scene_{index:05d}.npz"
+
+
+def write_cache_scene(path: str | Path, descriptors: list[np.ndarray], overlap: np.ndarray, **extra) -> None:
+    """One scene of the cache, atomically: ``desc`` (all scans' descriptors stacked, float16: FPFH values
+    are 0–100 and keep 3 significant digits), ``offsets`` (scan k is ``desc[offsets[k]:offsets[k+1]]``),
+    ``overlap`` (N, N) GT overlap ratios, and any ``extra`` arrays or scalars (poses, voxel, kind, ...)."""
+    overlap = np.asarray(overlap, dtype=np.float32)
+    if overlap.shape != (len(descriptors), len(descriptors)):
+        raise ValueError(f"overlap is {overlap.shape} for {len(descriptors)} scans")
+    offsets = np.cumsum([0] + [len(d) for d in descriptors])
+    buffer = io.BytesIO()
+    np.savez(buffer, desc=np.concatenate(descriptors).astype(np.float16), offsets=offsets, overlap=overlap,
+             **{k: np.asarray(v) for k, v in extra.items()})
+    with atomic_write(path, "wb") as f:
+        f.write(buffer.getvalue())
+
+
+@dataclass
+class CachedScene:
+    name: str
+    descriptors: list[np.ndarray]  # (P_k, D) float32 a scan
+    overlap: np.ndarray  # (N, N) float32
+    kind: str = ""
+
+
+def load_cache(folder: str | Path, limit: int | None = None) -> list[CachedScene]:
+    """Every ``scene_*.npz`` of ``folder`` in name order (the first ``limit`` only, if given)."""
+    folder = Path(folder)
+    paths = sorted(folder.glob("scene_*.npz")) if folder.is_dir() else []
+    if not paths:
+        raise InputError(f"no cached scenes (scene_*.npz) in {folder}: make them with "
+                         f"'python -m data_tools.simulate {folder}'")
+    scenes = []
+    for path in paths[:limit]:
+        with np.load(path) as z:
+            desc, off = z["desc"].astype(np.float32), z["offsets"]
+            scenes.append(CachedScene(path.stem, [desc[a:b] for a, b in zip(off[:-1], off[1:])],
+                                      z["overlap"].astype(np.float32), str(z["kind"]) if "kind" in z else ""))
+    return scenes
+
+
+def split(scenes: list[CachedScene]) -> tuple[list[CachedScene], list[CachedScene]]:
+    """(training, validation): every ``VAL_EVERY``-th scene is held out (none if there are fewer than 2)."""
+    if len(scenes) < 2:
+        return scenes, []
+    held = {k for k in range(len(scenes)) if k % VAL_EVERY == VAL_EVERY - 1} or {len(scenes) - 1}
+    return [s for k, s in enumerate(scenes) if k not in held], [s for k, s in enumerate(scenes) if k in held]
+
+
+# --- model, loss and one step --------------------------------------------------------------------------------
+
+
+def init_head(scenes: list[CachedScene], clusters: int = 64, seed: int = 0) -> NetVLAD:
+    """NetVLAD initialised from a spherical k-means codebook of (a sample of) the training descriptors."""
+    rng = np.random.default_rng([seed, 1])
+    sample = []
+    for s in scenes:
+        for d in s.descriptors:
+            sample.append(d[rng.choice(len(d), min(len(d), 200), replace=False)])
+    return NetVLAD.from_codebook(kmeans_codebook(sample, clusters=clusters, samples=50_000, seed=seed))
+
+
+def pair_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor) -> torch.Tensor:
+    """Mean L1 between ``s_ij = (F_iᵀF_j + 1)/2`` and ``overlap`` over the pairs i < j; ``x`` (α, D, β)."""
+    F = model(x)
+    scores = (F @ F.T + 1.0) / 2.0
+    i, j = torch.triu_indices(len(F), len(F), offset=1)
+    return (scores[i, j] - overlap[i, j]).abs().mean()
+
+
+def sample_step(scene: CachedScene, rng: np.random.Generator, alpha: tuple[int, int] = ALPHA,
+                beta: tuple[int, int] = BETA) -> tuple[torch.Tensor, torch.Tensor]:
+    """α scans of ``scene`` (all if it has fewer), β descriptors each (drawn with replacement only from a
+    scan with fewer): (α, D, β) descriptors and the (α, α) GT overlaps."""
+    n = len(scene.descriptors)
+    a = min(n, int(rng.integers(alpha[0], alpha[1] + 1)))
+    b = int(rng.integers(beta[0], beta[1] + 1))
+    scans = np.sort(rng.choice(n, a, replace=False))
+    x = np.stack([d[rng.choice(len(d), b, replace=len(d) < b)] for d in (scene.descriptors[k] for k in scans)])
+    target = scene.overlap[np.ix_(scans, scans)]
+    return torch.from_numpy(np.ascontiguousarray(x.transpose(0, 2, 1))), torch.from_numpy(target)
+
+
+def evaluate(model: NetVLAD, scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
+    """Mean L1 over all pairs of each scene (features as the pipeline computes them: ``global_features``
+    on at most 5000 descriptors a scan), averaged over scenes; and the mean Spearman correlation."""
+    from scipy.stats import spearmanr
+
+    l1, rho = [], []
+    model.eval()
+    for s in scenes:
+        S = overlap_scores(global_features(model, s.descriptors, seed=seed))
+        iu = np.triu_indices(len(S), 1)
+        l1.append(float(np.abs(S[iu] - s.overlap[iu]).mean()))
+        rho.append(float(spearmanr(S[iu], s.overlap[iu]).statistic))
+    return {"l1": float(np.mean(l1)) if l1 else float("nan"), "spearman": float(np.nanmean(rho)) if rho else float("nan")}
+
+
+# --- checkpoints ---------------------------------------------------------------------------------------------
+
+
+def head_state(model: NetVLAD) -> dict[str, torch.Tensor]:
+    """The head's tensors under the authors' keys (``vlador.pool.*``), which ``load_checkpoint`` reads."""
+    return {PREFIX + k: v.detach().clone() for k, v in model.state_dict().items()}
+
+
+def save_head(model: NetVLAD, path: str | Path, meta: dict | None = None) -> None:
+    """The head alone (``network_state_dict`` + a ``meta`` dict of plain values), written atomically."""
+    buffer = io.BytesIO()
+    torch.save({"network_state_dict": head_state(model), "meta": dict(meta or {})}, buffer)
+    with atomic_write(path, "wb") as f:
+        f.write(buffer.getvalue())
+
+
+def _save(path: Path, state: dict) -> None:
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    with atomic_write(path, "wb") as f:
+        f.write(buffer.getvalue())
+
+
+# --- training ------------------------------------------------------------------------------------------------
+
+
+def train(
+    data_dir: str | Path,
+    out_dir: str | Path,
+    epochs: int = 100,
+    seed: int = 0,
+    resume: bool = False,
+    clusters: int = 64,
+    lr: float = 1e-3,
+    decay_every: int = 50,
+    decay: float = 0.7,
+    alpha: tuple[int, int] = ALPHA,
+    beta: tuple[int, int] = BETA,
+    limit: int | None = None,
+    eval_every: int = 5,
+    progress: bool = True,
+    log: Log = print,
+) -> dict:
+    """Train the overlap head on the cached scenes of ``data_dir``; write checkpoints into ``out_dir``.
+
+    ``resume``: continue from ``out_dir/last.pth`` (its settings must match) up to ``epochs`` in all.
+    The validation scenes are scored every ``eval_every`` epochs and after the last; ``best.pth`` is the
+    best of those.
+    Returns a summary: epochs run, final training loss, best validation loss and its epoch, paths, seconds.
+    """
+    from tqdm import tqdm
+
+    if epochs < 1:
+        raise InputError(f"epochs must be at least 1, got {epochs}")
+    if not (1 <= alpha[0] <= alpha[1] and 2 <= alpha[1] and 1 <= beta[0] <= beta[1]):
+        raise InputError(f"bad alpha {alpha} / beta {beta} ranges")
+    started = time.perf_counter()
+    torch.manual_seed(seed)
+    scenes = load_cache(data_dir, limit)
+    train_set, val_set = split(scenes)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {"data_dir": str(Path(data_dir).resolve()), "scenes": len(scenes), "seed": seed, "clusters": clusters,
+                "lr": lr, "decay_every": decay_every, "decay": decay, "alpha": list(alpha), "beta": list(beta)}
+
+    last, best_path, head_path = out / "last.pth", out / "best.pth", out / "netvlad_fpfh.pth"
+    if resume and last.exists():
+        state = torch.load(last, map_location="cpu", weights_only=False)
+        mismatch = {k: (state["settings"].get(k), v) for k, v in settings.items()
+                    if k != "data_dir" and state["settings"].get(k) != v}
+        if mismatch:
+            raise InputError(f"cannot resume {last}: settings differ {mismatch}")
+        model = NetVLAD(*state["network_state_dict"][PREFIX + "centroids"].shape)
+        model.load_state_dict({k[len(PREFIX):]: v for k, v in state["network_state_dict"].items()})
+        history, start = state["history"], state["epoch"] + 1
+        best = state["best"]
+    else:
+        if resume:
+            log(f"nothing to resume in {out}: starting afresh")
+        model = init_head(train_set, clusters, seed)
+        history, start, best = [], 0, {"val_l1": float("inf"), "epoch": -1}
+        state = None
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=decay_every, gamma=decay)
+    if state is not None:
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+    if start == 0:
+        v = evaluate(model, val_set, seed) if val_set else {"l1": float("nan"), "spearman": float("nan")}
+        log(f"{len(train_set)} training + {len(val_set)} validation scenes; initial (k-means codebook) "
+            f"validation L1 {v['l1']:.4f}, Spearman {v['spearman']:.3f}")
+        history.append({"epoch": -1, "train_l1": float("nan"), "val_l1": v["l1"], "val_spearman": v["spearman"],
+                        "lr": lr})
+
+    bar = tqdm(range(start, epochs), total=epochs, initial=start, desc="train", unit="epoch", disable=not progress)
+    for epoch in bar:
+        rng = np.random.default_rng([seed, epoch])
+        model.train()
+        losses = []
+        for k in rng.permutation(len(train_set)):
+            x, target = sample_step(train_set[k], rng, alpha, beta)
+            loss = pair_loss(model, x, target)
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            losses.append(float(loss.detach()))
+        scheduler.step()
+        if val_set and (epoch % eval_every == eval_every - 1 or epoch == epochs - 1):
+            v = evaluate(model, val_set, seed)
+        elif val_set:
+            v = {"l1": float("nan"), "spearman": float("nan")}  # not evaluated this epoch
+        else:
+            v = {"l1": float(np.mean(losses)), "spearman": float("nan")}
+        history.append({"epoch": epoch, "train_l1": float(np.mean(losses)), "val_l1": v["l1"],
+                        "val_spearman": v["spearman"], "lr": optimizer.param_groups[0]["lr"]})
+        meta = {**settings, "epoch": epoch, "train_l1": history[-1]["train_l1"], "val_l1": v["l1"],
+                "val_spearman": v["spearman"], "descriptor": "fpfh"}
+        if v["l1"] < best["val_l1"]:
+            best = {"val_l1": v["l1"], "epoch": epoch}
+            save_head(model, best_path, meta)
+        _save(last, {"network_state_dict": head_state(model), "optimizer": optimizer.state_dict(),
+                     "scheduler": scheduler.state_dict(), "epoch": epoch, "history": history, "best": best,
+                     "settings": settings})
+        if np.isfinite(v["l1"]):
+            bar.set_postfix(train=f"{history[-1]['train_l1']:.4f}", val=f"{v['l1']:.4f}", rho=f"{v['spearman']:.3f}")
+        else:
+            bar.set_postfix(train=f"{history[-1]['train_l1']:.4f}")
+    bar.close()
+
+    if best_path.exists():
+        best_state = torch.load(best_path, map_location="cpu", weights_only=False)
+        with atomic_write(head_path, "wb") as f:
+            buffer = io.BytesIO()
+            torch.save(best_state, buffer)
+            f.write(buffer.getvalue())
+    with atomic_write(out / "history.json") as f:
+        json.dump({"settings": settings, "best": best, "history": history}, f, indent=1)
+    summary = {"epochs": epochs, "final_train_l1": history[-1]["train_l1"], "final_val_l1": history[-1]["val_l1"],
+               "final_val_spearman": history[-1]["val_spearman"],
+               "best": best, "head": str(head_path), "seconds": time.perf_counter() - started}
+    log(f"done: epoch {epochs}, training L1 {summary['final_train_l1']:.4f}, validation L1 "
+        f"{summary['final_val_l1']:.4f}; best validation L1 {best['val_l1']:.4f} at epoch {best['epoch']} "
+        f"-> {head_path}")
+    return summary
+
+
+def train_command(
+    data_dir: Path = typer.Argument(..., help="Cache of simulated scenes (python -m data_tools.simulate DATA_DIR)."),
+    out: Path = typer.Option(Path("runs/overlap_head"), "--out", help="Checkpoints, history and netvlad_fpfh.pth."),
+    epochs: int = typer.Option(100, help="Epochs (one step per training scene each)."),
+    seed: int = typer.Option(0, help="Seed of the initial codebook and of every draw."),
+    resume: bool = typer.Option(False, help="Continue from OUT/last.pth up to EPOCHS."),
+    clusters: int = typer.Option(64, help="NetVLAD clusters."),
+    lr: float = typer.Option(1e-3, help="Adam learning rate (x0.7 every 50 epochs)."),
+) -> None:
+    """Train the NetVLAD overlap head on FPFH descriptors of simulated scenes (SGHR's recipe)."""
+    try:
+        train(data_dir, out, epochs=epochs, seed=seed, resume=resume, clusters=clusters, lr=lr, log=typer.echo)
+    except InputError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(2) from None
