@@ -26,7 +26,7 @@ import gtsam
 import numpy as np
 
 from .se3 import inv_T, make_T
-from .sync.rotation import rotation_residuals
+from .sync.rotation import connected_components, rotation_residuals
 from .types import IterationRecord, PoseGraph
 
 ROT_SIGMA_DEG = 2.0
@@ -151,3 +151,55 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
         current[members] = poses[a] @ inv_T(current[a]) @ current[members]
     return PolishResult(poses=current, initial_error=float(initial), final_error=float(error),
                         converged=converged, history=history)
+
+
+# --- baselines (sghr_gtsam.sync.baselines) ---------------------------------------------------------------
+
+
+def gnc_tls_poses(graph: PoseGraph, init: np.ndarray, information: np.ndarray,
+                  iters: int) -> tuple[np.ndarray, np.ndarray]:
+    """gtsam GNC (TLS loss, default inlier threshold: χ²₆ at 0.99) over the edges with nonzero
+    ``information``, from ``init``; ``iters`` caps each inner Levenberg–Marquardt run. Returns the poses
+    and the (E,) GNC weights (0 for edges left out)."""
+    factors = _between_factors(graph, information)
+    kept = np.any(information != 0, axis=(1, 2))
+    edges = np.flatnonzero(kept)  # the factors' order
+    component = connected_components(graph.n, graph.i, graph.j, kept)
+    anchors = np.unique(component, return_index=True)[1]
+    for a in anchors:  # the gauge: priors GNC is told are inliers
+        factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(init[a]), gtsam.noiseModel.Constrained.All(6)))
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(iters)
+    params = gtsam.GncLMParams(lm)  # GNC's own outer-iteration cap stays at its default (100)
+    params.setLossType(gtsam.GncLossType.TLS)
+    params.setKnownInliers(list(range(len(edges), len(edges) + len(anchors))))
+    optimizer = gtsam.GncLMOptimizer(factors, _values(init), params)
+    poses = _poses(optimizer.optimize())
+    weights = np.zeros(graph.num_edges)
+    weights[edges] = np.asarray(optimizer.getWeights())[: len(edges)]
+    return poses, weights
+
+
+def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray, max_p: int) -> np.ndarray:
+    """gtsam Shonan averaging of the relative rotations of the edges with nonzero ``information`` (isotropic
+    noise from the mean of its rotation block), from ``init`` (n, 3, 3), climbing the staircase to rank
+    ``max_p``; when no rank certifies a global optimum, the rounded rank-``max_p`` solution."""
+    edges = np.flatnonzero(np.any(information != 0, axis=(1, 2)))
+    precision = np.trace(information[edges, :3, :3], axis1=1, axis2=2) / 3.0
+    measurements = [gtsam.BinaryMeasurementRot3(int(graph.i[e]), int(graph.j[e]), gtsam.Rot3(graph.T[e, :3, :3]),
+                                                gtsam.noiseModel.Isotropic.Precision(3, float(p)))
+                    for e, p in zip(edges, precision)]
+    params = gtsam.ShonanAveragingParameters3(gtsam.LevenbergMarquardtParams.CeresDefaults())
+    averaging = gtsam.ShonanAveraging3(measurements, params)
+    Q = gtsam.Values()
+    for k, R in enumerate(init):
+        Q.insert(k, gtsam.SOn.FromMatrix(R))
+    # gtsam's run() throws when max_p is reached uncertified; this is its loop, keeping the last solution.
+    for p in range(3, max_p + 1):
+        Q = averaging.tryOptimizingAt(p, Q)
+        min_eigenvalue, min_eigenvector = averaging.computeMinEigenVector(Q)
+        if min_eigenvalue >= params.getOptimalityThreshold() or p == max_p:
+            break
+        Q = averaging.initializeWithDescent(p + 1, Q, min_eigenvector, min_eigenvalue)
+    rounded = averaging.roundSolution(Q)
+    return np.stack([rounded.atRot3(k).matrix() for k in range(graph.n)])

@@ -85,7 +85,7 @@ def eigse3(graph: PoseGraph, iters: int = IRLS_ITERS) -> SyncResult:
 
 
 def gnc_tls(graph: PoseGraph, iters: int = 100) -> SyncResult:
-    from ..factor_graph import edge_information
+    from ..factor_graph import edge_information, gnc_tls_poses
 
     poses, gnc_weights = gnc_tls_poses(graph, solve_poses(graph, graph.weight),
                                        edge_information(graph, graph.weight), iters)
@@ -94,7 +94,7 @@ def gnc_tls(graph: PoseGraph, iters: int = 100) -> SyncResult:
 
 def shonan(graph: PoseGraph, iters: int = 10) -> SyncResult:
     """``iters``: the highest rank p of the Riemannian staircase (gtsam's default ``max_p``)."""
-    from ..factor_graph import edge_information
+    from ..factor_graph import edge_information, shonan_rotations
 
     init = spectral_rotations(graph.n, graph.i, graph.j, graph.T[:, :3, :3], graph.weight)
     R = shonan_rotations(graph, init, edge_information(graph, graph.weight), iters)
@@ -142,64 +142,6 @@ def open3d_line_process(graph: PoseGraph, iters: int = 100, odometry: bool = Tru
     confidence = {(e.target_node_id, e.source_node_id): e.confidence for e in pose_graph.edges}
     factor = np.array([confidence.get((int(a), int(b)), 0.0) for a, b in zip(graph.i, graph.j)])
     return _result(graph, poses, graph.weight * factor)
-
-
-# --- gtsam: to move into factor_graph.py (they use its private helpers) ---------------------------------
-
-
-def gnc_tls_poses(graph: PoseGraph, init: np.ndarray, information: np.ndarray,
-                  iters: int) -> tuple[np.ndarray, np.ndarray]:
-    """gtsam GNC (TLS loss, default inlier threshold: χ²₆ at 0.99) over the edges with nonzero
-    ``information``, from ``init``; ``iters`` caps each inner Levenberg–Marquardt run. Returns the poses
-    and the (E,) GNC weights (0 for edges left out)."""
-    import gtsam
-
-    from ..factor_graph import _between_factors, _poses, _values
-
-    factors = _between_factors(graph, information)
-    kept = np.any(information != 0, axis=(1, 2))
-    edges = np.flatnonzero(kept)  # the factors' order
-    component = connected_components(graph.n, graph.i, graph.j, kept)
-    anchors = np.unique(component, return_index=True)[1]
-    for a in anchors:  # the gauge: priors GNC is told are inliers
-        factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(init[a]), gtsam.noiseModel.Constrained.All(6)))
-    lm = gtsam.LevenbergMarquardtParams()
-    lm.setMaxIterations(iters)
-    params = gtsam.GncLMParams(lm)  # GNC's own outer-iteration cap stays at its default (100)
-    params.setLossType(gtsam.GncLossType.TLS)
-    params.setKnownInliers(list(range(len(edges), len(edges) + len(anchors))))
-    optimizer = gtsam.GncLMOptimizer(factors, _values(init), params)
-    poses = _poses(optimizer.optimize())
-    weights = np.zeros(graph.num_edges)
-    weights[edges] = np.asarray(optimizer.getWeights())[: len(edges)]
-    return poses, weights
-
-
-def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray, max_p: int) -> np.ndarray:
-    """gtsam Shonan averaging of the relative rotations of the edges with nonzero ``information`` (isotropic
-    noise from the mean of its rotation block), from ``init`` (n, 3, 3), climbing the staircase to rank
-    ``max_p``; when no rank certifies a global optimum, the rounded rank-``max_p`` solution."""
-    import gtsam
-
-    edges = np.flatnonzero(np.any(information != 0, axis=(1, 2)))
-    precision = np.trace(information[edges, :3, :3], axis1=1, axis2=2) / 3.0
-    measurements = [gtsam.BinaryMeasurementRot3(int(graph.i[e]), int(graph.j[e]), gtsam.Rot3(graph.T[e, :3, :3]),
-                                                gtsam.noiseModel.Isotropic.Precision(3, float(p)))
-                    for e, p in zip(edges, precision)]
-    params = gtsam.ShonanAveragingParameters3(gtsam.LevenbergMarquardtParams.CeresDefaults())
-    averaging = gtsam.ShonanAveraging3(measurements, params)
-    Q = gtsam.Values()
-    for k, R in enumerate(init):
-        Q.insert(k, gtsam.SOn.FromMatrix(R))
-    # gtsam's run() throws when max_p is reached uncertified; this is its loop, keeping the last solution.
-    for p in range(3, max_p + 1):
-        Q = averaging.tryOptimizingAt(p, Q)
-        min_eigenvalue, min_eigenvector = averaging.computeMinEigenVector(Q)
-        if min_eigenvalue >= params.getOptimalityThreshold() or p == max_p:
-            break
-        Q = averaging.initializeWithDescent(p + 1, Q, min_eigenvector, min_eigenvalue)
-    rounded = averaging.roundSolution(Q)
-    return np.stack([rounded.atRot3(k).matrix() for k in range(graph.n)])
 
 
 # --- shared ------------------------------------------------------------------------------------------------
