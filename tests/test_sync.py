@@ -99,7 +99,9 @@ def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common
     # Continuous weights (paper units, no dropping): a weight at the drop threshold would make a discrete
     # decision out of a rounding difference. Levenberg-Marquardt is checked without outliers, where it
     # converges fast enough to stop at the same point.
-    for method, outliers, atol in (("spectral", 0.15, 1e-6), ("history", 0.15, 1e-6), ("lm", 0.0, 1e-6)):
+    # Above DENSE_NODES the iterative eigen-solver stops at its tolerance: poses agree to ~1e-6, not 1e-12.
+    atol = 1e-6 if n <= DENSE_NODES else 1e-5
+    for method, outliers in (("spectral", 0.15), ("history", 0.15), ("lm", 0.0)):
         graph, _, _ = random_graph(seed, n, extra=3, rot_deg=2.0, trans_sigma=0.05, outliers=outliers)
         shuffle = rng.permutation(graph.num_edges)
         moved = PoseGraph(n=n, i=perm[graph.i][shuffle], j=perm[graph.j][shuffle],

@@ -59,7 +59,7 @@ OPEN3D_PREFERENCE = 5.0
 """open3d's reconstruction system: ``preference_loop_closure_registration`` of the fragment pose graph."""
 OPEN3D_PRUNE = 0.25
 
-# factor_graph, gtsam and open3d are imported inside the functions that need them: factor_graph imports
+# factor_graph (gtsam) and open3d are imported inside the functions that need them: factor_graph imports
 # the sync package, which may import this module, and the numpy baselines need neither library.
 
 
