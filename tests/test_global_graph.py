@@ -56,3 +56,18 @@ def test_netvlad_feature_is_unit_and_scores_like_scans_higher():
     np.testing.assert_allclose(np.linalg.norm(F, axis=1), 1.0, atol=1e-5)
     S = overlap_scores(F)
     assert np.argmax(np.where(np.eye(4, dtype=bool), -1, S)[3]) == 0
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(2, 30), k=st.integers(1, 8), levels=st.integers(1, 4), seed=st.integers(0, 10_000))
+def test_top_k_graph_breaks_ties_like_a_stable_sort(n, k, levels, seed):
+    """Scores with few distinct values (many ties at the k-th place) give the stable-sort choice."""
+    rng = np.random.default_rng(seed)
+    S = rng.integers(0, levels, size=(n, n)).astype(float)
+    S = (S + S.T) / 2
+    kk = min(k, n - 1)
+    D = S.copy()
+    np.fill_diagonal(D, -np.inf)
+    best = np.argsort(-D, axis=1, kind="stable")[:, :kk]
+    expected = np.unique(np.sort(np.stack([np.repeat(np.arange(n), kk), best.ravel()], axis=1), axis=1), axis=0)
+    np.testing.assert_array_equal(top_k_edges(S, k), expected)
