@@ -1,0 +1,218 @@
+"""Sparse top-k pose graph against the exhaustive graph (all pairs), end to end on the real scenes.
+
+    python benchmarks/bench_sparse_graph.py [--data ../shared/data] [--scenes kitchen bunny]
+                                            [--ks 2 3 4] [--random-seeds 5]
+
+Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
+pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
+registration on the graph's edges, history-reweighted IRLS, gtsam polish) on the scans read once by
+``pipeline.load_scene``, default ``Config`` except ``k``, ``global_feature`` and ``record=False``.
+Rows per scene:
+
+- **exhaustive**: k = N − 1 (every pair), with the default VLAD-codebook scores and with the learned head's
+  (the scores still weigh the edges, ``w⁰ = s · r``);
+- **learned head** / **VLAD codebook**: ``Config(global_feature="learned" | "vlad", k=k)``;
+- **random scores**: uniform symmetric random scores (seeds 0 … S−1), the mean of the runs;
+- **GT overlap** (upper reference): the GT overlaps as scores (kitchen: ``gt/gt_overlap.log``; bunny:
+  ``data_tools.gt_overlap`` under the GT poses, the kitchen calibration scaled to the voxel, as
+  ``bench_overlap.py``).
+
+``register`` takes no scores from outside, so the random and GT rows replace ``pipeline._global_scores``
+for the duration of their run (``unittest.mock.patch.object``); everything else is the pipeline's own code.
+
+Scoring, against ``gt_poses.txt``: errors of each *registered* scan relative to the first registered scan
+(the pipeline's anchor); within tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
+``bench_pipeline.py``; kitchen registration recall (``evaluate.registration_recall``, 0.2 m) counted over
+*all* gt.log pairs among the 9 fragments, a pair with an unregistered scan counting as missed. Times are
+``RunResult.timings`` (features + global graph + pairwise + sync; scans already loaded), wall clock; CPU s is
+the process CPU time of the run (all threads), less sensitive to other jobs on the machine. Random rows: the
+mean over seeds of every column (errors are over each run's registered scans only), ranges in brackets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
+from sghr_gtsam import pipeline  # noqa: E402
+from sghr_gtsam.config import Config  # noqa: E402
+from sghr_gtsam.evaluate import fragment_id, registration_recall, scan_errors  # noqa: E402
+from sghr_gtsam.features.local import default_voxel  # noqa: E402
+from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read_poses  # noqa: E402
+from sghr_gtsam.types import InputError  # noqa: E402
+
+DATA = Path(os.environ.get("SGHR_DATA", ROOT.parent / "shared" / "data"))
+# scene: (scan folder, GT folder, max rotation deg, max translation, unit name, unit scale for printing)
+SCENES = {"kitchen": ("kitchen", "kitchen/gt", 5.0, 0.2, "m", 1.0),
+          "bunny": ("bunny", "bunny", 1.0, 0.001, "mm", 1000.0)}
+
+
+def gt_overlap(name: str, data: Path, names: list[str], scans: list[np.ndarray]) -> np.ndarray:
+    """GT overlap matrix in the order of ``names`` (diagonal 1)."""
+    n = len(names)
+    if name == "kitchen":
+        log = read_gt_overlap(data / "kitchen" / "gt" / "gt_overlap.log")
+        ids = [fragment_id(s) for s in names]
+        G = np.eye(n)
+        for a, b in itertools.combinations(range(n), 2):
+            G[a, b] = G[b, a] = log[tuple(sorted((ids[a], ids[b])))]
+        return G
+    gt_names, gt_poses = read_poses(data / SCENES[name][1] / "gt_poses.txt")
+    poses = gt_poses[[gt_names.index(s) for s in names]]
+    radius, grid = relative_params(default_voxel(scans))
+    G = overlap_matrix(scans, poses, radius, grid, mode="mean")
+    np.fill_diagonal(G, 1.0)
+    return G
+
+
+def random_scores(n: int, seed: int) -> np.ndarray:
+    S = np.random.default_rng(seed).uniform(size=(n, n))
+    return np.triu(S, 1) + np.triu(S, 1).T + np.eye(n)
+
+
+def run_row(scans, config: Config, scores: np.ndarray | None, kind: str) -> pipeline.RunResult:
+    """One ``register`` run; ``scores`` given: they replace the global-feature scores for this run."""
+    if scores is None:
+        return pipeline.register(scans, config, log=lambda m: None)
+    with mock.patch.object(pipeline, "_global_scores", lambda features, cfg: (scores.copy(), kind)):
+        return pipeline.register(scans, config, log=lambda m: None)
+
+
+def score_run(res: pipeline.RunResult, gt: np.ndarray, max_deg: float, max_t: float,
+              recall_data: tuple | None) -> dict:
+    reg = res.registered
+    err = scan_errors(res.names, res.poses, gt, reference=reg[0])
+    rot, trans = err.rotation_deg[reg], err.translation[reg]
+    row = {"pairs": res.graph.num_edges, "n": len(res.names), "registered": len(reg),
+           "within": int(np.sum((rot <= max_deg) & (trans <= max_t))),
+           "rot_mean": float(rot.mean()), "rot_max": float(rot.max()),
+           "t_mean": float(trans.mean()), "t_max": float(trans.max()),
+           "total": sum(res.timings.get(s, 0.0) for s in ("features", "global_graph", "pairwise", "sync")),
+           "pairwise": res.timings.get("pairwise", 0.0), "unregistered": res.unregistered}
+    if recall_data is not None:
+        gt_log, gt_info, all_pairs = recall_data
+        rr = registration_recall([fragment_id(res.names[k]) for k in reg], res.poses[reg], gt_log, gt_info)
+        row["recalled"], row["recall_total"] = int(rr.recalled.sum()), all_pairs
+    return row
+
+
+def fmt_row(scene_unit: float, label: str, k: str, rows: list[dict], n_all: int, has_recall: bool) -> str:
+    def mean(key: str) -> float:
+        return float(np.mean([r[key] for r in rows]))
+
+    def span(key: str, f: str = "d") -> str:
+        vals = [r[key] for r in rows]
+        lo, hi = min(vals), max(vals)
+        return f"{lo:{f}}" if lo == hi else f"{np.mean(vals):.1f} ({lo:{f}}–{hi:{f}})"
+
+    pairs = span("pairs")
+    cells = [label, k, f"{pairs} ({100 * mean('pairs') / n_all:.0f} %)",
+             f"{span('registered')} / {span('within')}"]
+    if has_recall:
+        cells.append(f"{span('recalled')}/{rows[0]['recall_total']} = {mean('recalled') / rows[0]['recall_total']:.3f}")
+    cells += [f"{mean('rot_mean'):.3f} / {mean('rot_max'):.3f}",
+              f"{scene_unit * mean('t_mean'):.3f} / {scene_unit * mean('t_max'):.3f}",
+              f"{mean('total'):.2f}", f"{mean('cpu'):.2f}", f"{mean('pairwise'):.2f}"]
+    unreg = sorted({u for r in rows for u in r["unregistered"]})
+    cells.append(", ".join(u.rsplit(".", 1)[0] for u in unreg) or "-")
+    return "| " + " | ".join(cells) + " |"
+
+
+def bench_scene(name: str, data: Path, ks: list[int], seeds: int) -> None:
+    folder, gt_dir, max_deg, max_t, unit, scale = SCENES[name]
+    scans, _ = pipeline.load_scene(data / folder, Config(), log=lambda m: None)
+    names = [s.name for s in scans]
+    n = len(names)
+    n_all = n * (n - 1) // 2
+    gt_names, gt_poses = read_poses(data / gt_dir / "gt_poses.txt")
+    gt = gt_poses[[gt_names.index(s) for s in names]]
+    G = gt_overlap(name, data, names, [s.points for s in scans])
+    recall_data = None
+    if (data / gt_dir / "gt.log").exists():
+        gt_log = read_gt_log(data / gt_dir / "gt.log")
+        ids = set(fragment_id(s) for s in names)
+        all_pairs = sum(1 for a, b in gt_log if abs(a - b) > 1 and a in ids and b in ids)
+        recall_data = (gt_log, read_gt_info(data / gt_dir / "gt.info"), all_pairs)
+
+    # (label, k, global_feature, scores maker or None); the scores maker takes a seed
+    plan: list[tuple[str, int, str, object]] = [
+        ("exhaustive, VLAD weights (default)", n - 1, "vlad", None),
+        ("exhaustive, learned weights", n - 1, "learned", None),
+    ]
+    for k in ks:
+        plan += [("learned head", k, "learned", None), ("VLAD codebook", k, "vlad", None),
+                 (f"random scores (mean of {seeds} seeds)", k, "vlad", "random"),
+                 ("GT overlap (upper reference)", k, "vlad", "gt")]
+
+    pipeline.register(scans[:2], Config(record=False, global_feature="learned"), log=lambda m: None)  # warm-up
+    load0 = os.getloadavg()
+    t0 = time.perf_counter()
+    lines = []
+    for label, k, feature, maker in plan:
+        config = Config(k=k, global_feature=feature, record=False)
+        if maker == "random":
+            variants = [(random_scores(n, s), f"random scores, seed {s}") for s in range(seeds)]
+        elif maker == "gt":
+            variants = [(G, "GT overlap")]
+        else:
+            variants = [(None, feature)]
+        rows = []
+        for scores, kind in variants:
+            cpu0 = time.process_time()
+            try:
+                res = run_row(scans, config, scores, kind)
+            except InputError as e:
+                print(f"  {label} k={k} ({kind}) failed: {e}", file=sys.stderr)
+                continue
+            rows.append(score_run(res, gt, max_deg, max_t, recall_data))
+            rows[-1]["cpu"] = time.process_time() - cpu0
+            r = rows[-1]
+            print(f"  {name} {label} k={k} [{kind}]: {r['pairs']} pairs, {r['registered']} reg, "
+                  f"{r['within']} within, rot max {r['rot_max']:.3f}, t max {r['t_max']:.4g}, "
+                  f"{r['total']:.1f} s", file=sys.stderr, flush=True)
+        k_label = f"{k} (= N−1)" if k >= n - 1 else str(k)
+        lines.append(fmt_row(scale, label, k_label, rows, n_all, recall_data is not None) if rows
+                     else f"| {label} | {k_label} | every run failed |")
+    load1 = os.getloadavg()
+    print(f"\n#### {name}: {n} scans, {n_all} pairs in the exhaustive graph; tolerance {max_deg:g}° / "
+          f"{scale * max_t:g} {unit}; load average {load0[0]:.1f} at start, {load1[0]:.1f} at end "
+          f"({os.cpu_count()} cores); {time.perf_counter() - t0:.0f} s for the table\n")
+    head = ["graph (scores)", "k", "pairs (% of all)", "registered / within tol."]
+    if recall_data is not None:
+        head.append("registration recall")
+    head += ["rot. err. mean / worst (°)", f"trans. err. mean / worst ({unit})", "time s", "CPU s", "pairwise s",
+             "unregistered (random: union over seeds)"]
+    print("| " + " | ".join(head) + " |")
+    print("|---|---|" + "---:|" * (len(head) - 3) + "---|")
+    for line in lines:
+        print(line)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=DATA)
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    ap.add_argument("--ks", nargs="+", type=int, default=[2, 3, 4])
+    ap.add_argument("--random-seeds", type=int, default=5)
+    args = ap.parse_args(argv)
+    if not (args.data / "MANIFEST.md").is_file():
+        print(f"real data not found at {args.data} (set SGHR_DATA)")
+        return 2
+    for name in args.scenes:
+        bench_scene(name, args.data, args.ks, args.random_seeds)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
