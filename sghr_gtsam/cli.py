@@ -55,6 +55,8 @@ def run(
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (history reweighting)."),
     method: str = typer.Option(_DEFAULT.method, help="Synchronization method."),
     global_feature: str = typer.Option(_DEFAULT.global_feature, help="Overlap scores: vlad (scene codebook) or learned (shipped head)."),
+    features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
+    overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: int = typer.Option(_DEFAULT.seed, help="Seed of every random choice."),
     record: bool = typer.Option(_DEFAULT.record, help="Write recording.rrd for the Rerun viewer."),
     config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options given here override it."),
@@ -63,7 +65,8 @@ def run(
     from .pipeline import run as run_pipeline
 
     cfg = _config(config_file, voxel=voxel, k=k, iters=iters, method=method, seed=seed, record=record,
-                  global_feature=global_feature)
+                  global_feature=global_feature, features=features and str(features),
+                  overlap_head=overlap_head and str(overlap_head))
     out = out or Path("results") / scene_dir.resolve().name
     result = _guard(run_pipeline, scene_dir, out, cfg, log=typer.echo)
     typer.echo(f"registered {len(result.registered)}/{len(result.names)} scans in "

@@ -20,16 +20,24 @@ class Config:
     """Normal-estimation radius, in voxels."""
     fpfh_radius: float = 5.0
     """FPFH feature radius, in voxels."""
+    features: str | None = None
+    """Folder of precomputed local features, per scan ``<stem>.kpts.npy`` (K×3 keypoints in the scan's
+    frame) and ``<stem>.desc.npy`` (K×D descriptors), in the folder or any sub-folder (the SGHR authors'
+    ``kpts/`` + ``yoho/`` layout works as it is). They replace FPFH for matching and for the global
+    feature; a scan without them is skipped and reported. None: FPFH on the voxel grid."""
 
     # --- sparse pose graph ---------------------------------------------------------------------
     k: int = 10
     """Top-k partners per scan by overlap score (the paper: 10 indoor, 6 outdoor)."""
     global_feature: str = "vlad"
-    """Global feature: 'vlad' (NetVLAD initialised from a k-means codebook of this scene's FPFH) or
-    'learned' (the NetVLAD head trained on simulated scans, shipped in sghr_gtsam/weights). 'vlad' is
-    the default because it ranks overlaps better on the kitchen and the bunny (docs/BENCHMARKS.md)."""
+    """Global feature: 'vlad' (NetVLAD initialised from a k-means codebook of this scene's descriptors)
+    or 'learned' (a trained NetVLAD head, ``overlap_head``). 'vlad' is the default because it ranks
+    overlaps better on the kitchen and the bunny than the shipped FPFH head (docs/BENCHMARKS.md)."""
     overlap_head: str | None = None
-    """Checkpoint of the 'learned' head; None: the shipped one."""
+    """Checkpoint of a trained NetVLAD head (ours, or the SGHR authors' ``netvlad_overlap_model_best.pth``
+    for their 32-d YOHO descriptors); given, it scores the overlaps whatever ``global_feature`` says. Its
+    descriptor dimension must match the scans' descriptors. None: 'learned' uses the head shipped in
+    sghr_gtsam/weights (33-d FPFH, trained on simulated scans)."""
 
     # --- pairwise registration ---------------------------------------------------------------------
     matcher: str = "kiss"
@@ -50,8 +58,10 @@ class Config:
     reweight: str = "authors"
     """History-reweighting units: 'authors' (residual in degrees, factor 2, as the authors' code; drops
     outliers) or 'paper' (residual in radians as the paper writes it; too weak to reject outliers)."""
-    polish: bool = True
-    """Polish the IRLS poses with gtsam Levenberg-Marquardt."""
+    polish: str = "robust"
+    """After IRLS (``sghr_gtsam.sync.POLISHES``): 'robust' (gtsam GNC over every edge, consensus
+    re-placement of scans, then Levenberg-Marquardt on the consistent edges: best on the robustness
+    benchmark), 'lm' (Levenberg-Marquardt on the edges IRLS kept) or 'none'."""
     min_weight: float = 1e-3
     """Edges whose final weight falls below this fraction of the largest weight are dropped; a
     scan left without edges is reported as unregistered."""

@@ -15,14 +15,15 @@ import numpy as np
 
 from .config import Config
 from .features.local import ScanFeatures, compute_features, default_voxel
-from .features.netvlad import NetVLAD, global_features, kmeans_codebook, load_default_head
+from .features.netvlad import DEFAULT_HEAD, NetVLAD, global_features, kmeans_codebook, load_default_head
 from .graph import overlap_scores, top_k_edges
+from .io.features import read_features
 from .io.scans import finite_points, list_scans, load_scan
 from .pairwise import PairResult, register_pair
 from .recording import Recorder
 from .se3 import inv_T, transform_points
 from .sync import synchronize
-from .types import InputError, PoseGraph, SyncResult
+from .types import InputError, Keypoints, PoseGraph, SyncResult
 
 Log = Callable[[str], None]
 
@@ -31,6 +32,7 @@ Log = Callable[[str], None]
 class Scan:
     name: str
     points: np.ndarray  # (P, 3) finite points in the scan's own frame
+    keypoints: Keypoints | None = None  # precomputed local features; given, they replace FPFH
 
 
 @dataclass
@@ -74,7 +76,8 @@ def peak_memory_mb() -> float:
 
 
 def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[list[Scan], dict[str, str]]:
-    """Read every scan of ``folder``; unusable files are skipped with a reason instead of failing the run."""
+    """Read every scan of ``folder``, and its keypoints and descriptors from ``config.features`` if set;
+    unusable files and scans without features are skipped with a reason instead of failing the run."""
     scans: list[Scan] = []
     skipped: dict[str, str] = {}
     digests: dict[str, str] = {}
@@ -96,6 +99,14 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
             log(f"note: {path.name} holds the same points as {digests[digest]}")
         digests.setdefault(digest, path.name)
         scans.append(Scan(path.name, P))
+    if config.features:
+        given = read_features(config.features, [Path(s.name).stem for s in scans])
+        for s in scans:
+            s.keypoints = given.get(Path(s.name).stem)
+            if s.keypoints is None:
+                skipped[s.name] = f"no keypoints and descriptors in {config.features}"
+                log(f"skipped {s.name}: {skipped[s.name]}")
+        scans = [s for s in scans if s.keypoints is not None]
     if len(scans) < 2:
         raise InputError(f"{folder}: need at least 2 usable scans, found {len(scans)}"
                          + (f" ({len(skipped)} skipped)" if skipped else ""))
@@ -103,16 +114,30 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
 
 
 def _global_scores(features: list[ScanFeatures], config: Config) -> tuple[np.ndarray, str]:
-    descriptors = [f.fpfh for f in features]
-    if config.global_feature == "learned":
-        F = global_features(load_default_head(config.overlap_head), descriptors, seed=config.seed)
-        return overlap_scores(F), f"learned NetVLAD head ({config.overlap_head or 'shipped weights'})"
+    descriptors = [f.descriptors for f in features]
+    dim = descriptors[0].shape[1]
+    kind = f"{dim}-d " + ("FPFH" if features[0].fpfh is not None else "given descriptors")
+    if config.overlap_head or config.global_feature == "learned":
+        head = load_default_head(config.overlap_head)
+        path = config.overlap_head or DEFAULT_HEAD
+        if head.centroids.shape[1] != dim:
+            raise InputError(f"overlap head {path} takes {head.centroids.shape[1]}-d descriptors, "
+                             f"the scans have {kind}")
+        F = global_features(head, descriptors, seed=config.seed)
+        return overlap_scores(F), f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
     codebook = kmeans_codebook(descriptors, seed=config.seed)
     model = NetVLAD.from_codebook(codebook)
     F = global_features(model, descriptors, seed=config.seed)
-    return overlap_scores(F), f"unsupervised VLAD codebook ({len(codebook)} clusters of FPFH, k-means on this scene)"
+    return overlap_scores(F), f"unsupervised VLAD codebook ({len(codebook)} clusters of {kind}, k-means on this scene)"
+
+
+def _features(scan: Scan, voxel: float, config: Config) -> ScanFeatures:
+    try:
+        return compute_features(scan.points, voxel, config.normal_radius, config.fpfh_radius, scan.keypoints)
+    except InputError as e:
+        raise InputError(f"{scan.name}: {e}") from None
 
 
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
@@ -128,6 +153,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     """Register ``scans`` (at least two) into one frame. The recorder, if any, only observes."""
     if len(scans) < 2:
         raise InputError(f"need at least 2 scans, got {len(scans)}")
+    given = sum(s.keypoints is not None for s in scans)
+    if 0 < given < len(scans):
+        raise InputError(f"{given} of {len(scans)} scans have keypoints and descriptors: give them for all or none")
+    if len({s.keypoints.descriptors.shape[1] for s in scans if s.keypoints is not None}) > 1:
+        raise InputError("the scans' descriptors differ in dimension")
     if recorder:
         log = _also_recorded(log, recorder)
     timer = _Timer()
@@ -138,7 +168,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
 
     with timer.stage("features"):
-        features = [compute_features(s.points, voxel, config.normal_radius, config.fpfh_radius) for s in scans]
+        features = [_features(s, voxel, config) for s in scans]
     if recorder:
         recorder.log_scans(names, [f.points for f in features])
 

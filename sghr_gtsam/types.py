@@ -13,6 +13,31 @@ class InputError(ValueError):
 
 
 @dataclass
+class Keypoints:
+    """Local features of one scan computed elsewhere (e.g. the SGHR authors' YOHO): ``points`` (K, 3)
+    float64 keypoints in the scan's own frame, ``descriptors`` (K, D) float32, row k describing point k.
+    Construction checks shapes and values and raises a one-line ``InputError``."""
+
+    points: np.ndarray
+    descriptors: np.ndarray
+
+    def __post_init__(self) -> None:
+        for label, a, columns in (("keypoints", self.points, "3"), ("descriptors", self.descriptors, "D")):
+            if not isinstance(a, np.ndarray) or a.dtype.kind not in "iuf":
+                raise InputError(f"{label} are not a numeric array ({getattr(a, 'dtype', type(a).__name__)})")
+            if a.ndim != 2 or a.size == 0:
+                raise InputError(f"{label} have shape {a.shape}, expected a non-empty (K, {columns}) array")
+            if not np.isfinite(a).all():
+                raise InputError(f"{label} hold {int(np.count_nonzero(~np.isfinite(a)))} non-finite values")
+        if self.points.shape[1] != 3:
+            raise InputError(f"keypoints have shape {self.points.shape}, expected (K, 3)")
+        if len(self.points) != len(self.descriptors):
+            raise InputError(f"{len(self.points)} keypoints but {len(self.descriptors)} descriptors")
+        self.points = np.ascontiguousarray(self.points, dtype=np.float64)
+        self.descriptors = np.ascontiguousarray(self.descriptors, dtype=np.float32)
+
+
+@dataclass
 class PoseGraph:
     """Relative-pose measurements between ``n`` nodes.
 

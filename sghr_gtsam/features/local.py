@@ -1,6 +1,7 @@
-"""Per-scan local features: a voxel grid with normals, FPFH descriptors and GICP covariances.
-Computed once per scan and shared by every pair the scan is in, so the pairwise stage only matches,
-solves and refines."""
+"""Per-scan local features: a voxel grid with normals and GICP covariances, and the keypoints and
+descriptors that pairs are matched on: FPFH of the grid points, or keypoints and descriptors computed
+elsewhere (``Keypoints``, e.g. YOHO). Computed once per scan and shared by every pair the scan is in, so
+the pairwise stage only matches, solves and refines."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import open3d as o3d
 import small_gicp
 from scipy.spatial import cKDTree
 
-from sghr_gtsam.types import InputError
+from sghr_gtsam.types import InputError, Keypoints
 
 NUM_THREADS = len(os.sched_getaffinity(0))
 # small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
@@ -24,6 +25,10 @@ NORMAL_MAX_NN = 30
 FPFH_MAX_NN = 100
 # Neighbours for the GICP covariances (small_gicp's default).
 COV_NEIGHBORS = 20
+# Given keypoints must lie on the scan: median distance to its grid at most this (voxels). The authors'
+# YOHO keypoints on the kitchen lie 0.33-0.35 voxels (median; all < 0.9) from the 4.1 cm grid;
+# keypoints in another frame or unit lie metres away.
+KEYPOINT_MAX_DISTANCE = 2.0
 
 
 @dataclass(eq=False)
@@ -31,16 +36,20 @@ class ScanFeatures:
     """Features of one scan, in the scan's own frame.
 
     ``points`` (M, 3) float64 voxel-grid centroids; ``normals`` (M, 3) unit normals oriented towards
-    the scan's origin; ``fpfh`` (M, 33) float32 FPFH descriptors of ``points``; ``voxel`` the grid
-    size. Search structures built once for all pairs: ``fpfh_tree`` (k-d tree on ``fpfh``), ``cloud``
-    (``points`` with GICP covariances, small_gicp) and its k-d tree ``cloud_tree``.
+    the scan's origin; ``voxel`` the grid size. Matching: ``keypoints`` (K, 3) float64 and their
+    ``descriptors`` (K, D) float32, which are ``points`` and ``fpfh`` (M, 33) unless they were given
+    (then ``fpfh`` is None: not computed). Search structures built once for all pairs:
+    ``descriptor_tree`` (k-d tree on ``descriptors``), ``cloud`` (``points`` with GICP covariances,
+    small_gicp) and its k-d tree ``cloud_tree``.
     """
 
     points: np.ndarray
     normals: np.ndarray
-    fpfh: np.ndarray
+    fpfh: np.ndarray | None
     voxel: float
-    fpfh_tree: cKDTree = field(repr=False)
+    keypoints: np.ndarray
+    descriptors: np.ndarray
+    descriptor_tree: cKDTree = field(repr=False)
     cloud: small_gicp.PointCloud = field(repr=False)
     cloud_tree: small_gicp.KdTree = field(repr=False)
 
@@ -49,9 +58,15 @@ class ScanFeatures:
 
 
 def compute_features(
-    points: np.ndarray, voxel: float, normal_radius: float = 2.0, fpfh_radius: float = 5.0
+    points: np.ndarray,
+    voxel: float,
+    normal_radius: float = 2.0,
+    fpfh_radius: float = 5.0,
+    given: Keypoints | None = None,
 ) -> ScanFeatures:
-    """Voxel grid, normals, FPFH and GICP covariances of one scan; radii in voxels (as in ``Config``).
+    """Voxel grid, normals, GICP covariances and FPFH of one scan; radii in voxels (as in ``Config``).
+    With ``given`` keypoints and descriptors no FPFH is computed and pairs are matched on those;
+    ``InputError`` when the keypoints do not lie on the scan (another frame or unit).
 
     Normals point towards the scan's origin: the sensor for scans in sensor coordinates (3DMatch),
     the object's inside for object-centred scans (Stanford). Either way they are consistent across
@@ -68,21 +83,32 @@ def compute_features(
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(normal_radius * voxel, NORMAL_MAX_NN))
     pcd.orient_normals_towards_camera_location(np.zeros(3))
-    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-        pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
-    )
-    fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
-
     grid = np.asarray(pcd.points)
     cloud = small_gicp.PointCloud(grid)
     cloud_tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
     small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
+
+    if given is None:
+        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+            pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
+        )
+        fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
+        keypoints, descriptors = grid, fpfh
+    else:
+        fpfh, keypoints, descriptors = None, given.points, given.descriptors
+        _, sq_dist = cloud_tree.batch_nearest_neighbor_search(keypoints, GICP_THREADS)
+        off = float(np.sqrt(np.median(sq_dist))) / voxel
+        if off > KEYPOINT_MAX_DISTANCE:
+            raise InputError(f"keypoints lie {off:.3g} voxels from the scan's points (median; at most "
+                             f"{KEYPOINT_MAX_DISTANCE:g}): are they in the scan's own frame and units?")
     return ScanFeatures(
         points=grid,
         normals=np.asarray(pcd.normals),
         fpfh=fpfh,
         voxel=float(voxel),
-        fpfh_tree=cKDTree(fpfh),
+        keypoints=keypoints,
+        descriptors=descriptors,
+        descriptor_tree=cKDTree(descriptors),
         cloud=cloud,
         cloud_tree=cloud_tree,
     )

@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as nnf
 from torch import nn
 
+from sghr_gtsam.types import InputError
+
 
 class NetVLAD(nn.Module):
     def __init__(self, clusters: int = 64, dim: int = 32):
@@ -48,13 +50,18 @@ class NetVLAD(nn.Module):
 
 def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> NetVLAD:
     """A NetVLAD head from a checkpoint of the authors' overlap network (``network_state_dict`` with
-    keys ``vlador.pool.*``; saved on cuda, so mapped to the CPU) or from one of ours (the same keys)."""
-    state = torch.load(path, map_location="cpu", weights_only=False)
-    state = state.get("network_state_dict", state)
-    state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-    clusters, dim = state["centroids"].shape
-    model = NetVLAD(clusters, dim)
-    model.load_state_dict(state)
+    keys ``vlador.pool.*``; saved on cuda, so mapped to the CPU) or from one of ours (the same keys).
+    ``InputError`` when the file cannot be read or holds no such head."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        state = state.get("network_state_dict", state)
+        state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+        clusters, dim = state["centroids"].shape
+        model = NetVLAD(clusters, dim)
+        model.load_state_dict(state)
+    except Exception as e:  # noqa: BLE001 - a missing, corrupt or foreign file is bad input
+        reason = f"no {prefix}centroids" if isinstance(e, KeyError) else " ".join(str(e).split()) or type(e).__name__
+        raise InputError(f"cannot read overlap head {path}: {reason}") from None
     return model.eval()
 
 
@@ -100,7 +107,7 @@ of simulated scans only (``sghr_gtsam/weights/README.md`` says how)."""
 
 
 def load_default_head(path: str | Path | None = None) -> NetVLAD:
-    """The shipped overlap head (``DEFAULT_HEAD``), or the head at ``path``; for FPFH descriptors (33-d)."""
+    """The shipped overlap head (``DEFAULT_HEAD``, for 33-d FPFH), or the head at ``path``."""
     return load_checkpoint(str(path or DEFAULT_HEAD))
 
 
