@@ -2,8 +2,10 @@
 
 Graphs: ``data_tools.outlier_graphs.make_graph`` (top-10 GT-overlap graph, inliers with 2° / 5 cm noise, a
 fraction ρ of edges replaced by ``random`` or ``structured`` outliers; see that module). Methods: the
-project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones with both
-reweightings, ``authors`` and ``paper``; ``history/authors`` also without the gtsam polish), every baseline of
+project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones — history and the
+paper's ablations constant g and no history — with both reweightings, ``authors`` and ``paper``, and the
+default robust polish; ``history/authors`` also with the other polishes and on graphs whose initial weight
+leaves out ``s`` or ``r``; ``spectral`` and ``lm`` as they are), every baseline of
 ``sghr_gtsam.sync.baselines`` and the oracle (gtsam LM told the inlier edges). HARA and LITS have no public
 code and are not run.
 
@@ -42,7 +44,7 @@ from data_tools.outlier_graphs import KINDS, SCENES, load_scene, make_graph  # n
 from sghr_gtsam.evaluate import registration_recall  # noqa: E402
 from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
-from sghr_gtsam.sync import METHODS, synchronize  # noqa: E402
+from sghr_gtsam.sync import METHODS, POLISHES, synchronize  # noqa: E402
 from sghr_gtsam.sync.baselines import BASELINES, oracle  # noqa: E402
 from sghr_gtsam.sync.irls import REWEIGHTS  # noqa: E402
 from sghr_gtsam.types import PoseGraph, SyncResult  # noqa: E402
@@ -53,7 +55,7 @@ IRLS_METHODS = ("history", "constant", "current")  # the METHODS entries that ta
 Runner = Callable[[PoseGraph, np.ndarray], SyncResult]  # (graph, outlier mask) -> result
 
 
-def _project(method: str, reweight: str = "authors", polish: bool = True) -> Runner:
+def _project(method: str, reweight: str = "authors", polish: str = "robust") -> Runner:
     return lambda graph, _: synchronize(graph, method=method, reweight=reweight, polish=polish)
 
 
@@ -61,16 +63,25 @@ def _baseline(name: str) -> Runner:
     return lambda graph, _: BASELINES[name](graph)
 
 
+WEIGHT_ABLATIONS = {"r": "history/authors, w0 = r (no s)", "s": "history/authors, w0 = s (no r)"}
+"""Rows that run the default on graphs whose initial weights leave out the overlap score or the inlier count."""
+
+
 def all_methods() -> dict[str, Runner]:
-    """Every method of the table, by row name, in the table's order."""
+    """Every method of the table, by row name, in the table's order. Rows named in ``WEIGHT_ABLATIONS`` run
+    on graphs generated with the other initial weight (``run_graph``)."""
     methods: dict[str, Runner] = {}
+    for method in IRLS_METHODS:
+        for reweight in REWEIGHTS:
+            methods[f"{method}/{reweight}"] = _project(method, reweight)
+    for polish in POLISHES:
+        if polish != "robust":
+            methods[f"history/authors, polish {polish}"] = _project("history", "authors", polish)
+    for name in WEIGHT_ABLATIONS.values():
+        methods[name] = _project("history")
     for method in METHODS:
-        if method in IRLS_METHODS:
-            for reweight in REWEIGHTS:
-                methods[f"{method}/{reweight}"] = _project(method, reweight)
-        else:
-            methods[method] = _project(method, polish=False)
-    methods["history/authors, no polish"] = _project("history", "authors", polish=False)
+        if method not in IRLS_METHODS:
+            methods[method] = _project(method, polish="none")
     for name in BASELINES:
         methods[name] = _baseline(name)
     methods["oracle"] = lambda graph, outlier: oracle(graph, ~outlier)
@@ -97,9 +108,12 @@ def run_graph(task: tuple[str, int, str, float, bool, list[str]]) -> list[Run]:
     scene, seed, kind, ratio, noisy_overlap, names = task
     methods = all_methods()
     gt = load_scene(scene)
-    graph, _, outlier = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
+    graphs = {w: make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap, weight=w)
+              for w in ["s*r", *(w for w, row in WEIGHT_ABLATIONS.items() if row in names)]}
     runs = []
     for name in names:
+        weight = next((w for w, row in WEIGHT_ABLATIONS.items() if row == name), "s*r")
+        graph, _, outlier = graphs[weight]
         start = time.perf_counter()
         result = methods[name](graph, outlier)
         seconds = time.perf_counter() - start

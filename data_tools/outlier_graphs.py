@@ -19,7 +19,7 @@ Only the scenes' ground truth is used (``3dmatch-test-gt/`` of the shared data; 
   wall it faces). One placement is shared by 2 + Poisson(1) edges of that scan (capped by its edges), so the
   wrong edges agree with each other (the paper's Fig. 2 cycle); each carries the inlier noise and an inlier
   count as high as an inlier's: ``3 + Poisson(300 · o')`` with ``o'`` the overlap of a random edge of the graph.
-- **Weight** ``w0 = s · r`` (SGHR's initial weight).
+- **Weight** ``w0 = s · r`` (SGHR's initial weight), or for the paper's ablations ``r`` or ``s`` alone.
 
 Scene-level details without point clouds: a fragment's centre is the point (0, −0.3, 2.3) m of its own frame
 (the centroid of the kitchen fragments in the shared data: z 2.0–2.7 m along the camera axis); the vertical is
@@ -114,12 +114,19 @@ def load_scene(scene: str, root: Path | None = None) -> SceneGT:
                    read_gt_log(scene_dir / "gt.log"), read_gt_info(scene_dir / "gt.info"))
 
 
+WEIGHTS = ("s*r", "r", "s")
+"""Initial edge weights: SGHR's ``s · r``, and the paper's ablations without ``s`` and without ``r``."""
+
+
 def make_graph(scene: str, ratio: float, kind: str, seed: int, noisy_overlap: bool = False,
-               root: Path | None = None) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
-    """The scene's top-k pose graph with ``round(ratio · E)`` outlier edges of ``kind``.
+               root: Path | None = None, weight: str = "s*r") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+    """The scene's top-k pose graph with ``round(ratio · E)`` outlier edges of ``kind``; ``weight``: one of
+    ``WEIGHTS`` (the same edges and measurements whichever is chosen).
 
     Returns the graph, the GT poses (N, 4, 4) of its nodes and the (E,) boolean outlier mask.
     """
+    if weight not in WEIGHTS:
+        raise ValueError(f"unknown initial weight {weight!r} ({', '.join(WEIGHTS)})")
     if kind not in KINDS:
         raise ValueError(f"unknown outlier kind {kind!r} ({', '.join(KINDS)})")
     if not 0.0 <= ratio < 1.0:
@@ -162,7 +169,8 @@ def make_graph(scene: str, ratio: float, kind: str, seed: int, noisy_overlap: bo
             inliers[chosen] = MIN_INLIERS + out_rng.poisson(INLIERS_PER_OVERLAP * like)
             is_outlier[chosen] = True
 
-    graph = PoseGraph(n=n, i=i, j=j, T=T, weight=score * inliers)
+    w0 = {"s*r": score * inliers, "r": inliers.astype(float), "s": score}[weight]
+    graph = PoseGraph(n=n, i=i, j=j, T=T, weight=w0)
     return graph, P.copy(), is_outlier
 
 

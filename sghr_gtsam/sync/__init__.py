@@ -15,11 +15,22 @@ import numpy as np
 from ..io.g2o import sesync_precisions
 from ..se3 import project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
+from .consensus import consensus_placement, consistent_edges
 from .irls import REWEIGHTS, irls, kept_edges, solve_poses
 from .rotation import connected_components, rotation_residuals
 
+POLISHES: dict[str, str] = {
+    "robust": "gtsam GNC (TLS) over every edge from the IRLS poses, consensus re-placement of scans, then "
+              "gtsam Levenberg-Marquardt on the edges consistent with the poses",
+    "lm": "gtsam Levenberg-Marquardt on the edges IRLS kept",
+    "none": "the IRLS poses as they are",
+}
+
+GNC_ITERS = 100
+"""Cap of each inner Levenberg-Marquardt run of the robust polish's GNC."""
+
 METHODS: dict[str, str] = {
-    "history": "SGHR: IRLS with history reweighting (g(m) = 2m/(M(M+1))), then gtsam Levenberg-Marquardt",
+    "history": "SGHR: IRLS with history reweighting (g(m) = 2m/(M(M+1))), then the polish",
     "constant": "ablation of 'history': constant history schedule g(m) = 1/M",
     "current": "ablation of 'history': no history, weights from the current residual only",
     "spectral": "one weighted spectral solve and least-squares translations, no reweighting",
@@ -28,20 +39,24 @@ METHODS: dict[str, str] = {
 
 
 def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, reweight: str = "authors",
-                polish: bool = True, min_weight: float = 1e-3,
+                polish: str = "robust", min_weight: float = 1e-3,
                 on_iteration: Callable[[IterationRecord], None] | None = None) -> SyncResult:
     """Absolute poses ``T_i`` (``T_ij = T_i⁻¹ T_j``) of every node of ``graph``.
 
     ``method``: a key of ``METHODS``. ``iters``: IRLS iterations M. ``reweight``: ``"authors"`` (δ in degrees,
     factor 2, as the authors' code) or ``"paper"`` (δ in radians, as the paper writes it); see ``irls``.
-    ``polish``: refine with gtsam Levenberg-Marquardt (method ``"lm"`` always does), every kept edge with
-    its initial weight as precision scale. Edges whose final weight is below ``min_weight`` times the
-    largest are dropped (weight 0 in the result).
+    ``polish``: a key of ``POLISHES`` (method ``"lm"`` always ends with Levenberg-Marquardt). Every edge that
+    enters a gtsam solve has its initial weight as precision scale (``factor_graph.edge_information``).
+    Edges whose reweighted weight is below ``min_weight`` times the largest are dropped; with ``"robust"``
+    the edges left are those consistent with the final poses (``consensus.consistent_edges``). Dropped
+    edges have weight 0 in the result; kept ones their last IRLS weight (``"robust"``: ``w⁰``).
 
     The nodes split into connected parts over the kept edges; ``SyncResult.component`` labels them (0 =
     the largest) and every part is anchored at its own first node (the identity). A node without kept
     edges is a part of its own. Raises ``InputError`` for unusable input.
     """
+    if polish not in POLISHES:
+        raise InputError(f"unknown polish {polish!r}; choose from {', '.join(POLISHES)}")
     if method not in METHODS:
         raise InputError(f"unknown synchronization method {method!r}; choose from {', '.join(METHODS)}")
     if reweight not in REWEIGHTS:
@@ -71,9 +86,21 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
             poses = solve_poses(graph, used * kappa, w_trans=used * tau)
         else:
             poses = solve_poses(graph, used)
+    if polish == "robust" and method != "lm":
+        from ..factor_graph import edge_information, gnc_tls_poses
+
+        # Residual reweighting keeps a wrong placement repeated on several edges of a scan and ignores
+        # translations (the authors' units); GNC over all edges sees translations, and the consensus step
+        # can move a scan back by 90° or a metre, which no descent does (docs/BENCHMARKS.md, robustness).
+        # Edges negligible from the start (below min_weight) stay out, as in IRLS.
+        usable = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+        poses = gnc_tls_poses(usable, poses, edge_information(usable, usable.weight), GNC_ITERS)[0]
+        poses = consensus_placement(usable, poses)
+        kept = consistent_edges(usable, poses)
+        weights = graph.weight
     weights = np.where(kept, weights, 0.0)
     component = connected_components(graph.n, graph.i, graph.j, kept)
-    if polish or method == "lm":
+    if polish != "none" or method == "lm":
         from ..factor_graph import edge_information, polish as lm_polish
 
         # The history weights decide which edges are kept; as precisions they are miscalibrated (an inlier
@@ -132,4 +159,4 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     return replace(graph, n=n, i=i.astype(np.int64), j=j.astype(np.int64), T=T, weight=w, information=info)
 
 
-__all__ = ["METHODS", "synchronize", "checked_graph"]
+__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph"]
