@@ -59,9 +59,9 @@ class Config:
     """History-reweighting units: 'authors' (residual in degrees, factor 2, as the authors' code; drops
     outliers) or 'paper' (residual in radians as the paper writes it; too weak to reject outliers)."""
     polish: str = "robust"
-    """After IRLS (``sghr_gtsam.sync.POLISHES``): 'robust' (gtsam GNC over every edge, consensus
-    re-placement of scans, then Levenberg-Marquardt on the consistent edges: best on the robustness
-    benchmark), 'lm' (Levenberg-Marquardt on the edges IRLS kept) or 'none'."""
+    """After IRLS (``sghr_gtsam.sync.POLISHES``): 'robust' (consensus re-placement of scans, gtsam GNC
+    over every edge, consensus again, then Levenberg-Marquardt on the consistent edges: best on the
+    robustness benchmark), 'lm' (Levenberg-Marquardt on the edges IRLS kept) or 'none'."""
     min_weight: float = 1e-3
     """Edges whose final weight falls below this fraction of the largest weight are dropped; a
     scan left without edges is reported as unregistered."""
