@@ -17,11 +17,13 @@ Metrics: Spearman correlation of the scores with GT overlap over all pairs; for 
 ``graph.top_k_edges`` (each scan's k best partners) and the fraction of its edges whose GT overlap > 0.1.
 
 Speed: the global feature of one scan from its descriptors (5000 of them, as the pipeline samples), and the
-all-pairs scores plus top-10 graph for N = 5000 random unit features with ``graph.overlap_scores`` +
-``graph.top_k_edges``; also a proposed variant (float32 Gram matrix, ``argpartition`` top-k) that gives the
-same edges.
+all-pairs scores plus top-10 graph for N = 5000 random unit features (D = 64 × 33): ``graph.top_k_graph``
+(one float32 Gram matrix, top-k straight from it), ``graph.overlap_scores`` + ``graph.top_k_edges`` (the full
+float64 matrix), and graph.py as of commit 5cca2b2 for comparison, each path timed once per repeat,
+interleaved, medians reported with the load average; the edges of the three paths are checked to be equal.
 
-Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH] [--no-speed]``.
+Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH] [--no-speed | --speed-only]
+[--repeats R]``.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from sghr_gtsam.features.netvlad import (  # noqa: E402
     kmeans_codebook,
     load_checkpoint,
 )
-from sghr_gtsam.graph import overlap_scores, top_k_edges  # noqa: E402
+from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_overlap, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import load_scan  # noqa: E402
 
@@ -132,22 +134,70 @@ def report_scene(title: str, names: list[str], desc: list[np.ndarray], G: np.nda
     return results
 
 
-def fast_scores_top_k(F: np.ndarray, k: int) -> np.ndarray:
-    """Proposed: float32 Gram matrix and ``argpartition`` (then a stable sort of the k candidates); the same
-    edges as ``top_k_edges(overlap_scores(F), k)`` when no two scores of a row tie at the k-th place."""
+def previous_scores_top_k(F: np.ndarray, k: int) -> np.ndarray:
+    """graph.py as of commit 5cca2b2 (2.05 s at N = 5000): numpy ``F32 @ F32.T``, clip, float64 scores, then
+    ``np.partition`` on a float64 copy and ``np.unique(axis=0)``; kept here to time it under the same load."""
     F32 = np.asarray(F, dtype=np.float32)
-    G = F32 @ F32.T
-    np.fill_diagonal(G, -np.inf)
-    n = len(G)
-    k = min(k, n - 1)
-    cand = np.argpartition(-G, k - 1, axis=1)[:, :k]
-    order = np.argsort(-np.take_along_axis(G, cand, 1), axis=1, kind="stable")
-    partners = np.take_along_axis(cand, order, 1)
-    pairs = np.sort(np.stack([np.repeat(np.arange(n), k), partners.ravel()], 1), axis=1)
-    return np.unique(pairs, axis=0)
+    S = (np.clip(F32 @ F32.T, -1.0, 1.0).astype(np.float64) + 1.0) / 2.0
+    neg = -S
+    np.fill_diagonal(neg, np.inf)
+    kth = np.partition(neg, k - 1, axis=1)[:, k - 1:k]
+    better, ties = neg < kth, neg == kth
+    need = k - better.sum(axis=1)
+    chosen = better | ties
+    crowded = np.flatnonzero(ties.sum(axis=1) > need)
+    chosen[crowded] = better[crowded] | (ties[crowded] & (np.cumsum(ties[crowded], axis=1) <= need[crowded, None]))
+    return np.unique(np.sort(np.stack(np.nonzero(chosen), axis=1), axis=1), axis=0)
 
 
-def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 3) -> None:
+def graph_speed(D: int, n: int = 5000, k: int = 10, repeats: int = 5) -> None:
+    """Scores + top-k for ``n`` random unit features: the paths interleaved in each repeat; medians."""
+    rng = np.random.default_rng(0)
+    F = rng.normal(size=(n, D))
+    F /= np.linalg.norm(F, axis=1, keepdims=True)
+    top_k_graph(F[:100], k)  # warm-up (BLAS threads, torch)
+    times: dict[str, list[float]] = {key: [] for key in ("gram", "fused", "fused_full", "scores", "topk", "previous")}
+    load_before = os.getloadavg()[0]
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        gram32(F)
+        t1 = time.perf_counter()
+        fused, _ = top_k_graph(F, k)
+        t2 = time.perf_counter()
+        top_k_graph(F, k, full_scores=True)
+        t2b = time.perf_counter()
+        S = overlap_scores(F)
+        t3 = time.perf_counter()
+        edges = top_k_edges(S, k)
+        t4 = time.perf_counter()
+        del S
+        previous = previous_scores_top_k(F, k)
+        t5 = time.perf_counter()
+        for key, dt in zip(times, (t1 - t0, t2 - t1, t2b - t2, t3 - t2b, t4 - t3, t5 - t4)):
+            times[key].append(dt)
+    load_after = os.getloadavg()[0]
+    same = np.array_equal(fused, edges) and np.array_equal(fused, previous)
+    full = np.array(times["scores"]) + np.array(times["topk"])
+
+    def cell(values) -> str:
+        return f"{np.median(values):.2f} s ({np.min(values):.2f}–{np.max(values):.2f})"
+
+    print(f"\nN = {n} scans, D = {D}, k = {k}, {repeats} repeats, median (min–max); load average "
+          f"{load_before:.1f} before, {load_after:.1f} after; {len(fused)} edges, same for all three paths: {same}\n")
+    print("| what | time | target |")
+    print("|---|---:|---:|")
+    print(f"| `graph.gram32`: float32 Gram matrix (ssyrk + tiled mirror) | {cell(times['gram'])} | |")
+    print(f"| **`graph.top_k_graph(F, {k})`: scores + top-k, fused (Gram + torch.topk + exact ties)** | "
+          f"**{cell(times['fused'])}** | ≤ 1 s |")
+    print(f"| `graph.top_k_graph(F, {k}, full_scores=True)`: the same plus the full float64 matrix | "
+          f"{cell(times['fused_full'])} | |")
+    print(f"| `graph.overlap_scores(F)`: full float64 matrix | {cell(times['scores'])} | |")
+    print(f"| `graph.top_k_edges(scores, {k})` on that matrix | {cell(times['topk'])} | |")
+    print(f"| overlap_scores + top_k_edges | {cell(full)} | ≤ 1 s |")
+    print(f"| graph.py before (commit 5cca2b2): scores + top-k | {cell(times['previous'])} | |")
+
+
+def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 5) -> None:
     D = head.centroids.numel()
     d5000 = [d if len(d) >= 5000 else np.concatenate([d] * (5000 // len(d) + 1))[:5000] for d in desc]
     per_scan = {}
@@ -167,23 +217,6 @@ def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 3
     codebook_scores(desc)
     codebook_total = time.perf_counter() - t0
 
-    rng = np.random.default_rng(0)
-    F = rng.normal(size=(n, D))
-    F /= np.linalg.norm(F, axis=1, keepdims=True)
-    t_scores, t_topk, t_fast = [], [], []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        S = overlap_scores(F)
-        t1 = time.perf_counter()
-        edges = top_k_edges(S, 10)
-        t2 = time.perf_counter()
-        fast = fast_scores_top_k(F, 10)
-        t3 = time.perf_counter()
-        t_scores.append(t1 - t0)
-        t_topk.append(t2 - t1)
-        t_fast.append(t3 - t2)
-        del S
-    same = np.array_equal(edges, fast)
     load = os.getloadavg()[0]
     print(f"\n### Speed (this machine: {os.cpu_count()} cores, load average {load:.1f} when measured; medians)\n")
     print("| what | time | target |")
@@ -193,11 +226,7 @@ def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 3
               f"x 3), torch {threads} thread{'s' if threads > 1 else ''} | {1e3 * np.median(times):.1f} ms | ≤ 50 ms |")
     print(f"| VLAD codebook, k-means + features of the whole kitchen ({len(desc)} scans) | "
           f"{1e3 * codebook_total:.0f} ms ({1e3 * codebook_total / len(desc):.0f} ms a scan) | |")
-    print(f"| `graph.overlap_scores`, N = {n}, D = {D} (float64) | {np.median(t_scores):.2f} s | |")
-    print(f"| `graph.top_k_edges`, k = 10, N = {n} | {np.median(t_topk):.2f} s | |")
-    total = np.median(np.array(t_scores) + np.array(t_topk))
-    print(f"| **scores + top-k (current graph.py)** | **{total:.2f} s** | ≤ 1 s |")
-    print(f"| proposed: float32 Gram + argpartition top-k (same edges: {same}) | {np.median(t_fast):.2f} s | ≤ 1 s |")
+    graph_speed(D, n, repeats=repeats)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -205,7 +234,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--head", type=Path, default=DEFAULT_HEAD, help="learned head checkpoint")
     parser.add_argument("--no-speed", action="store_true")
-    parser.add_argument("--only-speed", action="store_true", help="skip the overlap tables")
+    parser.add_argument("--speed-only", "--only-speed", dest="only_speed", action="store_true",
+                        help="skip the overlap tables")
+    parser.add_argument("--repeats", type=int, default=5, help="repeats of the N = 5000 graph timing")
     args = parser.parse_args(argv)
     if not (args.data / "MANIFEST.md").is_file():
         print(f"real data not found at {args.data} (set SGHR_DATA)")
@@ -218,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     voxel = default_voxel(scans)
     desc = [compute_features(P, voxel).fpfh for P in scans]
     if args.only_speed:
-        speed(head, desc)
+        speed(head, desc, repeats=args.repeats)
         return 0
     report_scene(f"3DMatch kitchen (voxel {100 * voxel:.2f} cm; GT: gt_overlap.log)", names, desc, G, head)
 
@@ -238,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
                  b_desc, b_G, head)
 
     if not args.no_speed:
-        speed(head, desc)
+        speed(head, desc, repeats=args.repeats)
     return 0
 
 

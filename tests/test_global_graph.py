@@ -2,7 +2,7 @@ import numpy as np
 from hypothesis import given, settings, strategies as st
 
 from sghr_gtsam.features.netvlad import NetVLAD, global_features, kmeans_codebook, load_checkpoint
-from sghr_gtsam.graph import overlap_scores, top_k_edges
+from sghr_gtsam.graph import gram32, overlap_scores, scores_from_gram, top_k_edges, top_k_graph
 
 
 def test_authors_checkpoint_reproduces_their_overlap_scores(data_dir):
@@ -71,3 +71,83 @@ def test_top_k_graph_breaks_ties_like_a_stable_sort(n, k, levels, seed):
     best = np.argsort(-D, axis=1, kind="stable")[:, :kk]
     expected = np.unique(np.sort(np.stack([np.repeat(np.arange(n), kk), best.ravel()], axis=1), axis=1), axis=0)
     np.testing.assert_array_equal(top_k_edges(S, k), expected)
+
+
+def _reference_top_k(S: np.ndarray, k: int) -> np.ndarray:
+    """The definition: each row's k best columns by a stable sort (ties to the lower index), symmetric union."""
+    n = len(S)
+    kk = min(k, n - 1)
+    D = np.asarray(S, dtype=float).copy()
+    np.fill_diagonal(D, -np.inf)
+    best = np.argsort(-D, axis=1, kind="stable")[:, :kk]
+    return np.unique(np.sort(np.stack([np.repeat(np.arange(n), kk), best.ravel()], axis=1), axis=1), axis=0)
+
+
+def _features(kind: str, n: int, d: int, rng: np.random.Generator) -> np.ndarray:
+    """Unit features; ``grid`` and ``dups`` make many exactly equal scores (ties at the k-th place, clipping at ±1)."""
+    if kind == "gauss":
+        F = rng.normal(size=(n, d))
+    elif kind == "grid":  # entries in {-1, 0, 1}: few distinct dot products, antipodal pairs clip at -1
+        F = rng.integers(-1, 2, size=(n, d)).astype(float)
+        F[~F.any(axis=1), 0] = 1.0
+    else:  # a few distinct features, each repeated (the same scan read twice); duplicates score 1 after clipping
+        base = rng.normal(size=(int(rng.integers(1, 4)), d))
+        F = base[rng.integers(0, len(base), size=n)]
+    return F / np.linalg.norm(F, axis=1, keepdims=True)
+
+
+@settings(max_examples=80, deadline=None)
+@given(n=st.integers(2, 60), k=st.integers(1, 12), d=st.integers(1, 6), form=st.sampled_from(["paper", "authors"]),
+       kind=st.sampled_from(["gauss", "grid", "dups"]), seed=st.integers(0, 10_000))
+def test_fast_top_k_graph_matches_the_reference_on_the_float32_scores(n, k, d, form, kind, seed):
+    """``top_k_graph`` (float32 Gram, torch.topk candidates, exact fallback for spilling ties) chooses exactly the
+    reference's edges on ``overlap_scores`` — the float64 scores of the same float32 Gram values — ties included."""
+    F = _features(kind, n, d, np.random.default_rng(seed))
+    S = overlap_scores(F, form)
+    expected = _reference_top_k(S, k)
+    edges, s = top_k_graph(F, k, form)
+    np.testing.assert_array_equal(edges, expected)
+    np.testing.assert_array_equal(s, S[expected[:, 0], expected[:, 1]])
+    np.testing.assert_array_equal(top_k_edges(S, k), expected)
+    np.testing.assert_array_equal(top_k_edges(S.astype(np.float32), k), _reference_top_k(S.astype(np.float32), k))
+
+
+def test_top_k_graph_full_scores_and_gram_are_consistent():
+    rng = np.random.default_rng(1)
+    F = rng.normal(size=(300, 40))
+    F /= np.linalg.norm(F, axis=1, keepdims=True)
+    G = gram32(F)
+    assert G.dtype == np.float32 and np.array_equal(G, G.T)
+    np.testing.assert_allclose(G, F @ F.T, atol=1e-6)
+    for form in ("paper", "authors"):
+        edges, s, S = top_k_graph(F, 7, form, full_scores=True)
+        np.testing.assert_array_equal(S, overlap_scores(F, form))
+        np.testing.assert_array_equal(S, scores_from_gram(G, form))
+        np.testing.assert_array_equal(edges, _reference_top_k(S, 7))
+        np.testing.assert_array_equal(s, S[edges[:, 0], edges[:, 1]])
+    np.testing.assert_allclose(overlap_scores(F), (F @ F.T + 1) / 2, atol=1e-6)
+
+
+def test_top_k_with_many_rows_of_ties_uses_the_exact_path_in_chunks():
+    """1100 scans from 3 distinct features: every row's k-th place is a tie spilling past the candidates."""
+    rng = np.random.default_rng(2)
+    base = rng.normal(size=(3, 16))
+    F = base[rng.integers(0, 3, size=1100)]
+    F /= np.linalg.norm(F, axis=1, keepdims=True)
+    S = overlap_scores(F)
+    edges, _ = top_k_graph(F, 10)
+    np.testing.assert_array_equal(edges, _reference_top_k(S, 10))
+    levels = rng.integers(0, 2, size=(700, 700))
+    np.testing.assert_array_equal(top_k_edges(levels, 5), _reference_top_k(levels, 5))  # integer scores
+
+
+def test_top_k_small_and_degenerate_inputs():
+    F = np.eye(3)
+    assert top_k_graph(F[:1], 5)[0].shape == (0, 2) and top_k_edges(np.ones((1, 1)), 3).shape == (0, 2)
+    assert top_k_edges(np.ones((4, 4)), 0).shape == (0, 2)
+    edges, s = top_k_graph(F, 10)  # k above N - 1: the complete graph
+    np.testing.assert_array_equal(edges, [[0, 1], [0, 2], [1, 2]])
+    np.testing.assert_array_equal(s, [0.5, 0.5, 0.5])
+    S = overlap_scores(F)
+    S.setflags(write=False)
+    np.testing.assert_array_equal(top_k_edges(S, 1), _reference_top_k(S, 1))
