@@ -17,8 +17,8 @@ Rows per scene:
   ``data_tools.gt_overlap`` under the GT poses, the kitchen calibration scaled to the voxel, as
   ``bench_overlap.py``).
 
-``register`` takes no scores from outside, so the random and GT rows replace ``pipeline._global_scores``
-for the duration of their run (``unittest.mock.patch.object``); everything else is the pipeline's own code.
+The random and GT rows pass their scores to ``pipeline.register(..., scores=...)``; everything else is the
+pipeline's own code.
 
 Scoring, against ``gt_poses.txt``: errors of each *registered* scan relative to the first registered scan
 (the pipeline's anchor); within tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
@@ -37,7 +37,6 @@ import os
 import sys
 import time
 from pathlib import Path
-from unittest import mock
 
 import numpy as np
 
@@ -81,12 +80,9 @@ def random_scores(n: int, seed: int) -> np.ndarray:
     return np.triu(S, 1) + np.triu(S, 1).T + np.eye(n)
 
 
-def run_row(scans, config: Config, scores: np.ndarray | None, kind: str) -> pipeline.RunResult:
+def run_row(scans, config: Config, scores: np.ndarray | None) -> pipeline.RunResult:
     """One ``register`` run; ``scores`` given: they replace the global-feature scores for this run."""
-    if scores is None:
-        return pipeline.register(scans, config, log=lambda m: None)
-    with mock.patch.object(pipeline, "_global_scores", lambda features, cfg: (scores.copy(), kind)):
-        return pipeline.register(scans, config, log=lambda m: None)
+    return pipeline.register(scans, config, log=lambda m: None, scores=scores)
 
 
 def score_run(res: pipeline.RunResult, gt: np.ndarray, max_deg: float, max_t: float,
@@ -171,7 +167,7 @@ def bench_scene(name: str, data: Path, ks: list[int], seeds: int) -> None:
         for scores, kind in variants:
             cpu0 = time.process_time()
             try:
-                res = run_row(scans, config, scores, kind)
+                res = run_row(scans, config, scores)
             except InputError as e:
                 print(f"  {label} k={k} ({kind}) failed: {e}", file=sys.stderr)
                 continue

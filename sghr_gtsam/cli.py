@@ -16,6 +16,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 
 _DEFAULT = Config()
 _METHOD_NAMES = ("history", "constant", "current", "spectral", "lm")
+_POLISH_HELP = ("After IRLS: robust (consensus re-placement, gtsam GNC, consensus, LM on the consistent edges), "
+                "lm (LM on the edges IRLS kept) or none.")
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -43,7 +45,7 @@ def _config(config_file: Optional[Path], **overrides) -> Config:
     for key, value in overrides.items():
         if value is not None:
             setattr(cfg, key, value)
-    return cfg
+    return cfg.validate()
 
 
 @app.command()
@@ -51,22 +53,23 @@ def run(
     scene_dir: Path = typer.Argument(..., help="Folder of scans (.ply .pcd .xyz .txt .npy .npz); order = sorted names."),
     out: Optional[Path] = typer.Option(None, "--out", help="Results folder [default: results/<scene name>]."),
     voxel: Optional[float] = typer.Option(None, help="Voxel size in scene units [default: 1/100 of the median scan's bounding-box diagonal]."),
-    k: int = typer.Option(_DEFAULT.k, help="Top-k partners per scan (10 indoor, 6 outdoor)."),
-    iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (history reweighting)."),
-    method: str = typer.Option(_DEFAULT.method, help="Synchronization method."),
-    global_feature: str = typer.Option(_DEFAULT.global_feature, help="Overlap scores: vlad (scene codebook) or learned (shipped head)."),
+    k: Optional[int] = typer.Option(None, help=f"Top-k partners per scan (10 indoor, 6 outdoor) [default: {_DEFAULT.k}]."),
+    iters: Optional[int] = typer.Option(None, help=f"IRLS iterations M (history reweighting) [default: {_DEFAULT.iters}]."),
+    method: Optional[str] = typer.Option(None, help=f"Synchronization method [default: {_DEFAULT.method}]."),
+    polish: Optional[str] = typer.Option(None, help=f"{_POLISH_HELP} [default: {_DEFAULT.polish}]"),
+    global_feature: Optional[str] = typer.Option(None, help=f"Overlap scores: vlad (scene codebook) or learned (shipped head) [default: {_DEFAULT.global_feature}]."),
     features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
-    seed: int = typer.Option(_DEFAULT.seed, help="Seed of every random choice."),
-    record: bool = typer.Option(_DEFAULT.record, help="Write recording.rrd for the Rerun viewer."),
+    seed: Optional[int] = typer.Option(None, help=f"Seed of every random choice [default: {_DEFAULT.seed}]."),
+    record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun viewer [default: record]."),
     config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options given here override it."),
 ) -> None:
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     from .pipeline import run as run_pipeline
 
-    cfg = _config(config_file, voxel=voxel, k=k, iters=iters, method=method, seed=seed, record=record,
-                  global_feature=global_feature, features=features and str(features),
-                  overlap_head=overlap_head and str(overlap_head))
+    cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
+                 record=record, global_feature=global_feature, features=features and str(features),
+                 overlap_head=overlap_head and str(overlap_head))
     out = out or Path("results") / scene_dir.resolve().name
     result = _guard(run_pipeline, scene_dir, out, cfg, log=typer.echo)
     typer.echo(f"registered {len(result.registered)}/{len(result.names)} scans in "
@@ -109,6 +112,7 @@ def sync(
     out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
     method: str = typer.Option("lm", help="Synchronization method: " + ", ".join(_METHOD_NAMES) + "."),
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods)."),
+    polish: str = typer.Option(_DEFAULT.polish, help=_POLISH_HELP + " Method lm always ends with LM."),
     noise: str = typer.Option("information", help="information: each edge's own 6x6 information; "
                               "isotropic: SE-Sync's precisions (2κ rotation, τ translation)."),
 ) -> None:
@@ -122,7 +126,7 @@ def sync(
         ids, _, graph = read_g2o(graph_file)
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
-        result = synchronize(graph, method=method, iters=iters)
+        result = synchronize(graph, method=method, iters=iters, polish=polish)
         write_g2o(out, ids, result.poses, graph)
         parts = int(result.component.max()) + 1
         typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "

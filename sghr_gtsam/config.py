@@ -6,6 +6,8 @@ import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from .types import InputError
+
 
 @dataclass
 class Config:
@@ -71,14 +73,36 @@ class Config:
     record: bool = True
     """Write recording.rrd (rerun)."""
 
+    def validate(self) -> "Config":
+        """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
+        from .pairwise import MATCHERS
+        from .sync import METHODS, POLISHES
+        from .sync.irls import REWEIGHTS
+
+        choices = {"global_feature": ("vlad", "learned"), "matcher": MATCHERS, "method": tuple(METHODS),
+                   "polish": tuple(POLISHES), "reweight": REWEIGHTS}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        for name in ("k", "iters", "min_points"):
+            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+                raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
+        if self.voxel is not None and not (self.voxel > 0):
+            raise InputError(f"voxel must be positive; got {self.voxel!r}")
+        return self
+
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)
 
     @classmethod
     def from_json(cls, path: str | Path) -> "Config":
-        data = json.loads(Path(path).read_text())
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
+        try:
+            data = json.loads(Path(path).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise InputError(f"cannot read config {path}: {e}") from None
+        if not isinstance(data, dict):
+            raise InputError(f"config {path} must hold a JSON object")
+        unknown = set(data) - {f.name for f in fields(cls)}
         if unknown:
-            raise ValueError(f"unknown config keys: {sorted(unknown)}")
+            raise InputError(f"config {path}: unknown keys {sorted(unknown)}")
         return cls(**data)

@@ -16,7 +16,7 @@ import numpy as np
 from .config import Config
 from .features.local import ScanFeatures, compute_features, default_voxel
 from .features.netvlad import DEFAULT_HEAD, NetVLAD, global_features, kmeans_codebook, load_default_head
-from .graph import overlap_scores, top_k_edges
+from .graph import top_k_edges, top_k_graph
 from .io.features import read_features
 from .io.scans import finite_points, list_scans, load_scan
 from .pairwise import PairResult, register_pair
@@ -113,7 +113,15 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     return scans, skipped
 
 
-def _global_scores(features: list[ScanFeatures], config: Config) -> tuple[np.ndarray, str]:
+def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
+    S = np.asarray(scores, dtype=float)
+    if S.shape != (n, n) or not np.all(np.isfinite(S)) or not np.allclose(S, S.T):
+        raise InputError(f"overlap scores must be a finite symmetric {n}x{n} matrix, got shape {S.shape}")
+    return S
+
+
+def _global_features(features: list[ScanFeatures], config: Config) -> tuple[np.ndarray, str]:
+    """Unit global features (N, D) of the scans and what made them."""
     descriptors = [f.descriptors for f in features]
     dim = descriptors[0].shape[1]
     kind = f"{dim}-d " + ("FPFH" if features[0].fpfh is not None else "given descriptors")
@@ -124,13 +132,13 @@ def _global_scores(features: list[ScanFeatures], config: Config) -> tuple[np.nda
             raise InputError(f"overlap head {path} takes {head.centroids.shape[1]}-d descriptors, "
                              f"the scans have {kind}")
         F = global_features(head, descriptors, seed=config.seed)
-        return overlap_scores(F), f"learned NetVLAD head ({path}) on {kind}"
+        return F, f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
     codebook = kmeans_codebook(descriptors, seed=config.seed)
     model = NetVLAD.from_codebook(codebook)
     F = global_features(model, descriptors, seed=config.seed)
-    return overlap_scores(F), f"unsupervised VLAD codebook ({len(codebook)} clusters of {kind}, k-means on this scene)"
+    return F, f"unsupervised VLAD codebook ({len(codebook)} clusters of {kind}, k-means on this scene)"
 
 
 def _features(scan: Scan, voxel: float, config: Config) -> ScanFeatures:
@@ -149,8 +157,14 @@ def _also_recorded(log: Log, recorder: Recorder) -> Log:
 
 
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
-             log: Log = print, skipped: dict[str, str] | None = None) -> RunResult:
-    """Register ``scans`` (at least two) into one frame. The recorder, if any, only observes."""
+             log: Log = print, skipped: dict[str, str] | None = None,
+             scores: np.ndarray | None = None) -> RunResult:
+    """Register ``scans`` (at least two) into one frame. The recorder, if any, only observes.
+
+    ``scores``: an (N, N) symmetric matrix of overlap scores to choose the top-k graph from instead of the
+    global features (e.g. ground-truth overlaps or another method's), with their values as ``s`` in ``w⁰``.
+    """
+    config.validate()
     if len(scans) < 2:
         raise InputError(f"need at least 2 scans, got {len(scans)}")
     given = sum(s.keypoints is not None for s in scans)
@@ -173,8 +187,12 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         recorder.log_scans(names, [f.points for f in features])
 
     with timer.stage("global_graph"):
-        scores, feature_kind = _global_scores(features, config)
-        edges = top_k_edges(scores, config.k)
+        if scores is None:
+            F, feature_kind = _global_features(features, config)
+            edges, _, scores = top_k_graph(F, config.k, full_scores=True)
+        else:
+            scores, feature_kind = _given_scores(scores, len(scans)), "overlap scores given by the caller"
+            edges = top_k_edges(scores, config.k)
     n, n_all = len(scans), len(scans) * (len(scans) - 1) // 2
     log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(edges)} of {n_all} pairs "
         f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")
@@ -233,6 +251,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``."""
     from .io.results import write_results
 
+    config.validate()
     started = time.perf_counter()
     timer = _Timer()
     with timer.stage("load"):

@@ -1,6 +1,7 @@
 """Everything rerun: a recording of a run for review in the Rerun viewer. It only observes.
 
-Layout of the recording (timeline ``iteration``: IRLS iterations 1..M, then LM iterations M+1..):
+Layout of the recording (timeline ``iteration``: IRLS iterations 1..M, then one step per robust-polish
+stage (consensus, GNC, consensus) and per LM iteration):
 - ``world/scans/<name>``: the voxelised scan in its own frame (static) under a ``Transform3D``
   that follows its pose at every iteration;
 - ``world/edges``: one line per pose-graph edge between scan centres, coloured by weight
@@ -42,7 +43,6 @@ class Recorder:
         self._centres = np.zeros((0, 3))
         self._graph: PoseGraph | None = None
         self._step = 0
-        self._irls_iters = 0
 
     def log_message(self, text: str) -> None:
         self.rec.log("log", rr.TextLog(text), static=False)
@@ -64,11 +64,8 @@ class Recorder:
         self.rec.log("graph/overlap_scores", rr.Tensor(scores.astype(np.float32)), static=True)
 
     def on_iteration(self, record: IterationRecord) -> None:
-        if record.stage == "irls":
-            self._irls_iters = max(self._irls_iters, record.iteration)
-            step = record.iteration
-        else:
-            step = self._irls_iters + record.iteration
+        # IRLS iterations at their own numbers; every later record (robust polish stages, LM) one step on.
+        step = record.iteration if record.stage == "irls" else self._step + 1
         self._step = step
         self.rec.set_time(TIMELINE, sequence=step)
         self.log_poses(record.poses)

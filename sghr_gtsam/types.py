@@ -60,9 +60,9 @@ class PoseGraph:
 
 @dataclass
 class IterationRecord:
-    """State after one IRLS or LM iteration, for the recording and the report."""
+    """State after one IRLS iteration, robust-polish stage or LM iteration, for the recording and the report."""
 
-    stage: str  # "irls" or "lm"
+    stage: str  # "irls", "consensus", "gnc" or "lm"
     iteration: int
     poses: np.ndarray  # (N, 4, 4) T_i
     weights: np.ndarray  # (E,)

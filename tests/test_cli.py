@@ -97,3 +97,28 @@ def test_sync_command_rejects_a_bad_file(tmp_path):
     r = _run("sync", bad, "--out", tmp_path / "o.g2o")
     assert r.exit_code == 2 and "error:" in r.output
     assert not (tmp_path / "o.g2o").exists()
+
+
+def test_bad_options_and_config_files_are_one_line_errors(tmp_path):
+    scene = tmp_path / "scene"
+    write_scene(make_scene(kind="room", n_scans=3, seed=0), scene)
+    bad_json = tmp_path / "bad.json"
+    bad_json.write_text("{not json")
+    unknown = tmp_path / "unknown.json"
+    unknown.write_text('{"k": 4, "colour": "red"}')
+    for args in (["--polish", "sometimes"], ["--method", "magic"], ["--k", "0"], ["--config", bad_json],
+                 ["--config", unknown], ["--config", tmp_path / "missing.json"]):
+        r = _run("run", scene, "--out", tmp_path / "out", *args)
+        assert r.exit_code == 2, args
+        assert r.output.strip().startswith("error:") and len(r.output.strip().splitlines()) == 1, args
+    assert not (tmp_path / "out").exists()
+
+
+def test_config_file_values_hold_unless_an_option_overrides_them(tmp_path):
+    from sghr_gtsam.cli import _config
+
+    path = tmp_path / "config.json"
+    path.write_text('{"k": 4, "polish": "lm", "record": false}')
+    cfg = _config(path, k=None, polish=None, record=None, iters=7)
+    assert (cfg.k, cfg.polish, cfg.record, cfg.iters) == (4, "lm", False, 7)
+    assert _config(path, k=6).k == 6

@@ -88,18 +88,7 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
         else:
             poses = solve_poses(graph, used)
     if polish == "robust" and method != "lm":
-        from ..factor_graph import edge_information, gnc_tls_poses
-
-        # Residual reweighting keeps a wrong placement repeated on several edges of a scan and ignores
-        # translations (the authors' units). The consensus step can move a scan back by 90° or a metre,
-        # which no descent does; GNC over all edges then weighs translations too, and a second consensus
-        # pass catches what GNC moved (docs/BENCHMARKS.md, robustness). Edges negligible from the start
-        # (below min_weight) stay out, as in IRLS.
-        usable = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
-        poses = consensus_placement(usable, poses)
-        poses = gnc_tls_poses(usable, poses, edge_information(usable, usable.weight), GNC_ITERS)[0]
-        poses = consensus_placement(usable, poses)
-        kept = consistent_edges(usable, poses)
+        poses, kept = _robust_placement(graph, poses, min_weight, keep_history)
         weights = graph.weight
     weights = np.where(kept, weights, 0.0)
     component = connected_components(graph.n, graph.i, graph.j, kept)
@@ -115,6 +104,32 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
     return SyncResult(poses=poses, weights=weights, residual_deg=np.degrees(residual), component=component,
                       history=history)
+
+
+def _robust_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
+                      keep_history: Callable[[IterationRecord], None]) -> tuple[np.ndarray, np.ndarray]:
+    """The robust polish before its LM: consensus re-placement, GNC, consensus; the poses and the (E,)
+    mask of edges consistent with them.
+
+    Residual reweighting keeps a wrong placement repeated on several edges of a scan and ignores
+    translations (the authors' units). The consensus step can move a scan back by 90° or a metre, which
+    no descent does; GNC over all edges then weighs translations too, and a second consensus pass catches
+    what GNC moved (docs/BENCHMARKS.md, robustness). Edges negligible from the start (below
+    ``min_weight``) stay out, as in IRLS.
+    """
+    from ..factor_graph import edge_information, gnc_tls_poses
+
+    usable = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+    steps = (("consensus", lambda P: consensus_placement(usable, P)),
+             ("gnc", lambda P: gnc_tls_poses(usable, P, edge_information(usable, usable.weight), GNC_ITERS)[0]),
+             ("consensus", lambda P: consensus_placement(usable, P)))
+    for k, (stage, step) in enumerate(steps, 1):
+        poses = step(poses)
+        kept = consistent_edges(usable, poses)
+        residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
+        keep_history(IterationRecord(stage=stage, iteration=k, poses=poses, weights=np.where(kept, graph.weight, 0.0),
+                                     residual_deg=np.degrees(residual)))
+    return poses, kept
 
 
 def checked_graph(graph: PoseGraph) -> PoseGraph:
