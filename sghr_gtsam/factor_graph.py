@@ -7,10 +7,13 @@ Weight → noise (``edge_information``): ``Ω'_e = (w_e / ŵ) · Ω_e`` where ``
 gives the edge, ``ŵ`` the median of the nonzero ones (so a typical edge keeps its base information and the
 scale of the problem does not depend on the weights' units), and ``Ω_e`` the edge's own information
 (``PoseGraph.information``) or, without one, ``diag(σ_r⁻² I₃, σ_t⁻² I₃)``. Edges with ``w_e = 0`` get no
-factor. ``synchronize`` passes the initial weight ``w⁰`` (overlap × inliers) of the edges the history
-reweighting kept and 0 for the dropped ones: on synthetic graphs with 20-30 % outliers this polish lands
+factor. ``synchronize`` passes the initial weight ``w⁰`` (overlap × inliers) of the edges it kept — those
+consistent with the poses after the robust stages (default polish ``"robust"``), or those the history
+reweighting kept (``"lm"``) — and 0 for the others: on synthetic graphs with 20-30 % outliers this lands
 within 0.1-0.5° (worst scan) of least squares on the true inliers, while the history weights themselves as
-precisions (they span e^(−2 × residual in degrees)) leave it 0.8-1.4° further off.
+precisions (they span e^(−2 × residual in degrees)) leave it 0.8-1.4° further off. The history weights
+decide which edges enter; the noise model of an edge that enters is its ``w⁰``-scaled information. GNC
+(``gnc_tls_poses``, the robust polish's middle stage) gets every edge with this same mapping.
 
 Each connected part gets a prior on its anchor (its first node), which pins the gauge without moving the
 optimum: the between factors are invariant to a common transform, so at the optimum the prior's residual
