@@ -1,4 +1,5 @@
-"""Speed of full synchronization (M = 50 IRLS iterations with history reweighting + gtsam LM polish).
+"""Speed of full synchronization (M = 50 IRLS iterations with history reweighting + the polish: by default
+the robust one, consensus + gtsam GNC + consensus + LM; ``--polish lm`` for LM alone).
 
 Scenes: N scans at random positions, random orientations; each scan is linked to its k = 10 nearest
 scans, as SGHR's top-k overlap graph links scans that see the same place. Layout ``plane`` (default): the
@@ -13,7 +14,7 @@ BLAS threads are set to 1 unless OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is alrea
 blocks are tiny, and a multithreaded BLAS on a busy 2-core machine spends its time synchronising threads.
 
 Run from the repository root (installed, or with ``PYTHONPATH=.``):
-``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors]``
+``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish robust]``
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors  # noqa: E402
-from sghr_gtsam.sync import synchronize  # noqa: E402
+from sghr_gtsam.sync import POLISHES, synchronize  # noqa: E402
 from sghr_gtsam.types import PoseGraph  # noqa: E402
 
 K = 10
@@ -64,18 +65,20 @@ def make_scene(n: int, seed: int, layout: str = "plane") -> tuple[np.ndarray, Po
     return poses, PoseGraph(n=n, i=i, j=j, T=T, weight=overlap * inliers), outlier
 
 
-def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str) -> dict[str, float]:
+def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str, polish: str) -> dict[str, float]:
     stamps: list[tuple[str, float]] = []
     start, cpu = time.perf_counter(), time.process_time()
-    result = synchronize(graph, reweight=reweight, on_iteration=lambda r: stamps.append((r.stage, time.perf_counter())))
+    result = synchronize(graph, reweight=reweight, polish=polish,
+                         on_iteration=lambda r: stamps.append((r.stage, time.perf_counter())))
     total, cpu = time.perf_counter() - start, time.process_time() - cpu
     irls_end = max(t for stage, t in stamps if stage == "irls")
+    robust_end = max((t for stage, t in stamps if stage in ("consensus", "gnc")), default=irls_end)
     main = result.component == 0
     anchor = np.flatnonzero(main)[0]
     rel = inv_T(result.poses[anchor]) @ result.poses[main]
     rot, trans = relative_errors(rel, inv_T(truth[anchor]) @ truth[main])
     return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start,
-            "lm": total - (irls_end - start),
+            "robust": robust_end - irls_end, "lm": total - (robust_end - start),
             "lm_iters": sum(stage == "lm" for stage, _ in stamps), "rot_max": rot.max(), "trans_max": trans.max(),
             "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum())}
 
@@ -84,25 +87,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 1000, 5000])
     parser.add_argument("--reweight", default="authors", choices=["authors", "paper"])
+    parser.add_argument("--polish", default="robust", choices=list(POLISHES))
     parser.add_argument("--layout", default="plane", choices=["plane", "cube"])
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs (1 for N >= 1000)")
     args = parser.parse_args()
 
     synchronize(make_scene(20, 0)[1], iters=2)  # imports gtsam and warms caches outside the timings
     print(f"layout = {args.layout}, k = {K}, {OUTLIERS:.0%} outliers, noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, "
-          f"M = 50, reweight = {args.reweight}, BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
+          f"M = 50, reweight = {args.reweight}, polish = {args.polish}, BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'LM s':>7} {'LM it':>5} "
+    print(f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'robust s':>8} {'LM s':>7} {'LM it':>5} "
           f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10}")
     edges, totals = [], []
     for n in args.sizes:
         scene = make_scene(n, seed=n, layout=args.layout)
         repeats = args.repeats if n < 1000 else 1
-        best = min((run(*scene, args.reweight) for _ in range(repeats)), key=lambda r: r["total"])
+        best = min((run(*scene, args.reweight, args.polish) for _ in range(repeats)), key=lambda r: r["total"])
         edges.append(best["edges"])
         totals.append(best["total"])
         print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} "
-              f"{best['lm']:>7.3f} "
+              f"{best['robust']:>8.3f} {best['lm']:>7.3f} "
               f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
               f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10}")
     if len(edges) > 1:
