@@ -64,6 +64,9 @@ class Config:
     """After IRLS (``sghr_gtsam.sync.POLISHES``): 'robust' (consensus re-placement of scans, gtsam GNC
     over every edge, consensus again, then Levenberg-Marquardt on the consistent edges: best on the
     robustness benchmark), 'lm' (Levenberg-Marquardt on the edges IRLS kept) or 'none'."""
+    initial_weight: str = "s*r"
+    """Initial edge weight w⁰: 's*r' (overlap score × inlier count, SGHR) or the paper's ablations 's'
+    (score only) and 'r' (inlier count only)."""
     min_weight: float = 1e-3
     """Edges whose final weight falls below this fraction of the largest weight are dropped; a
     scan left without edges is reported as unregistered."""
@@ -80,7 +83,7 @@ class Config:
         from .sync.irls import REWEIGHTS
 
         choices = {"global_feature": ("vlad", "learned"), "matcher": MATCHERS, "method": tuple(METHODS),
-                   "polish": tuple(POLISHES), "reweight": REWEIGHTS}
+                   "polish": tuple(POLISHES), "reweight": REWEIGHTS, "initial_weight": ("s*r", "s", "r")}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")

@@ -209,7 +209,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     graph = PoseGraph(
         n=n, i=edges[:, 0].copy(), j=edges[:, 1].copy(),
         T=np.stack([p.T for p in pairs]) if pairs else np.zeros((0, 4, 4)),
-        weight=s * r,
+        weight={"s*r": s * r, "s": np.where(r > 0, s, 0.0), "r": r}[config.initial_weight],
         information=np.stack(info) if pairs and all(x is not None for x in info) else None,
     )
     log(f"pairwise: {len(pairs)} pairs in {timer.seconds['pairwise']:.2f} s")

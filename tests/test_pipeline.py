@@ -101,3 +101,18 @@ def test_identical_scans_are_placed_on_top_of_each_other(tmp_path):
     res = register(scans, Config(record=False), log=lambda m: None)
     rel = inv_T(res.poses[1]) @ res.poses[3]
     np.testing.assert_allclose(rel, np.eye(4), atol=1e-3)
+
+
+def test_initial_weight_ablations_use_score_or_inliers_alone():
+    """``initial_weight``: w⁰ = s·r (SGHR), s alone or r alone (the paper's ablations), same pairs."""
+    scene = make_scene(kind="room", n_scans=4, seed=5)
+    scans = [Scan(f"s{k}", P) for k, P in enumerate(scene.scans)]
+    runs = {w: register(scans, Config(record=False, initial_weight=w), log=lambda m: None)
+            for w in ("s*r", "s", "r")}
+    g = runs["s*r"].graph
+    s = runs["s*r"].scores[g.i, g.j]
+    r = np.array([p.inliers for p in runs["s*r"].pairs], dtype=float)
+    assert (r > 0).any()
+    np.testing.assert_allclose(runs["r"].graph.weight, np.where(r >= Config().min_inliers, r, 0.0))
+    np.testing.assert_allclose(runs["s"].graph.weight, np.where(r >= Config().min_inliers, s, 0.0))
+    np.testing.assert_allclose(g.weight, runs["s"].graph.weight * runs["r"].graph.weight)
