@@ -16,6 +16,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 
 _DEFAULT = Config()
 _METHOD_NAMES = ("history", "constant", "current", "spectral", "lm")
+_BASELINE_NAMES = ("eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d", "open3d_all_uncertain")
 _POLISH_HELP = ("After IRLS: robust (consensus re-placement, gtsam GNC, consensus, LM on the consistent edges), "
                 "lm (LM on the edges IRLS kept) or none.")
 
@@ -110,7 +111,8 @@ def demo(
 def sync(
     graph_file: Path = typer.Argument(..., help="A 3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."),
     out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
-    method: str = typer.Option("lm", help="Synchronization method: " + ", ".join(_METHOD_NAMES) + "."),
+    method: str = typer.Option("lm", help="Synchronization method: " + ", ".join(_METHOD_NAMES)
+                               + "; or a baseline: " + ", ".join(_BASELINE_NAMES) + "."),
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods)."),
     polish: str = typer.Option(_DEFAULT.polish, help=_POLISH_HELP + " Method lm always ends with LM."),
     noise: str = typer.Option("information", help="information: each edge's own 6x6 information; "
@@ -118,7 +120,7 @@ def sync(
 ) -> None:
     """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
     from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
-    from .sync import synchronize
+    from .sync import checked_graph, synchronize
 
     def work() -> None:
         if noise not in ("information", "isotropic"):
@@ -126,7 +128,12 @@ def sync(
         ids, _, graph = read_g2o(graph_file)
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
-        result = synchronize(graph, method=method, iters=iters, polish=polish)
+        if method in _BASELINE_NAMES:
+            from .sync.baselines import BASELINES
+
+            result = BASELINES[method](checked_graph(graph))
+        else:
+            result = synchronize(graph, method=method, iters=iters, polish=polish)
         write_g2o(out, ids, result.poses, graph)
         parts = int(result.component.max()) + 1
         typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "
