@@ -46,6 +46,7 @@ from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
 from sghr_gtsam.sync import METHODS, POLISHES, synchronize  # noqa: E402
 from sghr_gtsam.sync.baselines import BASELINES, oracle  # noqa: E402
+from sghr_gtsam.sync.consensus import MAX_DEG, placement_support, translation_tolerance  # noqa: E402
 from sghr_gtsam.sync.irls import REWEIGHTS  # noqa: E402
 from sghr_gtsam.types import PoseGraph, SyncResult  # noqa: E402
 
@@ -154,6 +155,36 @@ def tables(runs: list[Run], names: list[str], kinds: list[str], ratios: list[flo
     return "\n".join(out)
 
 
+def identifiability(kinds: list[str], ratios: list[float], seeds: int) -> str:
+    """Markdown: what the graphs themselves say, before any method runs. With every other scan at its GT
+    pose, a scan is *outvoted* when a placement its edges propose, away from its GT pose, has more ``w⁰``
+    support than the GT pose (``consensus.placement_support``: the consensus step's agreement test). A method that only sees the graph
+    cannot be expected to place an outvoted scan right; the recall bound is the share of gt.log pairs
+    (|i − j| > 1) with neither scan outvoted."""
+    out = ["| kind | " + " | ".join(f"ρ={x:g}" for x in ratios) + " |", "|---|" + "---:|" * len(ratios)]
+    for kind in kinds:
+        cells = []
+        for ratio in ratios:
+            outvoted, bound = [], []
+            for scene in SCENES:
+                gt = load_scene(scene)
+                index = {f: k for k, f in enumerate(gt.ids)}
+                pairs = [(index[a], index[b]) for a, b in gt.gt_log if a in index and b in index and abs(a - b) > 1]
+                for seed in range(seeds):
+                    graph, P, _ = make_graph(scene, ratio, kind, seed)
+                    tol = translation_tolerance(graph)
+                    bad = np.zeros(graph.n, dtype=bool)
+                    for scan in range(graph.n):
+                        edges = np.flatnonzero((graph.i == scan) | (graph.j == scan))
+                        _, support, current, right = placement_support(graph, P, scan, edges, MAX_DEG, tol)
+                        bad[scan] = support[~right].max(initial=0.0) > current
+                    outvoted.append(bad.mean())
+                    bound.append(np.mean([not (bad[a] or bad[b]) for a, b in pairs]))
+            cells.append(f"{np.mean(outvoted):.3f} / {np.mean(bound):.3f}")
+        out.append(f"| {kind} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=5, help="seeds per scene (default 5)")
@@ -166,6 +197,8 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
     parser.add_argument("--records", help="write every run as a JSON line to this file")
     parser.add_argument("--list", action="store_true", help="list the methods and exit")
+    parser.add_argument("--identifiability", action="store_true",
+                        help="only the table of outvoted scans and the recall bound they imply (no method runs)")
     args = parser.parse_args()
     names = list(all_methods())
     if args.list:
@@ -177,6 +210,10 @@ def main() -> None:
             parser.error(f"unknown methods {unknown}; --list shows them")
         names = [n for n in names if n in args.methods]
     seeds, ratios = (1, [0.0, 0.5]) if args.quick else (args.seeds, sorted(args.ratios))
+    if args.identifiability:
+        print(f"outvoted scans / recall bound, {len(SCENES)} scenes × {seeds} seeds")
+        print(identifiability(args.kinds, [x for x in ratios if x > 0], seeds))
+        return
 
     # Ratio 0 is the same graph for both kinds: run it once, under the first kind.
     tasks = [(scene, seed, kind, ratio, args.noisy_overlap, names) for kind in args.kinds for ratio in ratios

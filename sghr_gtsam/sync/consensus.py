@@ -75,10 +75,11 @@ def consensus_placement(graph: PoseGraph, poses: np.ndarray, max_deg: float = MA
     return poses
 
 
-def _replace(s: int, edges: np.ndarray, graph: PoseGraph, poses: np.ndarray, max_deg: float,
-             max_trans: float) -> bool:
-    """Move scan ``s`` (in place) to the proposal of its ``edges`` with the most support, if that beats the
-    support of its current pose."""
+def placement_support(graph: PoseGraph, poses: np.ndarray, s: int, edges: np.ndarray, max_deg: float,
+                      max_trans: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """The placements of scan ``s`` its ``edges`` propose from their partners' ``poses`` (k, 4, 4), the
+    support (summed ``w⁰`` of the agreeing proposals) of each, the support of its current pose, and which
+    proposals agree with the current pose (k,)."""
     T = graph.T[edges]
     as_j = graph.j[edges] == s
     partner = np.where(as_j, graph.i[edges], graph.j[edges])
@@ -89,8 +90,16 @@ def _replace(s: int, edges: np.ndarray, graph: PoseGraph, poses: np.ndarray, max
     agree = ((np.degrees(rotation_angle(D[..., :3, :3])) <= max_deg)
              & (np.linalg.norm(candidates[:, None, :3, 3] - proposals[None, :, :3, 3], axis=-1) <= max_trans))
     support = agree @ graph.weight[edges]
-    best = int(np.argmax(support[:-1]))
-    if support[best] <= (1.0 + MARGIN) * support[-1]:
+    return proposals, support[:-1], float(support[-1]), agree[-1]
+
+
+def _replace(s: int, edges: np.ndarray, graph: PoseGraph, poses: np.ndarray, max_deg: float,
+             max_trans: float) -> bool:
+    """Move scan ``s`` (in place) to the proposal of its ``edges`` with the most support, if that beats the
+    support of its current pose by ``MARGIN``."""
+    proposals, support, current, _ = placement_support(graph, poses, s, edges, max_deg, max_trans)
+    best = int(np.argmax(support))
+    if support[best] <= (1.0 + MARGIN) * current:
         return False
     poses[s] = proposals[best]
     return True
