@@ -7,13 +7,31 @@ them and the pairs' GT overlap ratios; Adam, learning rate 1e-3, ×0.7 every 50 
 per training scene. The head starts from a k-means codebook of the training descriptors
 (``NetVLAD.from_codebook``), i.e. from the unsupervised feature, and learns from there.
 
+Losses (``loss=``): ``"l1"`` is the paper's (above). It cannot be met by scores of that form (α unit vectors
+have mean cosine ≥ −1/(α−1), so the mean score is ≥ ~0.5, while most GT overlaps are ~0) and spends itself
+pulling every score down, at the expense of the ranking. The top-k graph only uses each scan's ranking of its
+partners, which the two ranking losses target instead, on the cosines ``C = F Fᵀ`` (the scores' order):
+
+- ``"listwise"`` (``listwise_loss``): per scan i, the KL divergence from its normalised GT overlaps
+  ``p_ij = o_ij / Σ_l o_il`` to ``softmax_j(C_ij / τ)`` over its partners j ≠ i, averaged over the scans with
+  some overlap; τ is learned (log τ, from ``tau``) with the head. Invariant to scaling the GT overlaps and to
+  shifting a scan's cosines by a constant.
+- ``"pairwise"`` (``pairwise_loss``): per scan i, the logistic loss ``log(1 + exp(−(C_ij − C_il)/τ))`` over the
+  partners j, l ≠ i with ``o_ij − o_il > 0.05``, averaged; τ learned likewise. Invariant to a common shift of
+  the GT overlaps and of the cosines.
+
+With the L1 loss the kept head is the one with the lowest validation L1 (the paper's recipe); with a ranking
+loss, the one with the highest validation Spearman ρ (scores vs GT overlap over all pairs of a held-out scene,
+averaged over those scenes).
+
 Descriptors: FPFH from ``features.local.compute_features`` at the scene's default voxel — what the pipeline
 computes at run time. The simulated scenes and their descriptors are made once and cached by
 ``python -m data_tools.simulate CACHE_DIR`` (one ``scene_XXXXX.npz`` a scene, see ``write_cache_scene``);
 training reads only that folder, so it takes minutes, not hours.
 
-Outputs in ``out_dir``: ``last.pth`` (model, optimizer, scheduler, epoch, history: what ``resume`` continues
-from), ``best.pth`` (the head with the lowest validation loss: every 10th scene of the cache is held out) and
+Outputs in ``out_dir``: ``last.pth`` (model, optimizer, scheduler, epoch, history, the loss's log τ: what
+``resume`` continues from), ``best.pth`` (the best head on the validation scenes, as above: every 10th scene
+of the cache is held out) and
 ``netvlad_fpfh.pth`` (that head alone, in the key layout ``features.netvlad.load_checkpoint`` reads, for
 shipping). Runs are seeded: the draws of epoch e depend only on (seed, e), so an interrupted and resumed run
 ends with the same weights as an uninterrupted one.
@@ -41,6 +59,9 @@ PREFIX = "vlador.pool."  # the authors' key prefix, which load_checkpoint strips
 ALPHA = (8, 60)  # scans a step
 BETA = (1024, 5000)  # keypoints a scan
 VAL_EVERY = 10  # every 10th cached scene (by index) is held out for validation
+LOSSES = ("l1", "listwise", "pairwise")
+TAU = 0.05  # initial temperature of the ranking losses (the cosines of a scene spread over ~0.3)
+MARGIN = 0.05  # pairwise loss: only partners whose GT overlaps differ by more than this are ordered
 
 Log = Callable[[str], None]
 
@@ -120,6 +141,51 @@ def pair_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor) -> torch.T
     return (scores[i, j] - overlap[i, j]).abs().mean()
 
 
+def listwise_loss(cosines: torch.Tensor, overlap: torch.Tensor, log_tau: torch.Tensor | float) -> torch.Tensor:
+    """Listwise loss: mean over the rows i with some GT overlap of KL(p_i ‖ q_i), ``p_ij = o_ij / Σ_l o_il``
+    and ``q_i = softmax_j(C_ij / τ)`` over j ≠ i; ``cosines`` and ``overlap`` (α, α), ``τ = exp(log_tau)``."""
+    n = len(cosines)
+    eye = torch.eye(n, dtype=torch.bool)
+    target = overlap.clamp_min(0).masked_fill(eye, 0.0)
+    mass = target.sum(1)
+    rows = mass > 0
+    if not bool(rows.any()):
+        return cosines.sum() * 0.0
+    p = target[rows] / mass[rows, None]
+    tau = torch.exp(torch.as_tensor(log_tau, dtype=cosines.dtype))
+    logq = torch.log_softmax((cosines / tau).masked_fill(eye, float("-inf"))[rows], dim=1)
+    logq = logq.masked_fill(eye[rows], 0.0)  # p is 0 there; keeps 0·(−inf) out of the sum and its gradient
+    return (p * (torch.log(p.clamp_min(1e-30)) - logq)).sum(1).mean()
+
+
+def pairwise_loss(cosines: torch.Tensor, overlap: torch.Tensor, log_tau: torch.Tensor | float,
+                  margin: float = MARGIN) -> torch.Tensor:
+    """Pairwise logistic loss: mean of ``softplus(−(C_ij − C_il)/τ)`` over the triples (i, j, l), j, l ≠ i,
+    with ``o_ij − o_il > margin``; ``cosines`` and ``overlap`` (α, α), ``τ = exp(log_tau)``."""
+    n = len(cosines)
+    ordered = (overlap[:, :, None] - overlap[:, None, :]) > margin  # (i, j, l): o_ij − o_il > margin
+    partner = ~torch.eye(n, dtype=torch.bool)
+    ordered &= partner[:, :, None] & partner[:, None, :]
+    if not bool(ordered.any()):
+        return cosines.sum() * 0.0
+    tau = torch.exp(torch.as_tensor(log_tau, dtype=cosines.dtype))
+    diff = (cosines[:, :, None] - cosines[:, None, :])[ordered]
+    return torch.nn.functional.softplus(-diff / tau).mean()
+
+
+def step_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor, loss: str = "l1",
+              log_tau: torch.Tensor | float = float(np.log(TAU)), margin: float = MARGIN) -> torch.Tensor:
+    """The training loss ``loss`` (one of ``LOSSES``) of one step: ``x`` (α, D, β), ``overlap`` (α, α)."""
+    if loss == "l1":
+        return pair_loss(model, x, overlap)
+    F = model(x)
+    if loss == "listwise":
+        return listwise_loss(F @ F.T, overlap, log_tau)
+    if loss == "pairwise":
+        return pairwise_loss(F @ F.T, overlap, log_tau, margin)
+    raise InputError(f"unknown loss {loss!r} ({', '.join(LOSSES)})")
+
+
 def sample_step(scene: CachedScene, rng: np.random.Generator, alpha: tuple[int, int] = ALPHA,
                 beta: tuple[int, int] = BETA) -> tuple[torch.Tensor, torch.Tensor]:
     """α scans of ``scene`` (all if it has fewer), β descriptors each (drawn with replacement only from a
@@ -188,15 +254,19 @@ def train(
     beta: tuple[int, int] = BETA,
     limit: int | None = None,
     eval_every: int = 5,
+    loss: str = "l1",
+    tau: float = TAU,
     progress: bool = True,
     log: Log = print,
 ) -> dict:
     """Train the overlap head on the cached scenes of ``data_dir``; write checkpoints into ``out_dir``.
 
     ``resume``: continue from ``out_dir/last.pth`` (its settings must match) up to ``epochs`` in all.
-    The validation scenes are scored every ``eval_every`` epochs and after the last; ``best.pth`` is the
-    best of those.
-    Returns a summary: epochs run, final training loss, best validation loss and its epoch, paths, seconds.
+    ``loss``: ``"l1"`` (the paper's), ``"listwise"`` or ``"pairwise"`` (see the module), ``tau`` the initial
+    temperature of the latter two. The validation scenes are scored every ``eval_every`` epochs and after the
+    last; ``best.pth`` is the best of those (lowest L1 with ``"l1"``, else highest Spearman ρ; without
+    validation scenes, the lowest training loss).
+    Returns a summary: epochs run, final training loss, best validation numbers and their epoch, paths, seconds.
     """
     from tqdm import tqdm
 
@@ -204,6 +274,10 @@ def train(
         raise InputError(f"epochs must be at least 1, got {epochs}")
     if not (1 <= alpha[0] <= alpha[1] and 2 <= alpha[1] and 1 <= beta[0] <= beta[1]):
         raise InputError(f"bad alpha {alpha} / beta {beta} ranges")
+    if loss not in LOSSES:
+        raise InputError(f"unknown loss {loss!r} ({', '.join(LOSSES)})")
+    if not tau > 0:
+        raise InputError(f"tau must be positive, got {tau}")
     started = time.perf_counter()
     torch.manual_seed(seed)
     scenes = load_cache(data_dir, limit)
@@ -211,35 +285,45 @@ def train(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = {"data_dir": str(Path(data_dir).resolve()), "scenes": len(scenes), "seed": seed, "clusters": clusters,
-                "lr": lr, "decay_every": decay_every, "decay": decay, "alpha": list(alpha), "beta": list(beta)}
+                "lr": lr, "decay_every": decay_every, "decay": decay, "alpha": list(alpha), "beta": list(beta),
+                "loss": loss}
+    if loss != "l1":
+        settings["tau"] = tau
+        if loss == "pairwise":
+            settings["margin"] = MARGIN
+    by_spearman = loss != "l1"  # which validation number picks best.pth
 
     last, best_path, head_path = out / "last.pth", out / "best.pth", out / "netvlad_fpfh.pth"
     if resume and last.exists():
         state = torch.load(last, map_location="cpu", weights_only=False)
-        mismatch = {k: (state["settings"].get(k), v) for k, v in settings.items()
-                    if k != "data_dir" and state["settings"].get(k) != v}
+        old = {"loss": "l1", **state["settings"]}  # runs from before the loss option were L1 runs
+        mismatch = {k: (old.get(k), v) for k, v in settings.items() if k != "data_dir" and old.get(k) != v}
         if mismatch:
             raise InputError(f"cannot resume {last}: settings differ {mismatch}")
         model = NetVLAD(*state["network_state_dict"][PREFIX + "centroids"].shape)
         model.load_state_dict({k[len(PREFIX):]: v for k, v in state["network_state_dict"].items()})
         history, start = state["history"], state["epoch"] + 1
-        best = state["best"]
+        best = {"val_spearman": float("-inf"), "train_loss": float("inf"), **state["best"]}
+        log_tau = torch.nn.Parameter(torch.tensor(float(state.get("log_tau", np.log(tau))), dtype=torch.float32))
     else:
         if resume:
             log(f"nothing to resume in {out}: starting afresh")
         model = init_head(train_set, clusters, seed)
-        history, start, best = [], 0, {"val_l1": float("inf"), "epoch": -1}
+        history, start = [], 0
+        best = {"val_l1": float("inf"), "val_spearman": float("-inf"), "train_loss": float("inf"), "epoch": -1}
+        log_tau = torch.nn.Parameter(torch.tensor(float(np.log(tau)), dtype=torch.float32))
         state = None
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    params = list(model.parameters()) + ([log_tau] if loss != "l1" else [])
+    optimizer = torch.optim.Adam(params, lr=lr)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=decay_every, gamma=decay)
     if state is not None:
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
     if start == 0:
         v = evaluate(model, val_set, seed) if val_set else {"l1": float("nan"), "spearman": float("nan")}
-        log(f"{len(train_set)} training + {len(val_set)} validation scenes; initial (k-means codebook) "
-            f"validation L1 {v['l1']:.4f}, Spearman {v['spearman']:.3f}")
-        history.append({"epoch": -1, "train_l1": float("nan"), "val_l1": v["l1"], "val_spearman": v["spearman"],
+        log(f"{len(train_set)} training + {len(val_set)} validation scenes, {loss} loss; initial (k-means "
+            f"codebook) validation L1 {v['l1']:.4f}, Spearman {v['spearman']:.3f}")
+        history.append({"epoch": -1, "train_loss": float("nan"), "val_l1": v["l1"], "val_spearman": v["spearman"],
                         "lr": lr})
 
     bar = tqdm(range(start, epochs), total=epochs, initial=start, desc="train", unit="epoch", disable=not progress)
@@ -249,32 +333,40 @@ def train(
         losses = []
         for k in rng.permutation(len(train_set)):
             x, target = sample_step(train_set[k], rng, alpha, beta)
-            loss = pair_loss(model, x, target)
+            value = step_loss(model, x, target, loss, log_tau)
             optimizer.zero_grad()
-            loss.backward()
+            value.backward()
             optimizer.step()
-            losses.append(float(loss.detach()))
+            losses.append(float(value.detach()))
         scheduler.step()
         if val_set and (epoch % eval_every == eval_every - 1 or epoch == epochs - 1):
             v = evaluate(model, val_set, seed)
         elif val_set:
             v = {"l1": float("nan"), "spearman": float("nan")}  # not evaluated this epoch
         else:
-            v = {"l1": float(np.mean(losses)), "spearman": float("nan")}
-        history.append({"epoch": epoch, "train_l1": float(np.mean(losses)), "val_l1": v["l1"],
-                        "val_spearman": v["spearman"], "lr": optimizer.param_groups[0]["lr"]})
-        meta = {**settings, "epoch": epoch, "train_l1": history[-1]["train_l1"], "val_l1": v["l1"],
+            v = {"l1": float(np.mean(losses)) if loss == "l1" else float("nan"), "spearman": float("nan")}
+        train_loss = float(np.mean(losses))
+        history.append({"epoch": epoch, "train_loss": train_loss, "val_l1": v["l1"], "val_spearman": v["spearman"],
+                        "lr": optimizer.param_groups[0]["lr"]}
+                       | ({"tau": float(torch.exp(log_tau.detach()))} if loss != "l1" else {}))
+        meta = {**settings, "epoch": epoch, "train_loss": train_loss, "val_l1": v["l1"],
                 "val_spearman": v["spearman"], "descriptor": "fpfh"}
-        if v["l1"] < best["val_l1"]:
-            best = {"val_l1": v["l1"], "epoch": epoch}
+        if not val_set and by_spearman:
+            better = train_loss < best["train_loss"]
+        elif by_spearman:
+            better = v["spearman"] > best["val_spearman"]  # False for NaN (epochs not evaluated)
+        else:
+            better = v["l1"] < best["val_l1"]
+        if better:
+            best = {"val_l1": v["l1"], "val_spearman": v["spearman"], "train_loss": train_loss, "epoch": epoch}
             save_head(model, best_path, meta)
         _save(last, {"network_state_dict": head_state(model), "optimizer": optimizer.state_dict(),
                      "scheduler": scheduler.state_dict(), "epoch": epoch, "history": history, "best": best,
-                     "settings": settings})
-        if np.isfinite(v["l1"]):
-            bar.set_postfix(train=f"{history[-1]['train_l1']:.4f}", val=f"{v['l1']:.4f}", rho=f"{v['spearman']:.3f}")
+                     "settings": settings, "log_tau": float(log_tau.detach())})
+        if np.isfinite(v["spearman"]):
+            bar.set_postfix(train=f"{train_loss:.4f}", val=f"{v['l1']:.4f}", rho=f"{v['spearman']:.3f}")
         else:
-            bar.set_postfix(train=f"{history[-1]['train_l1']:.4f}")
+            bar.set_postfix(train=f"{train_loss:.4f}")
     bar.close()
 
     if best_path.exists():
@@ -285,12 +377,12 @@ def train(
             f.write(buffer.getvalue())
     with atomic_write(out / "history.json") as f:
         json.dump({"settings": settings, "best": best, "history": history}, f, indent=1)
-    summary = {"epochs": epochs, "final_train_l1": history[-1]["train_l1"], "final_val_l1": history[-1]["val_l1"],
-               "final_val_spearman": history[-1]["val_spearman"],
+    summary = {"epochs": epochs, "loss": loss, "final_train_loss": history[-1]["train_loss"],
+               "final_val_l1": history[-1]["val_l1"], "final_val_spearman": history[-1]["val_spearman"],
                "best": best, "head": str(head_path), "seconds": time.perf_counter() - started}
-    log(f"done: epoch {epochs}, training L1 {summary['final_train_l1']:.4f}, validation L1 "
-        f"{summary['final_val_l1']:.4f}; best validation L1 {best['val_l1']:.4f} at epoch {best['epoch']} "
-        f"-> {head_path}")
+    log(f"done: epoch {epochs}, training {loss} loss {summary['final_train_loss']:.4f}, validation L1 "
+        f"{summary['final_val_l1']:.4f}, Spearman {summary['final_val_spearman']:.3f}; kept epoch {best['epoch']} "
+        f"(validation L1 {best['val_l1']:.4f}, Spearman {best['val_spearman']:.3f}) -> {head_path}")
     return summary
 
 
@@ -302,10 +394,15 @@ def train_command(
     resume: bool = typer.Option(False, help="Continue from OUT/last.pth up to EPOCHS."),
     clusters: int = typer.Option(64, help="NetVLAD clusters."),
     lr: float = typer.Option(1e-3, help="Adam learning rate (x0.7 every 50 epochs)."),
+    loss: str = typer.Option("l1", help="l1 (the paper's: L1 between scores and GT overlaps; best.pth by "
+                             "validation L1), listwise (softmax KL, per scan) or pairwise (logistic, per scan); the "
+                             "last two keep the head with the best validation Spearman."),
+    tau: float = typer.Option(TAU, help="Initial temperature of the listwise / pairwise loss (learned)."),
 ) -> None:
     """Train the NetVLAD overlap head on FPFH descriptors of simulated scenes (SGHR's recipe)."""
     try:
-        train(data_dir, out, epochs=epochs, seed=seed, resume=resume, clusters=clusters, lr=lr, log=typer.echo)
+        train(data_dir, out, epochs=epochs, seed=seed, resume=resume, clusters=clusters, lr=lr, loss=loss, tau=tau,
+              log=typer.echo)
     except InputError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None
