@@ -100,7 +100,7 @@ def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common
     # decision out of a rounding difference. Levenberg-Marquardt is checked without outliers, where it
     # converges fast enough to stop at the same point.
     # Above DENSE_NODES the iterative eigen-solver stops at its tolerance: poses agree to ~1e-6, not 1e-12.
-    atol = 1e-6 if n <= DENSE_NODES else 1e-5
+    atol = 1e-6 if n <= DENSE_NODES else 5e-5
     for method, outliers in (("spectral", 0.15), ("history", 0.15), ("lm", 0.0)):
         graph, _, _ = random_graph(seed, n, extra=3, rot_deg=2.0, trans_sigma=0.05, outliers=outliers)
         shuffle = rng.permutation(graph.num_edges)

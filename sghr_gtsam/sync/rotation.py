@@ -139,7 +139,15 @@ def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: n
     """
     out = np.tile(np.eye(3), (n, 1, 1))
     keep = w > 0
-    labels = connected_components(n, i, j, keep)
+    # Within IRLS the kept edges rarely change between iterations: reuse the last part labels.
+    mask = keep.tobytes()
+    last = cache.get("labels") if cache is not None else None
+    if last is not None and last[0] == mask:
+        labels = last[1]
+    else:
+        labels = connected_components(n, i, j, keep)
+        if cache is not None:
+            cache["labels"] = (mask, labels)
     for nodes, edges, li, lj in split_components(labels, i, j, keep):
         m = len(nodes)
         if m < DENSE_NODES:
