@@ -31,6 +31,10 @@ class Config:
     # --- sparse pose graph ---------------------------------------------------------------------
     k: int = 10
     """Top-k partners per scan by overlap score (the paper: 10 indoor, 6 outdoor)."""
+    connect: bool = True
+    """Join the parts of the top-k graph by their best-scoring pairs (``graph.bridge_components``): with a
+    small k the union of top-k choices can split the scans into parts that could never be placed together
+    (the kitchen at k = 2 with the learned head: two parts of four scans). False: the paper's graph as is."""
     global_feature: str = "vlad"
     """Global feature: 'vlad' (NetVLAD initialised from a k-means codebook of this scene's descriptors)
     or 'learned' (a trained NetVLAD head, ``overlap_head``). 'vlad' is the default because it ranks

@@ -168,3 +168,45 @@ def top_k_graph(F: np.ndarray, k: int, form: str = "paper", *, full_scores: bool
     if full_scores:
         return edges, s, scores_from_gram(G, form)
     return edges, s
+
+
+def bridge_components(edges: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """``edges`` (E, 2) plus, if they leave the scans in several connected parts, the best-scoring pair
+    between parts until all are joined (Kruskal on the parts: a maximum spanning tree of the parts).
+
+    The union of top-k choices can split a scene into parts that never see each other's partners (a small k,
+    or scans in two rooms); a part with no edge to the rest cannot be placed. The bridges are the pairs most
+    likely to overlap among the ones not chosen; when even they do not register, the parts stay apart and
+    the run says so. Returns the edges, new ones appended, i < j.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    n = len(scores)
+    if n < 2:
+        return edges
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    parts, label = connected_components(graph, directed=False)
+    if parts == 1:
+        return edges
+    a, b = np.triu_indices(n, 1)
+    cross = label[a] != label[b]
+    a, b = a[cross], b[cross]
+    order = np.argsort(-scores[a, b], kind="stable")  # ties: the lower pair index first
+    root = np.arange(parts)
+
+    def find(x: int) -> int:
+        while root[x] != x:
+            root[x] = root[root[x]]
+            x = root[x]
+        return x
+
+    added = []
+    for e in order:
+        ra, rb = find(label[a[e]]), find(label[b[e]])
+        if ra != rb:
+            root[max(ra, rb)] = min(ra, rb)
+            added.append((a[e], b[e]))
+            if len(added) == parts - 1:
+                break
+    return np.vstack([edges, np.array(added, dtype=edges.dtype)])

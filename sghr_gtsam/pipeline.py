@@ -16,7 +16,7 @@ import numpy as np
 from .config import Config
 from .features.local import ScanFeatures, compute_features, default_voxel
 from .features.netvlad import DEFAULT_HEAD, NetVLAD, global_features, kmeans_codebook, load_default_head
-from .graph import top_k_edges, top_k_graph
+from .graph import bridge_components, top_k_edges, top_k_graph
 from .io.features import read_features
 from .io.scans import finite_points, list_scans, load_scan
 from .pairwise import PairResult, register_pair
@@ -193,6 +193,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         else:
             scores, feature_kind = _given_scores(scores, len(scans)), "overlap scores given by the caller"
             edges = top_k_edges(scores, config.k)
+        if config.connect:
+            edges = bridge_components(edges, scores)
     n, n_all = len(scans), len(scans) * (len(scans) - 1) // 2
     log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(edges)} of {n_all} pairs "
         f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")

@@ -151,3 +151,37 @@ def test_top_k_small_and_degenerate_inputs():
     S = overlap_scores(F)
     S.setflags(write=False)
     np.testing.assert_array_equal(top_k_edges(S, 1), _reference_top_k(S, 1))
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10**6), n=st.integers(2, 30), k=st.integers(1, 3), rooms=st.integers(1, 4))
+def test_bridged_top_k_graph_is_connected_with_one_bridge_per_extra_part(seed, n, k, rooms):
+    """Scans in ``rooms`` groups that score high only within their group: the top-k union can split; the
+    bridges join every part with exactly parts − 1 new pairs, each the best-scoring pair between two parts
+    not yet joined when it was added (Kruskal order)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from sghr_gtsam.graph import bridge_components
+
+    rng = np.random.default_rng(seed)
+    room = rng.integers(0, rooms, n)
+    S = rng.uniform(0.0, 0.3, (n, n)) + 0.6 * (room[:, None] == room[None, :])
+    S = np.triu(S, 1) + np.triu(S, 1).T + np.eye(n)
+    edges = top_k_edges(S, k)
+
+    def parts(e):
+        return connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
+                                    directed=False)
+
+    before, label = parts(edges)
+    out = bridge_components(edges, S)
+    np.testing.assert_array_equal(out[: len(edges)], edges)
+    assert len(out) - len(edges) == before - 1
+    assert parts(out)[0] == 1
+    added = out[len(edges):]
+    assert np.all(added[:, 0] < added[:, 1]) and np.all(label[added[:, 0]] != label[added[:, 1]])
+    if len(added):  # the first bridge is the best-scoring pair between any two parts
+        a, b = np.triu_indices(n, 1)
+        cross = label[a] != label[b]
+        assert S[added[0, 0], added[0, 1]] == S[a[cross], b[cross]].max()
