@@ -176,7 +176,7 @@ def identifiability(kinds: list[str], ratios: list[float], seeds: int) -> str:
                     bad = np.zeros(graph.n, dtype=bool)
                     for scan in range(graph.n):
                         edges = np.flatnonzero((graph.i == scan) | (graph.j == scan))
-                        _, support, current, right = placement_support(graph, P, scan, edges, MAX_DEG, tol)
+                        _, support, current, right, _ = placement_support(graph, P, scan, edges, MAX_DEG, tol)
                         bad[scan] = support[~right].max(initial=0.0) > current
                     outvoted.append(bad.mean())
                     bound.append(np.mean([not (bad[a] or bad[b]) for a, b in pairs]))

@@ -32,6 +32,8 @@ edge length ‖t_ij‖, so the test needs no scene units (3DMatch: 0.27-0.58 m; 
 repeated wall are ~1 m off)."""
 MAX_SWEEPS = 10
 MARGIN = 0.25
+MIN_AGREEING = 2
+"""Edges that must propose a placement (agree on it) before a scan may move there."""
 """A scan moves only when the new placement's support exceeds the current one's by this fraction."""
 
 
@@ -76,10 +78,10 @@ def consensus_placement(graph: PoseGraph, poses: np.ndarray, max_deg: float = MA
 
 
 def placement_support(graph: PoseGraph, poses: np.ndarray, s: int, edges: np.ndarray, max_deg: float,
-                      max_trans: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+                      max_trans: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
     """The placements of scan ``s`` its ``edges`` propose from their partners' ``poses`` (k, 4, 4), the
-    support (summed ``w⁰`` of the agreeing proposals) of each, the support of its current pose, and which
-    proposals agree with the current pose (k,)."""
+    support (summed ``w⁰`` of the agreeing proposals) of each, the support of its current pose, which
+    proposals agree with the current pose (k,), and how many proposals agree with each (k,)."""
     T = graph.T[edges]
     as_j = graph.j[edges] == s
     partner = np.where(as_j, graph.i[edges], graph.j[edges])
@@ -90,14 +92,17 @@ def placement_support(graph: PoseGraph, poses: np.ndarray, s: int, edges: np.nda
     agree = ((np.degrees(rotation_angle(D[..., :3, :3])) <= max_deg)
              & (np.linalg.norm(candidates[:, None, :3, 3] - proposals[None, :, :3, 3], axis=-1) <= max_trans))
     support = agree @ graph.weight[edges]
-    return proposals, support[:-1], float(support[-1]), agree[-1]
+    return proposals, support[:-1], float(support[-1]), agree[-1], agree[:-1].sum(axis=1)
 
 
 def _replace(s: int, edges: np.ndarray, graph: PoseGraph, poses: np.ndarray, max_deg: float,
              max_trans: float) -> bool:
     """Move scan ``s`` (in place) to the proposal of its ``edges`` with the most support, if that beats the
     support of its current pose by ``MARGIN``."""
-    proposals, support, current, _ = placement_support(graph, poses, s, edges, max_deg, max_trans)
+    proposals, support, current, _, agreeing = placement_support(graph, poses, s, edges, max_deg, max_trans)
+    # A placement only one edge proposes is uncorroborated: a lone failed registration with a high weight
+    # must not pull a scan away from where the rest of the graph put it.
+    support = np.where(agreeing >= MIN_AGREEING, support, 0.0)
     best = int(np.argmax(support))
     if support[best] <= (1.0 + MARGIN) * current:
         return False
