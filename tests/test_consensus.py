@@ -98,3 +98,20 @@ def test_robust_polish_keeps_a_right_irls_result(seed):
     graph, truth = ring_with_wrong_groups(seed, group=3, every=3)
     assert max_errors(synchronize(graph, polish="lm").poses, truth)[0] < 3.0
     assert max_errors(synchronize(graph).poses, truth)[0] < 3.0
+
+
+@FAST
+@given(seed=st.integers(0, 10**6), heavy=st.floats(2.0, 1e3))
+def test_a_lone_heavy_edge_does_not_pull_a_scan(seed, heavy):
+    """One wrong edge, however heavy, proposes an uncorroborated placement (``MIN_AGREEING``): the scan stays
+    where its other edges agree; two agreeing heavy wrong edges do move it."""
+    graph, truth, wrong = star_with_wrong_group(seed, 3, 1)
+    w = graph.weight.copy()
+    w[0] = heavy * 3  # the wrong edge outweighs the three right ones
+    lone = PoseGraph(n=graph.n, i=graph.i, j=graph.j, T=graph.T, weight=w)
+    np.testing.assert_allclose(consensus_placement(lone, truth)[0], truth[0], atol=1e-9)
+    graph, truth, wrong = star_with_wrong_group(seed, 3, 2)
+    w = graph.weight.copy()
+    w[:2] = heavy * 3
+    pair = PoseGraph(n=graph.n, i=graph.i, j=graph.j, T=graph.T, weight=w)
+    np.testing.assert_allclose(consensus_placement(pair, truth)[0], wrong, atol=1e-9)

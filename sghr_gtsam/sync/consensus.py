@@ -7,7 +7,8 @@ jump back is out of reach of any descent. This step compares placements instead 
 ``e = (a, s)`` proposes a pose for scan ``s`` from its partner's current pose (``T_a T_as``); proposals within
 ``max_deg`` and ``max_trans`` of each other agree, and a proposal's support is the initial weight ``w⁰`` of
 the edges that agree with it. A scan whose best-supported proposal outweighs its current placement's moves
-there (``MARGIN`` more support needed, so near-ties do not pull a scan a descent placed right), most
+there (``MARGIN`` more support needed, so near-ties do not pull a scan a descent placed right, and at least
+``MIN_AGREEING`` edges must propose the new placement, so one heavy failed registration cannot), most
 outweighed first, sweep after sweep until no scan moves or ``MAX_SWEEPS``. Each move raises the total
 ``w⁰`` of the edges consistent with the poses (a weighted consensus). That consensus is what this step
 maximises, not the truth: where a wrong placement outweighs a scan's right edges, the scan goes wrong.
