@@ -7,8 +7,8 @@ symmetric mean). Local descriptors: FPFH from ``compute_features`` at the pipeli
 
 Scores compared:
 - **learned head**: the shipped ``sghr_gtsam/weights/netvlad_fpfh.pth`` (trained on simulated scans only);
-- **VLAD codebook**: the unsupervised feature ``pipeline._global_scores`` uses (k-means codebook of this
-  scene's own FPFH, ``NetVLAD.from_codebook``);
+- **VLAD codebook**: the pipeline's default, unsupervised feature (``netvlad.codebook_features``: a k-means
+  codebook of this scene's own FPFH, ``NetVLAD.from_codebook``);
 - **random**: uniform random scores (mean ± std over 1000 draws);
 - **GT (oracle)**: the GT overlaps themselves, the best any score can do;
 - kitchen 0–5 only: the authors' NetVLAD head on their YOHO descriptors (``sghr-reference``), for scale.
@@ -22,8 +22,12 @@ all-pairs scores plus top-10 graph for N = 5000 random unit features (D = 64 × 
 float64 matrix), and graph.py as of commit 5cca2b2 for comparison, each path timed once per repeat,
 interleaved, medians reported with the load average; the edges of the three paths are checked to be equal.
 
-Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH] [--no-speed | --speed-only]
-[--repeats R]``.
+With ``--cache DIR`` (the training cache, ``python -m data_tools.simulate DIR``) it also scores the learned
+head and the per-scene codebook on that cache's held-out validation scenes (``train.split``), the simulated
+scenes the head was selected on: whether the head beats the codebook in its own domain.
+
+Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH] [--cache DIR]
+[--no-speed | --speed-only] [--repeats R]``.
 """
 
 from __future__ import annotations
@@ -45,8 +49,8 @@ from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E
 from sghr_gtsam.features.netvlad import (  # noqa: E402
     DEFAULT_HEAD,
     NetVLAD,
+    codebook_features,
     global_features,
-    kmeans_codebook,
     load_checkpoint,
 )
 from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  # noqa: E402
@@ -77,9 +81,8 @@ def bunny(data: Path) -> tuple[list[str], list[np.ndarray], np.ndarray]:
 
 
 def codebook_scores(desc: list[np.ndarray], seed: int = 0) -> np.ndarray:
-    """What ``pipeline._global_scores`` computes."""
-    model = NetVLAD.from_codebook(kmeans_codebook(desc, seed=seed))
-    return overlap_scores(global_features(model, desc, seed=seed))
+    """What the pipeline's default global feature scores."""
+    return overlap_scores(codebook_features(desc, seed=seed)[0])
 
 
 def metrics(S: np.ndarray, G: np.ndarray) -> dict[str, float]:
@@ -221,10 +224,26 @@ def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 5
     graph_speed(D, n, repeats=repeats)
 
 
+def simulated(head: NetVLAD, cache: Path) -> None:
+    """Spearman ρ of the head and of the per-scene codebook on the cache's validation scenes, one row each."""
+    from sghr_gtsam.train import evaluate, evaluate_codebook, load_cache, split
+
+    val = split(load_cache(cache))[1]
+    print(f"\n### Simulated validation scenes of {cache.name} ({len(val)} scenes, "
+          f"{sum(len(s.descriptors) for s in val)} scans; Spearman ρ, each scene's pairs, then the mean)\n")
+    print("| scores | " + " | ".join(s.name for s in val) + " | mean |")
+    print("|---|" + "---:|" * (len(val) + 1))
+    for name, score in (("learned head", lambda s: evaluate(head, [s])),
+                        ("VLAD codebook (pipeline now)", lambda s: evaluate_codebook([s]))):
+        rho = [score(s)["spearman"] for s in val]
+        print(f"| {name} | " + " | ".join(f"{r:.3f}" for r in rho) + f" | {np.mean(rho):.3f} |")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--head", type=Path, default=DEFAULT_HEAD, help="learned head checkpoint")
+    parser.add_argument("--cache", type=Path, help="also score the validation scenes of this training cache")
     parser.add_argument("--no-speed", action="store_true")
     parser.add_argument("--speed-only", "--only-speed", dest="only_speed", action="store_true",
                         help="skip the overlap tables")
@@ -260,6 +279,8 @@ def main(argv: list[str] | None = None) -> int:
     report_scene(f"Stanford bunny (voxel {1000 * b_voxel:.2f} mm; GT: gt_overlap tool, symmetric)", b_names,
                  b_desc, b_G, head)
 
+    if args.cache:
+        simulated(head, args.cache)
     if not args.no_speed:
         speed(head, desc, repeats=args.repeats)
     return 0

@@ -15,7 +15,7 @@ import numpy as np
 
 from .config import Config
 from .features.local import ScanFeatures, compute_features, default_voxel
-from .features.netvlad import DEFAULT_HEAD, NetVLAD, global_features, kmeans_codebook, load_default_head
+from .features.netvlad import DEFAULT_HEAD, codebook_features, global_features, load_default_head
 from .graph import bridge_components, top_k_edges, top_k_graph
 from .io.features import read_features
 from .io.scans import finite_points, list_scans, load_scan
@@ -135,10 +135,8 @@ def _global_features(features: list[ScanFeatures], config: Config) -> tuple[np.n
         return F, f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
-    codebook = kmeans_codebook(descriptors, seed=config.seed)
-    model = NetVLAD.from_codebook(codebook)
-    F = global_features(model, descriptors, seed=config.seed)
-    return F, f"unsupervised VLAD codebook ({len(codebook)} clusters of {kind}, k-means on this scene)"
+    F, clusters = codebook_features(descriptors, seed=config.seed)
+    return F, f"unsupervised VLAD codebook ({clusters} clusters of {kind}, k-means on this scene)"
 
 
 def _features(scan: Scan, voxel: float, config: Config) -> ScanFeatures:

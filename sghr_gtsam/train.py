@@ -50,7 +50,7 @@ import numpy as np
 import torch
 import typer
 
-from sghr_gtsam.features.netvlad import NetVLAD, global_features, kmeans_codebook
+from sghr_gtsam.features.netvlad import NetVLAD, codebook_features, global_features, kmeans_codebook
 from sghr_gtsam.graph import overlap_scores
 from sghr_gtsam.io.atomic import atomic_write
 from sghr_gtsam.types import InputError
@@ -199,19 +199,31 @@ def sample_step(scene: CachedScene, rng: np.random.Generator, alpha: tuple[int, 
     return torch.from_numpy(np.ascontiguousarray(x.transpose(0, 2, 1))), torch.from_numpy(target)
 
 
-def evaluate(model: NetVLAD, scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
-    """Mean L1 over all pairs of each scene (features as the pipeline computes them: ``global_features``
-    on at most 5000 descriptors a scan), averaged over scenes; and the mean Spearman correlation."""
+def _score(scenes: list[CachedScene], features: Callable[[list[np.ndarray]], np.ndarray]) -> dict[str, float]:
+    """Mean L1 between the scores of ``features`` and the GT overlaps over all pairs of each scene, and the
+    mean Spearman correlation, averaged over scenes."""
     from scipy.stats import spearmanr
 
     l1, rho = [], []
-    model.eval()
     for s in scenes:
-        S = overlap_scores(global_features(model, s.descriptors, seed=seed))
+        S = overlap_scores(features(s.descriptors))
         iu = np.triu_indices(len(S), 1)
         l1.append(float(np.abs(S[iu] - s.overlap[iu]).mean()))
         rho.append(float(spearmanr(S[iu], s.overlap[iu]).statistic))
     return {"l1": float(np.mean(l1)) if l1 else float("nan"), "spearman": float(np.nanmean(rho)) if rho else float("nan")}
+
+
+def evaluate(model: NetVLAD, scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
+    """``_score`` of the head, features as the pipeline computes them (``global_features``, at most 5000
+    descriptors a scan)."""
+    model.eval()
+    return _score(scenes, lambda d: global_features(model, d, seed=seed))
+
+
+def evaluate_codebook(scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
+    """``_score`` of the pipeline's unsupervised feature (a codebook of each scene's own descriptors,
+    ``codebook_features``): the reference a trained head has to beat on the same scenes."""
+    return _score(scenes, lambda d: codebook_features(d, seed=seed)[0])
 
 
 # --- checkpoints ---------------------------------------------------------------------------------------------
@@ -266,7 +278,8 @@ def train(
     temperature of the latter two. The validation scenes are scored every ``eval_every`` epochs and after the
     last; ``best.pth`` is the best of those (lowest L1 with ``"l1"``, else highest Spearman ρ; without
     validation scenes, the lowest training loss).
-    Returns a summary: epochs run, final training loss, best validation numbers and their epoch, paths, seconds.
+    Returns a summary: epochs run, final training loss, best validation numbers and their epoch, the
+    validation numbers of the per-scene codebook (``evaluate_codebook``, the reference), paths, seconds.
     """
     from tqdm import tqdm
 
@@ -319,10 +332,12 @@ def train(
     if state is not None:
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
+    reference = evaluate_codebook(val_set, seed) if val_set else {"l1": float("nan"), "spearman": float("nan")}
     if start == 0:
         v = evaluate(model, val_set, seed) if val_set else {"l1": float("nan"), "spearman": float("nan")}
         log(f"{len(train_set)} training + {len(val_set)} validation scenes, {loss} loss; initial (k-means "
-            f"codebook) validation L1 {v['l1']:.4f}, Spearman {v['spearman']:.3f}")
+            f"codebook of the training scenes) validation L1 {v['l1']:.4f}, Spearman {v['spearman']:.3f}; the "
+            f"pipeline's per-scene codebook: Spearman {reference['spearman']:.3f}")
         history.append({"epoch": -1, "train_loss": float("nan"), "val_l1": v["l1"], "val_spearman": v["spearman"],
                         "lr": lr})
 
@@ -376,13 +391,16 @@ def train(
             torch.save(best_state, buffer)
             f.write(buffer.getvalue())
     with atomic_write(out / "history.json") as f:
-        json.dump({"settings": settings, "best": best, "history": history}, f, indent=1)
+        json.dump({"settings": settings, "best": best, "history": history,
+                   "per_scene_codebook": reference}, f, indent=1)
     summary = {"epochs": epochs, "loss": loss, "final_train_loss": history[-1]["train_loss"],
                "final_val_l1": history[-1]["val_l1"], "final_val_spearman": history[-1]["val_spearman"],
-               "best": best, "head": str(head_path), "seconds": time.perf_counter() - started}
+               "best": best, "per_scene_codebook": reference, "head": str(head_path),
+               "seconds": time.perf_counter() - started}
     log(f"done: epoch {epochs}, training {loss} loss {summary['final_train_loss']:.4f}, validation L1 "
         f"{summary['final_val_l1']:.4f}, Spearman {summary['final_val_spearman']:.3f}; kept epoch {best['epoch']} "
-        f"(validation L1 {best['val_l1']:.4f}, Spearman {best['val_spearman']:.3f}) -> {head_path}")
+        f"(validation L1 {best['val_l1']:.4f}, Spearman {best['val_spearman']:.3f}; the per-scene codebook: "
+        f"{reference['spearman']:.3f}) -> {head_path}")
     return summary
 
 

@@ -17,6 +17,7 @@ from sghr_gtsam.types import InputError
 from sghr_gtsam.train import (
     cache_path,
     evaluate,
+    evaluate_codebook,
     init_head,
     listwise_loss,
     load_cache,
@@ -40,6 +41,15 @@ def cache(tmp_path_factory):
     write_cache_scene(cache_path(folder, 0), scene_descriptors(scene), scene.overlap, poses=scene.poses,
                       voxel=scene.voxel, kind=scene.kind)
     return folder
+
+
+def test_per_scene_codebook_reference_ranks_overlaps(cache):
+    """The reference a trained head is held against (logged by ``train``): the pipeline's default feature,
+    a codebook of the scene's own descriptors, scored like a head on the same scene."""
+    scenes = load_cache(cache)
+    reference = evaluate_codebook(scenes)
+    assert reference["spearman"] > 0.5, reference
+    assert reference == evaluate_codebook(scenes)  # seeded
 
 
 def test_training_lowers_the_loss_and_resumes_exactly(cache, tmp_path):

@@ -108,6 +108,13 @@ def global_features(model: NetVLAD, descriptors: list[np.ndarray], max_points: i
     return np.stack(out).astype(np.float64)
 
 
+def codebook_features(descriptors: list[np.ndarray], seed: int = 0) -> tuple[np.ndarray, int]:
+    """The unsupervised global feature: a NetVLAD initialised from a k-means codebook of these scans' own
+    descriptors (``kmeans_codebook``, ``from_codebook``); the (N, K·D) unit features and the cluster count."""
+    codebook = kmeans_codebook(descriptors, seed=seed)
+    return global_features(NetVLAD.from_codebook(codebook), descriptors, seed=seed), len(codebook)
+
+
 DEFAULT_HEAD = Path(__file__).resolve().parents[1] / "weights" / "netvlad_fpfh.pth"
 """The head shipped with the package: trained on FPFH (``compute_features`` at the scene's default voxel)
 of simulated scans only (``sghr_gtsam/weights/README.md`` says how)."""
