@@ -117,6 +117,28 @@ def test_g2o_round_trip_with_information_and_ids(tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name != "g.g2o"]  # no temporary file left behind
 
 
+def test_written_g2o_is_what_gtsam_reads(tmp_path):
+    """A GTSAM stack that takes our graph.g2o gets our vertices, measurements and information (gtsam order)."""
+    import gtsam
+
+    graph, truth, _ = random_graph(2, 6, extra=3, rot_deg=3.0, trans_sigma=0.1)
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(graph.num_edges, 6, 6))
+    graph.information = A @ np.swapaxes(A, 1, 2) + 6 * np.eye(6)
+    ids = [4, 11, 2, 30, 7, 9]
+    write_g2o(tmp_path / "g.g2o", ids, truth, graph)
+    factors, initial = gtsam.readG2o(str(tmp_path / "g.g2o"), True)
+    assert sorted(initial.keys()) == sorted(ids) and factors.size() == graph.num_edges
+    for k, v in enumerate(ids):
+        np.testing.assert_allclose(initial.atPose3(v).matrix(), truth[k], atol=1e-12)
+    for e in range(graph.num_edges):
+        factor = factors.at(e)
+        assert list(factor.keys()) == [ids[graph.i[e]], ids[graph.j[e]]]
+        np.testing.assert_allclose(factor.measured().matrix(), graph.T[e], atol=1e-12)
+        R = factor.noiseModel().R()
+        np.testing.assert_allclose(R.T @ R, graph.information[e], rtol=1e-9, atol=1e-9)
+
+
 def test_g2o_information_is_reordered_to_gtsam_order(tmp_path):
     """g2o writes [translation, rotation]; PoseGraph.information is [rotation, translation]."""
     upper = []
