@@ -2,7 +2,7 @@
 
     python benchmarks/bench_sparse_graph.py [--data ../shared/data] [--scenes kitchen bunny]
                                             [--ks 2 3 4] [--random-seeds 5]
-    python benchmarks/bench_sparse_graph.py --sim-rooms 2 [--sim-scans 50] --ks 10 --random-seeds 1
+    python benchmarks/bench_sparse_graph.py --sim-rooms 0 1 2 [--sim-scans 50] --ks 5 10 --random-seeds 1
 
 Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
 pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
@@ -21,8 +21,8 @@ Rows per scene:
 The random and GT rows pass their scores to ``pipeline.register(..., scores=...)``; everything else is the
 pipeline's own code.
 
-Scoring, against ``gt_poses.txt``: errors of each *registered* scan relative to the first registered scan
-(the pipeline's anchor); within tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
+Scoring, against ``gt_poses.txt``: errors of each *registered* scan relative to the registered scan from which
+the most registered scans are within tolerance (the pipeline's anchor, unless it sits in a misplaced group); within tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
 ``bench_pipeline.py``; kitchen registration recall (``evaluate.registration_recall``, 0.2 m) counted over
 *all* gt.log pairs among the 9 fragments, a pair with an unregistered scan counting as missed. Times are
 ``RunResult.timings`` (features + global graph + pairwise + sync; scans already loaded), wall clock; CPU s is
@@ -32,7 +32,7 @@ mean over seeds of every column (errors are over each run's registered scans onl
 ``--sim-rooms R``: the real scenes have 9 and 10 scans, so "≤ 40 % of the pairs" means k = 2–3 there; the
 paper's claim is about 3DMatch scenes of ~54 scans and k = 10. These rows run that setting on R simulated
 rooms of ``--sim-scans`` scans (``data_tools.simulate``, a dataset seed no head was trained or selected on),
-scored as the kitchen (``sim_scene``).
+scored as the kitchen (``sim_scene``), with one exhaustive row (the learned-weights one would register the same pairs).
 """
 
 from __future__ import annotations
@@ -99,8 +99,11 @@ def run_row(scans, config: Config, scores: np.ndarray | None) -> pipeline.RunRes
 
 def score_run(res: pipeline.RunResult, gt: np.ndarray, max_deg: float, max_t: float, scene: Scene) -> dict:
     reg = res.registered
-    err = scan_errors(res.names, res.poses, gt, reference=reg[0])
-    rot, trans = err.rotation_deg[reg], err.translation[reg]
+    # Errors relative to the reference scan that has the most registered scans within tolerance: measured
+    # from the pipeline's anchor alone, an anchor inside a misplaced group would make every right scan wrong.
+    best = max(((scan_errors(res.names, res.poses, gt, reference=r), r) for r in reg),
+               key=lambda e: int(np.sum(e[0].within(max_deg, max_t)[reg])))[0]
+    rot, trans = best.rotation_deg[reg], best.translation[reg]
     row = {"pairs": res.graph.num_edges, "n": len(res.names), "registered": len(reg),
            "within": int(np.sum((rot <= max_deg) & (trans <= max_t))),
            "rot_mean": float(rot.mean()), "rot_max": float(rot.max()),
@@ -191,7 +194,7 @@ def sim_scene(index: int, n_scans: int) -> Scene:
     return scene
 
 
-def bench_scene(scene: Scene, ks: list[int], seeds: int) -> None:
+def bench_scene(scene: Scene, ks: list[int], seeds: int, exhaustive_learned: bool = True) -> None:
     name, scans, gt, G = scene.name, scene.scans, scene.gt, scene.overlap
     max_deg, max_t, unit, scale = scene.max_deg, scene.max_t, scene.unit, scene.scale
     n = len(scans)
@@ -199,10 +202,9 @@ def bench_scene(scene: Scene, ks: list[int], seeds: int) -> None:
     has_recall = scene.recall is not None
 
     # (label, k, global_feature, scores maker or None); the scores maker takes a seed
-    plan: list[tuple[str, int, str, object]] = [
-        ("exhaustive, VLAD weights (default)", n - 1, "vlad", None),
-        ("exhaustive, learned weights", n - 1, "learned", None),
-    ]
+    plan: list[tuple[str, int, str, object]] = [("exhaustive, VLAD weights (default)", n - 1, "vlad", None)]
+    if exhaustive_learned:
+        plan.append(("exhaustive, learned weights", n - 1, "learned", None))
     for k in ks:
         plan += [("learned head", k, "learned", None), ("VLAD codebook", k, "vlad", None),
                  (f"random scores (mean of {seeds} seeds)", k, "vlad", "random"),
@@ -258,13 +260,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--ks", nargs="+", type=int, default=[2, 3, 4])
     ap.add_argument("--random-seeds", type=int, default=5)
-    ap.add_argument("--sim-rooms", type=int, default=0,
-                    help="instead of the real scenes: this many simulated rooms (the paper's scale)")
+    ap.add_argument("--sim-rooms", type=int, nargs="+", default=[],
+                    help="instead of the real scenes: these simulated rooms (indices; the paper's scale)")
     ap.add_argument("--sim-scans", type=int, default=50, help="scans per simulated room (default 50)")
     args = ap.parse_args(argv)
     if args.sim_rooms:
-        for index in range(args.sim_rooms):
-            bench_scene(sim_scene(index, args.sim_scans), args.ks, args.random_seeds)
+        for index in args.sim_rooms:  # one exhaustive row: the learned-weights one registers the same 1225 pairs
+            bench_scene(sim_scene(index, args.sim_scans), args.ks, args.random_seeds, exhaustive_learned=False)
         return 0
     if not (args.data / "MANIFEST.md").is_file():
         print(f"real data not found at {args.data} (set SGHR_DATA)")
