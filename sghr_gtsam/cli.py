@@ -77,6 +77,8 @@ def run(
                f"{result.timings['total']:.1f} s -> {out}")
     if result.unregistered:
         typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
+    if result.unverified:
+        typer.echo(f"unverified (pose rests on one unchecked registration): {', '.join(result.unverified)}", err=True)
 
 
 @app.command()
@@ -101,7 +103,8 @@ def demo(
     err = scan_errors(result.names, result.poses, gt)
     typer.echo(f"{'scan':<16}{'rot err [deg]':>15}{'trans err [m]':>15}")
     for k, name in enumerate(result.names):
-        flag = "  (unregistered)" if name in result.unregistered else ""
+        flag = ("  (unregistered)" if name in result.unregistered
+                else "  (unverified)" if name in result.unverified else "")
         typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
     typer.echo(f"{len(result.registered)}/{len(result.names)} scans registered in "
                f"{result.timings['total']:.1f} s; results in {out / 'results'}")

@@ -22,7 +22,7 @@ from .io.scans import finite_points, list_scans, load_scan
 from .pairwise import PairResult, register_pair
 from .recording import Recorder
 from .se3 import inv_T, transform_points
-from .sync import synchronize
+from .sync import synchronize, unverified
 from .types import InputError, Keypoints, PoseGraph, SyncResult
 
 Log = Callable[[str], None]
@@ -38,7 +38,8 @@ class Scan:
 @dataclass
 class RunResult:
     """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
-    first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose."""
+    first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
+    ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``)."""
 
     names: list[str]
     poses: np.ndarray
@@ -52,6 +53,7 @@ class RunResult:
     features: list[ScanFeatures]
     timings: dict[str, float] = field(default_factory=dict)
     global_feature: str = ""
+    unverified: list[str] = field(default_factory=list)
 
     @property
     def registered(self) -> list[int]:
@@ -231,11 +233,14 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     for name in unregistered:
         log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
+    weak = [names[k] for k in np.flatnonzero(unverified(graph, result))]
+    for name in weak:
+        log(f"UNVERIFIED {name}: placed through a single registration that no loop of the graph checks")
     if recorder:
-        recorder.log_final(poses, unregistered)
+        recorder.log_final(poses, unregistered, weak)
     return RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=pairs,
                      sync=result, unregistered=unregistered, skipped=dict(skipped or {}), features=features,
-                     timings=timer.seconds, global_feature=feature_kind)
+                     timings=timer.seconds, global_feature=feature_kind, unverified=weak)
 
 
 def merged_cloud(result: RunResult) -> np.ndarray:

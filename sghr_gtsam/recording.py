@@ -93,11 +93,12 @@ class Recorder:
             self.rec.log(f"residuals/{lab}", rr.Scalars(float(r)))
             self.rec.log(f"weights/{lab}", rr.Scalars(float(w)))
 
-    def log_final(self, poses: np.ndarray, unregistered: list[str]) -> None:
+    def log_final(self, poses: np.ndarray, unregistered: list[str], unverified: list[str]) -> None:
         self.rec.set_time(TIMELINE, sequence=self._step + 1)
         self.log_poses(poses)
-        if unregistered:
-            self.rec.log("log", rr.TextLog("unregistered: " + ", ".join(unregistered), level=rr.TextLogLevel.WARN))
+        for label, names in (("unregistered", unregistered), ("unverified", unverified)):
+            if names:
+                self.rec.log("log", rr.TextLog(f"{label}: " + ", ".join(names), level=rr.TextLogLevel.WARN))
 
     def close(self) -> None:
         self.rec.flush()

@@ -59,7 +59,8 @@ def test_outputs_parse_back_to_the_result(room_run):
     n = len(result.names)
     assert report["pairs_exhaustive"] == n * (n - 1) // 2
     assert report["pairs_registered"] == result.graph.num_edges
-    assert report["unregistered"] == [] and report["peak_memory_mb"] > 0
+    assert report["unregistered"] == [] and report["unverified"] == result.unverified == []
+    assert report["peak_memory_mb"] > 0
     assert {"features", "pairwise", "sync", "total"} <= set(report["seconds"])
     assert Config.from_json(out / "config.json") == Config(seed=0)
     assert (out / "merged.ply").stat().st_size > 1000

@@ -7,10 +7,10 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
-from sghr_gtsam.sync import METHODS, synchronize
+from sghr_gtsam.sync import METHODS, synchronize, unverified
 from sghr_gtsam.sync.irls import irls, schedule_weights
 from sghr_gtsam.sync.rotation import DENSE_NODES, rotation_residuals, spectral_rotations
-from sghr_gtsam.types import InputError, PoseGraph
+from sghr_gtsam.types import InputError, PoseGraph, SyncResult
 
 FAST = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -149,6 +149,57 @@ def test_a_scan_with_only_negligible_edges_ends_in_its_own_component():
         np.testing.assert_array_equal(result.weights[-2:], 0.0)
         np.testing.assert_allclose(result.poses[25], np.eye(4))
         np.testing.assert_allclose(result.poses[:25], synchronize(graph, method=method).poses, atol=1e-9)
+
+
+def _two_clusters(links: list[tuple[int, int, bool]], seed: int = 3) -> tuple[PoseGraph, np.ndarray]:
+    """A 15-scan cluster (nodes 0-14) and a 6-scan one (15-20), each well connected with 1°/2 cm noise,
+    joined by ``links`` (a, b, right?): a right link carries the true ``T_ab``, a wrong one the far cluster
+    turned 180° about the vertical, as a symmetric room fools pairwise registration."""
+    a, truth_a, _ = random_graph(seed, 15, extra=3, rot_deg=1.0, trans_sigma=0.02)
+    b, truth_b, _ = random_graph(seed + 1, 6, extra=3, rot_deg=1.0, trans_sigma=0.02)
+    truth = np.concatenate([truth_a, truth_b])
+    flip = make_T(Rotation.from_euler("z", 180, degrees=True).as_matrix(), np.zeros(3))
+    T = [inv_T(truth[p]) @ (truth[q] if ok else flip @ truth[q]) for p, q, ok in links]
+    graph = PoseGraph(n=21, i=np.r_[a.i, b.i + 15, [p for p, _, _ in links]],
+                      j=np.r_[a.j, b.j + 15, [q for _, q, _ in links]], T=np.concatenate([a.T, b.T, T]),
+                      weight=np.r_[a.weight, b.weight, np.full(len(links), 50.0)])
+    return graph, truth
+
+
+def test_a_cluster_hung_on_one_wrong_edge_is_flagged_unverified():
+    """Nothing can outvote a single wrong edge between two clusters: the small one is placed wrong (180°) and
+    flagged; a second, right link lets the graph tell, places it right and clears the flag."""
+    graph, truth = _two_clusters([(3, 17, False)])
+    result = synchronize(graph)
+    rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
+    assert np.all(result.component == 0) and rot[15:].min() > 170.0 and rot[:15].max() < 3.0
+    np.testing.assert_array_equal(np.flatnonzero(unverified(graph, result)), np.arange(15, 21))
+
+    graph, truth = _two_clusters([(3, 17, False), (5, 19, True), (8, 16, True)])
+    result = synchronize(graph)
+    rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
+    assert rot.max() < 3.0 and not unverified(graph, result).any()
+
+
+@FAST
+@given(st.permutations(range(21)))
+def test_unverified_nodes_follow_a_relabelling(perm):
+    graph, _ = _two_clusters([(3, 17, True)])
+    p = np.asarray(perm)
+    relabelled = PoseGraph(n=21, i=p[graph.i], j=p[graph.j], T=graph.T, weight=graph.weight)
+    result = SyncResult(poses=np.tile(np.eye(4), (21, 1, 1)), weights=graph.weight,
+                        residual_deg=np.zeros(graph.num_edges), component=np.zeros(21, dtype=int))
+    np.testing.assert_array_equal(np.flatnonzero(unverified(relabelled, result)), np.sort(p[15:]))
+
+
+def test_a_chain_is_verified_only_at_its_first_scan():
+    """Every edge of a chain is a bridge: no block has more than one scan, the first is taken as the core."""
+    n = 5
+    graph = PoseGraph(n=n, i=np.arange(n - 1), j=np.arange(1, n), T=np.tile(np.eye(4), (n - 1, 1, 1)),
+                      weight=np.ones(n - 1))
+    result = SyncResult(poses=np.tile(np.eye(4), (n, 1, 1)), weights=graph.weight, residual_deg=np.zeros(n - 1),
+                        component=np.zeros(n, dtype=int))
+    np.testing.assert_array_equal(unverified(graph, result), [False, True, True, True, True])
 
 
 # --- bad input -------------------------------------------------------------------------------------------

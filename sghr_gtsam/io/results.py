@@ -63,6 +63,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "scans": result.names,
         "registered": names,
         "unregistered": result.unregistered,
+        "unverified": result.unverified,
         "skipped": result.skipped,
         "voxel": result.voxel,
         "global_feature": result.global_feature,

@@ -12,6 +12,8 @@ from dataclasses import replace
 
 import numpy as np
 
+import networkx as nx
+
 from ..io.g2o import sesync_precisions
 from ..se3 import project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
@@ -132,6 +134,27 @@ def _robust_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     return poses, kept
 
 
+def unverified(graph: PoseGraph, result: SyncResult) -> np.ndarray:
+    """(N,) bool: nodes of the largest part (``component == 0``) whose place in it rests on an edge no loop checks.
+
+    Among the edges the result kept (weight > 0), a bridge is an edge on no cycle. Without the bridges the
+    largest part falls into blocks in which every edge is cross-checked by another path; nodes outside the
+    block with the most nodes are reached from it only across a bridge. A wrong registration on a bridge cannot
+    be outvoted by anything — the nodes beyond it go wherever it says — so their placement is unverified (it
+    may well be right: a chain of scans is all bridges).
+    """
+    main = result.component == 0
+    kept = (result.weights > 0) & main[graph.i] & main[graph.j]
+    G = nx.Graph()
+    G.add_nodes_from(np.flatnonzero(main).tolist())
+    G.add_edges_from(zip(graph.i[kept].tolist(), graph.j[kept].tolist()))
+    G.remove_edges_from(list(nx.bridges(G)))
+    core = max(nx.connected_components(G), key=lambda c: (len(c), -min(c)))
+    out = main.copy()
+    out[list(core)] = False
+    return out
+
+
 def checked_graph(graph: PoseGraph) -> PoseGraph:
     """``graph`` with its checks passed: integer indices, float arrays, rotations projected onto SO(3).
 
@@ -177,4 +200,4 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     return replace(graph, n=n, i=i.astype(np.int64), j=j.astype(np.int64), T=T, weight=w, information=info)
 
 
-__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph"]
+__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph", "unverified"]
