@@ -123,7 +123,9 @@ def sync(
 ) -> None:
     """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
     from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
-    from .sync import checked_graph, synchronize
+    import numpy as np
+
+    from .sync import checked_graph, synchronize, unverified
 
     def work() -> None:
         if noise not in ("information", "isotropic"):
@@ -141,6 +143,11 @@ def sync(
         parts = int(result.component.max()) + 1
         typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "
                    f"SE-Sync objective {sesync_objective(result.poses, graph):.6g} -> {out}")
+        weak = [ids[k] for k in np.flatnonzero(unverified(graph, result))]
+        if weak:
+            shown = " ".join(map(str, weak[:10])) + (" ..." if len(weak) > 10 else "")
+            typer.echo(f"{len(weak)} pose(s) of the largest part unverified (reached across an edge on no loop): "
+                       f"{shown}", err=True)
 
     _guard(work)
 
