@@ -155,7 +155,7 @@ def tables(runs: list[Run], names: list[str], kinds: list[str], ratios: list[flo
     return "\n".join(out)
 
 
-def identifiability(kinds: list[str], ratios: list[float], seeds: int) -> str:
+def identifiability(kinds: list[str], ratios: list[float], seeds: int, noisy_overlap: bool = False) -> str:
     """Markdown: what the graphs themselves say, before any method runs. With every other scan at its GT
     pose, a scan is *outvoted* when a placement its edges propose, away from its GT pose, has more ``w⁰``
     support than the GT pose (``consensus.placement_support``: the consensus step's agreement test). A method that only sees the graph
@@ -171,7 +171,7 @@ def identifiability(kinds: list[str], ratios: list[float], seeds: int) -> str:
                 index = {f: k for k, f in enumerate(gt.ids)}
                 pairs = [(index[a], index[b]) for a, b in gt.gt_log if a in index and b in index and abs(a - b) > 1]
                 for seed in range(seeds):
-                    graph, P, _ = make_graph(scene, ratio, kind, seed)
+                    graph, P, _ = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
                     tol = translation_tolerance(graph)
                     bad = np.zeros(graph.n, dtype=bool)
                     for scan in range(graph.n):
@@ -211,8 +211,9 @@ def main() -> None:
         names = [n for n in names if n in args.methods]
     seeds, ratios = (1, [0.0, 0.5]) if args.quick else (args.seeds, sorted(args.ratios))
     if args.identifiability:
-        print(f"outvoted scans / recall bound, {len(SCENES)} scenes × {seeds} seeds")
-        print(identifiability(args.kinds, [x for x in ratios if x > 0], seeds))
+        print(f"outvoted scans / recall bound, {len(SCENES)} scenes × {seeds} seeds, top-k by "
+              f"{'noisy' if args.noisy_overlap else 'GT'} overlap")
+        print(identifiability(args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap))
         return
 
     # Ratio 0 is the same graph for both kinds: run it once, under the first kind.
