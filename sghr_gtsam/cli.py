@@ -122,9 +122,9 @@ def sync(
                               "isotropic: SE-Sync's precisions (2κ rotation, τ translation)."),
 ) -> None:
     """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
-    from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
     import numpy as np
 
+    from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
     from .sync import checked_graph, synchronize, unverified
 
     def work() -> None:

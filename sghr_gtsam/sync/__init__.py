@@ -10,9 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import replace
 
-import numpy as np
-
 import networkx as nx
+import numpy as np
 
 from ..io.g2o import sesync_precisions
 from ..se3 import project_to_so3
