@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
 from sghr_gtsam.io.poses import read_poses
 from sghr_gtsam.io.scans import load_scan
-from sghr_gtsam.pairwise import MATCHERS, register_pair
+from sghr_gtsam.registration.pairwise import MATCHERS, register_pair
 from sghr_gtsam.se3 import inv_T, relative_errors, transform_points
 
 DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))

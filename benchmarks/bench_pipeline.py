@@ -23,7 +23,8 @@ from pathlib import Path
 from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import fragment_id, registration_recall, scan_errors
 from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_poses
-from sghr_gtsam.pipeline import peak_memory_mb, run
+from sghr_gtsam.pipeline import run
+from sghr_gtsam.result import peak_memory_mb
 
 scene_dir, gt_dir, out = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
 res = run(scene_dir, out, Config(), log=lambda m: None)

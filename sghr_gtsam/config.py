@@ -82,7 +82,7 @@ class Config:
 
     def validate(self) -> "Config":
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
-        from .pairwise import MATCHERS
+        from .registration.pairwise import MATCHERS
         from .sync import METHODS, POLISHES
         from .sync.irls import REWEIGHTS
 

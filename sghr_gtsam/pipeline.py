@@ -4,26 +4,32 @@ pairwise registration on graph edges -> history-reweighted IRLS -> gtsam polish 
 from __future__ import annotations
 
 import hashlib
-import resource
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from .config import Config
 from .features.local import ScanFeatures, compute_features, default_voxel
-from .features.netvlad import DEFAULT_HEAD, codebook_features, global_features, load_default_head
+from .features.netvlad import (
+    DEFAULT_HEAD,
+    codebook_features,
+    global_features,
+    load_default_head,
+)
 from .graph import bridge_components, top_k_edges, top_k_graph
 from .io.features import read_features
+from .io.results import write_results
 from .io.scans import finite_points, list_scans, load_scan
-from .pairwise import PairResult, register_pair
 from .recording import Recorder
+from .registration.pairwise import PairResult, register_pair
+from .result import RunResult
 from .se3 import inv_T, transform_points
 from .sync import synchronize, unverified
-from .types import InputError, Keypoints, PoseGraph, SyncResult
+from .types import InputError, Keypoints, PoseGraph
 
 Log = Callable[[str], None]
 
@@ -35,32 +41,6 @@ class Scan:
     keypoints: Keypoints | None = None  # precomputed local features; given, they replace FPFH
 
 
-@dataclass
-class RunResult:
-    """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
-    first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
-    ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``)."""
-
-    names: list[str]
-    poses: np.ndarray
-    voxel: float
-    scores: np.ndarray
-    graph: PoseGraph
-    pairs: list[PairResult]
-    sync: SyncResult
-    unregistered: list[str]
-    skipped: dict[str, str]
-    features: list[ScanFeatures]
-    timings: dict[str, float] = field(default_factory=dict)
-    global_feature: str = ""
-    unverified: list[str] = field(default_factory=list)
-
-    @property
-    def registered(self) -> list[int]:
-        bad = set(self.unregistered)
-        return [k for k, n in enumerate(self.names) if n not in bad]
-
-
 class _Timer:
     def __init__(self) -> None:
         self.seconds: dict[str, float] = {}
@@ -70,11 +50,6 @@ class _Timer:
         t0 = time.perf_counter()
         yield
         self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
-
-
-def peak_memory_mb() -> float:
-    """Peak resident memory of this process (Linux reports ru_maxrss in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[list[Scan], dict[str, str]]:
@@ -254,8 +229,6 @@ def merged_cloud(result: RunResult) -> np.ndarray:
 
 def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print) -> RunResult:
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``."""
-    from .io.results import write_results
-
     config.validate()
     started = time.perf_counter()
     timer = _Timer()

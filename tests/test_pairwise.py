@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
 from sghr_gtsam.io.poses import read_poses
 from sghr_gtsam.io.scans import load_scan
-from sghr_gtsam.pairwise import register_pair
+from sghr_gtsam.registration.pairwise import register_pair
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors, transform_points
 from sghr_gtsam.types import InputError
 

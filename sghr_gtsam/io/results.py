@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..result import peak_memory_mb
 from .atomic import atomic_write
 from .g2o import write_g2o
 from .poses import write_kitti, write_poses
@@ -19,7 +20,7 @@ from .scans import write_ply
 
 if TYPE_CHECKING:
     from ..config import Config
-    from ..pipeline import RunResult
+    from ..result import RunResult
 
 EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg"]
 
@@ -55,8 +56,6 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         f.write(config.to_json())
     result.timings["write"] = time.perf_counter() - t0
     result.timings["total"] = time.perf_counter() - started
-
-    from ..pipeline import peak_memory_mb
 
     n = len(result.names)
     report = {

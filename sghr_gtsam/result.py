@@ -1,0 +1,44 @@
+"""What a run produced (``RunResult``), shared by the pipeline that fills it and the writers that save it."""
+
+from __future__ import annotations
+
+import resource
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .features.local import ScanFeatures
+from .registration.pairwise import PairResult
+from .types import PoseGraph, SyncResult
+
+
+@dataclass
+class RunResult:
+    """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
+    first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
+    ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``)."""
+
+    names: list[str]
+    poses: np.ndarray
+    voxel: float
+    scores: np.ndarray
+    graph: PoseGraph
+    pairs: list[PairResult]
+    sync: SyncResult
+    unregistered: list[str]
+    skipped: dict[str, str]
+    features: list[ScanFeatures]
+    timings: dict[str, float] = field(default_factory=dict)
+    global_feature: str = ""
+    unverified: list[str] = field(default_factory=list)
+
+    @property
+    def registered(self) -> list[int]:
+        bad = set(self.unregistered)
+        return [k for k, n in enumerate(self.names) if n not in bad]
+
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process (Linux reports ru_maxrss in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
