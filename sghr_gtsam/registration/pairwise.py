@@ -15,6 +15,8 @@ import small_gicp
 from sghr_gtsam.features.local import GICP_THREADS, NUM_THREADS, ScanFeatures
 from sghr_gtsam.types import InputError
 
+from .information import point_information
+
 MATCHERS = ("kiss", "ransac")
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
 # matching is 4-6x faster than exact search and registers the same pairs (+-1) on the kitchen and
@@ -96,18 +98,6 @@ def _ransac(
         reg.RANSACConvergenceCriteria(RANSAC_MAX_ITERATION, RANSAC_CONFIDENCE),
     )
     return np.asarray(result.transformation)
-
-
-def point_information(p: np.ndarray) -> np.ndarray:
-    """Sum over points p (N, 3) of J^T J, J = [-[p]x, I] = d(exp(xi) p)/d xi, xi = [rotation, translation]."""
-    s = p.sum(axis=0)
-    S = np.array([[0.0, -s[2], s[1]], [s[2], 0.0, -s[0]], [-s[1], s[0], 0.0]])
-    info = np.zeros((6, 6))
-    info[:3, :3] = np.sum(p * p) * np.eye(3) - p.T @ p
-    info[:3, 3:] = S
-    info[3:, :3] = S.T
-    info[3:, 3:] = len(p) * np.eye(3)
-    return info
 
 
 def register_pair(
