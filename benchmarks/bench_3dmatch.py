@@ -168,7 +168,8 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None) -> di
     scene = SCENES[name]
     started = time.perf_counter()
     proc = subprocess.run([sys.executable, __file__, "--child", str(data / scene.folder), json.dumps(overrides),
-                           str(workers) if workers else "none"], capture_output=True, text=True, cwd=ROOT)
+                           str(workers) if workers else "none"], capture_output=True, text=True, cwd=ROOT,
+                          check=False)
     wall = time.perf_counter() - started
     if proc.returncode:
         return {"scene": name, "error": (proc.stderr.strip().splitlines() or ["?"])[-1]}
@@ -191,9 +192,13 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write the raw rows (with per-scan errors) here")
     args = ap.parse_args()
     from sghr_gtsam.config import Config
+    from sghr_gtsam.types import InputError
 
     overrides = parse_overrides(args.overrides, Config)
-    make_config(overrides, args.workers)  # a bad override fails here, before any scene runs
+    try:
+        make_config(overrides, args.workers)  # a bad override fails here, before any scene runs
+    except InputError as e:
+        raise SystemExit(f"--set: {e}") from None
     rows = []
     for name in args.scenes:
         print(f"running {name} ...", file=sys.stderr, flush=True)

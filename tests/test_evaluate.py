@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.evaluate import (
@@ -112,7 +113,7 @@ def _ring(n: int) -> tuple[list[str], np.ndarray, dict, dict]:
 
 
 def test_an_unplaced_fragment_fails_its_pairs_where_the_old_recall_skips_them():
-    names, gt, log, info = _ring(8)
+    _, gt, log, info = _ring(8)
     keep = [k for k in range(8) if k != 3]
     skipping = registration_recall(keep, gt[keep], log, info)
     counting = registration_recall_counting_unplaced(keep, gt[keep], log, info, scene_ids=list(range(8)))
