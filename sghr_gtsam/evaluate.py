@@ -147,8 +147,8 @@ def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray
 class SceneScore:
     """A run scored against a scene's GT: how many scans were placed, the paper's registration recall
     (unplaced fragments count as failed; None without a gt.log) and the whole-model errors of the placed
-    scans. ``doubted`` are the placed scans outside the tolerance, ``flagged`` those the run itself
-    flagged (unverified); scans in GT the run never loaded count as unregistered."""
+    scans. ``doubted`` are the placed scans outside the tolerance, ``unverified`` those the run itself
+    flagged; scans in GT the run never loaded count as unregistered."""
 
     scans: int
     placed: list[str]
@@ -181,6 +181,8 @@ def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses
     bad = set(unregistered)
     keep = [k for k, n in enumerate(names) if n not in bad]
     placed = [names[k] for k in keep]
+    if not placed:
+        raise InputError("no scan was placed: nothing to score")
     placed_set = set(placed)
     missing = [n for n in gt_names if n not in placed_set]
     whole = whole_model_errors(placed, np.asarray(poses)[keep], np.asarray(gt_poses)[[gt_index[n] for n in placed]])

@@ -144,6 +144,8 @@ def test_score_run_counts_unregistered_and_missing_scans_and_names_the_doubted_o
     assert score.recall.recall == pytest.approx(len(right) / len(scored))
     with pytest.raises(InputError):
         score_run(["elsewhere.ply"], est[:1], names, gt)
+    with pytest.raises(InputError):
+        score_run(names[:2], est[:2], names, gt, unregistered=names[:2])
 
 
 def test_ground_truth_scores_perfectly_on_the_kitchen(data_dir):
