@@ -75,6 +75,14 @@ class Config:
     """Edges whose final weight falls below this fraction of the largest weight are dropped; a
     scan left without edges is reported as unregistered."""
 
+    # --- gtsam graph (sghr_gtsam.gtsam_api, the incremental session, ``sync``'s final LM) ---------------
+    noise_model: str = "information"
+    """Noise of an edge's factor: 'information' (its own, calibrated from the registration's residuals) or
+    'isotropic' (SE-Sync's precisions 2κ, τ from it)."""
+    kernel: str = "none"
+    """Robust kernel on the edges' factors: 'none', 'huber', 'cauchy' (m-estimators at the χ²₆ 99 % residual)
+    or 'tls' (truncated least squares through gtsam GNC)."""
+
     # --- run ----------------------------------------------------------------------------------------
     seed: int = 0
     record: bool = True
@@ -82,12 +90,14 @@ class Config:
 
     def validate(self) -> "Config":
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
+        from .gtsam_api import KERNELS, NOISE_MODELS
         from .registration.pairwise import MATCHERS
         from .sync import METHODS, POLISHES
         from .sync.irls import REWEIGHTS
 
         choices = {"global_feature": ("vlad", "learned"), "matcher": MATCHERS, "method": tuple(METHODS),
-                   "polish": tuple(POLISHES), "reweight": REWEIGHTS, "initial_weight": ("s*r", "s", "r")}
+                   "polish": tuple(POLISHES), "reweight": REWEIGHTS, "initial_weight": ("s*r", "s", "r"),
+                   "noise_model": NOISE_MODELS, "kernel": KERNELS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")

@@ -8,7 +8,10 @@ stage (consensus, GNC, consensus) and per LM iteration):
   (red = down-weighted to nothing, green = full weight), labelled ``i-j``;
 - ``residuals/<i>-<j>``: each edge's rotation residual in degrees; ``weights/<i>-<j>``: its weight
   relative to the largest; ``metrics/*``: median residual, kept edges, LM cost; ``log``: stage
-  messages with their seconds.
+  messages with their seconds;
+- ``world/uncertainty/<name>`` (last step): the 3σ ellipsoid of each scan's position from its pose covariance,
+  magnified ``ELLIPSOID_GAIN``× so that millimetres show at room scale, and ``uncertainty/<name>/*``: the
+  σ of its rotation (degrees) and translation (scene units) along their longest axes.
 """
 
 from __future__ import annotations
@@ -21,6 +24,8 @@ import rerun as rr
 from .types import IterationRecord, PoseGraph
 
 TIMELINE = "iteration"
+ELLIPSOID_GAIN = 10.0
+"""Ellipsoids are drawn this many times their 3σ size (a well-registered scan's is sub-millimetre)."""
 
 
 def _weight_colours(w: np.ndarray) -> np.ndarray:
@@ -31,6 +36,12 @@ def _weight_colours(w: np.ndarray) -> np.ndarray:
     green = np.array([40, 180, 70])
     c = np.where(w < 0.5, red + (yellow - red) * (w * 2), yellow + (green - yellow) * (w * 2 - 1))
     return c.astype(np.uint8)
+
+
+def _quaternion(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat()
 
 
 class Recorder:
@@ -99,6 +110,27 @@ class Recorder:
         for label, names in (("unregistered", unregistered), ("unverified", unverified)):
             if names:
                 self.rec.log("log", rr.TextLog(f"{label}: " + ", ".join(names), level=rr.TextLogLevel.WARN))
+
+    def log_covariances(self, poses: np.ndarray, covariances: np.ndarray) -> None:
+        """Per scan with a finite covariance (gtsam order, at the pose): its position ellipsoid in the world and
+        its σ scalars (module doc), at the last step."""
+        from .gtsam_api import sigmas
+
+        self.rec.set_time(TIMELINE, sequence=self._step + 1)
+        rot, trans = sigmas(covariances)
+        for name, T, C, r, t in zip(self._names, poses, covariances, rot, trans):
+            if not np.isfinite(C).all():
+                continue
+            path = rr.escape_entity_path_part(name)
+            # A translation ξ_t at the pose moves the scan by R ξ_t in the world.
+            values, vectors = np.linalg.eigh(T[:3, :3] @ C[3:, 3:] @ T[:3, :3].T)
+            vectors = vectors * np.sign(np.linalg.det(vectors))
+            half = 3.0 * ELLIPSOID_GAIN * np.sqrt(np.maximum(values, 0.0))
+            self.rec.log(f"world/uncertainty/{path}", rr.Ellipsoids3D(
+                centers=[T[:3, 3]], half_sizes=[half],
+                quaternions=[rr.Quaternion(xyzw=_quaternion(vectors))], fill_mode="majorwireframe"))
+            self.rec.log(f"uncertainty/{path}/sigma_rotation_deg", rr.Scalars(float(r)))
+            self.rec.log(f"uncertainty/{path}/sigma_translation", rr.Scalars(float(t)))
 
     def close(self) -> None:
         self.rec.flush()

@@ -31,6 +31,9 @@ class RunResult:
     timings: dict[str, float] = field(default_factory=dict)
     global_feature: str = ""
     unverified: list[str] = field(default_factory=list)
+    covariances: np.ndarray | None = None
+    """(N, 6, 6) covariance of each scan's pose relative to the world scan, gtsam order [rotation, translation]
+    at the pose (``gtsam_api.pose_covariances``); NaN for unregistered scans. None: not computed yet."""
 
     @property
     def registered(self) -> list[int]:

@@ -102,21 +102,23 @@ def _pose_fields(T: np.ndarray) -> list[str]:
     return [" ".join(map(repr, row)) for row in values.tolist()]
 
 
-def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray, graph: PoseGraph) -> None:
-    """Write vertices ``ids`` at ``poses`` and the measured edges, atomically.
+def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph: PoseGraph) -> None:
+    """Write vertices ``ids`` at ``poses`` and the measured edges, atomically; ``poses=None``: edges only
+    (node ``k`` of ``graph`` written as ``ids[k]``).
 
     Without ``graph.information`` an edge's information is written as ``weight · I``. Numbers are written
     with ``repr`` so that reading the file back gives the same values.
     """
-    if len(ids) != len(poses) or len(ids) != graph.n:
-        raise InputError(f"write_g2o: {len(ids)} ids, {len(poses)} poses and {graph.n} graph nodes differ")
+    if (poses is not None and len(ids) != len(poses)) or len(ids) != graph.n:
+        raise InputError(f"write_g2o: {len(ids)} ids, {'no' if poses is None else len(poses)} poses and "
+                         f"{graph.n} graph nodes differ")
     info = graph.information
     if info is None:
         info = graph.weight[:, None, None] * np.eye(6)
     back = np.argsort(_G2O_TO_GTSAM)
     upper = info[:, back][:, :, back][:, _UPPER[0], _UPPER[1]]
     with atomic_write(path) as f:
-        for v, fields in zip(ids, _pose_fields(np.asarray(poses).reshape(-1, 4, 4))):
+        for v, fields in zip(ids, [] if poses is None else _pose_fields(np.asarray(poses).reshape(-1, 4, 4))):
             f.write(f"VERTEX_SE3:QUAT {v} {fields}\n")
         for a, b, fields, values in zip(graph.i, graph.j, _pose_fields(graph.T), upper.tolist()):
             f.write(f"EDGE_SE3:QUAT {ids[a]} {ids[b]} {fields} {' '.join(map(repr, values))}\n")

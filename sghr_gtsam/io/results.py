@@ -1,5 +1,12 @@
 """The results folder of a run. File names are fixed because other tools read them:
-poses.txt, poses_kitti.txt, graph.g2o, edges.csv, merged.ply, report.json, config.json, recording.rrd."""
+poses.txt, poses_kitti.txt, graph.g2o, graph_rejected.g2o, edges.csv, merged.ply, report.json, config.json,
+recording.rrd.
+
+graph.g2o is what a SLAM stack loads as it is: one vertex per registered scan (id = the scan's index in
+``report.json["scans"]``, mapped to its name in ``report.json["g2o_vertices"]``) at its final pose, and the
+edges the result rests on (kept by synchronization, both ends registered) with their calibrated information.
+graph_rejected.g2o holds the other registered pairs as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to
+be optimized). edges.csv lists every pair with its ``status`` (``EDGE_STATUS``)."""
 
 from __future__ import annotations
 
@@ -13,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..result import peak_memory_mb
+from ..types import PoseGraph
 from .atomic import atomic_write
 from .g2o import write_g2o
 from .poses import write_kitti, write_poses
@@ -22,10 +30,25 @@ if TYPE_CHECKING:
     from ..config import Config
     from ..result import RunResult
 
-EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg"]
+EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status"]
+EDGE_STATUS = {
+    "kept": "in graph.g2o: synchronization kept it and both scans are registered",
+    "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
+    "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
+    "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
+}
 
 
-def write_edges_csv(path: Path, result: "RunResult") -> None:
+def edge_status(result: "RunResult") -> list[str]:
+    """The ``EDGE_STATUS`` key of every edge of ``result.graph``."""
+    g = result.graph
+    placed = np.zeros(len(result.names), dtype=bool)
+    placed[result.registered] = True
+    return ["failed" if g.weight[e] <= 0 else "rejected" if result.sync.weights[e] <= 0
+            else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
+
+
+def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
     g, s = result.graph, result.sync
     with atomic_write(path, newline="") as f:
         w = csv.writer(f)
@@ -33,7 +56,35 @@ def write_edges_csv(path: Path, result: "RunResult") -> None:
         for e in range(g.num_edges):
             a, b = int(g.i[e]), int(g.j[e])
             w.writerow([a, b, f"{result.scores[a, b]:.6f}", result.pairs[e].inliers, f"{g.weight[e]:.6g}",
-                        f"{s.weights[e]:.6g}", f"{s.residual_deg[e]:.4f}"])
+                        f"{s.weights[e]:.6g}", f"{s.residual_deg[e]:.4f}", status[e]])
+
+
+def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
+    """graph.g2o (registered scans, kept edges) and graph_rejected.g2o (every other pair), module doc."""
+    from ..gtsam_api import graph_information
+
+    g, nodes = result.graph, result.registered
+    kept = np.array([s == "kept" for s in status], dtype=bool)
+    index = np.full(len(result.names), -1)
+    index[nodes] = np.arange(len(nodes))
+    sub = PoseGraph(n=len(nodes), i=index[g.i[kept]], j=index[g.j[kept]], T=g.T[kept], weight=g.weight[kept],
+                    information=graph_information(g, kept)[kept])
+    write_g2o(out / "graph.g2o", list(nodes), result.poses[nodes], sub)
+    everyone = list(range(len(result.names)))
+    rest = PoseGraph(n=len(everyone), i=g.i[~kept], j=g.j[~kept], T=g.T[~kept], weight=g.weight[~kept],
+                     information=None if g.information is None else g.information[~kept])
+    write_g2o(out / "graph_rejected.g2o", everyone, None, rest)
+
+
+def covariance_report(result: "RunResult") -> dict[str, dict]:
+    """Per registered scan: its pose covariance (6×6, [rotation rad, translation], at the pose) and the
+    longest axes of its rotation (degrees) and translation (scene units) ellipsoids."""
+    from ..gtsam_api import sigmas
+
+    C = result.covariances
+    rot, trans = sigmas(C)
+    return {result.names[k]: {"sigma_rotation_deg": float(rot[k]), "sigma_translation": float(trans[k]),
+                              "covariance": C[k].tolist()} for k in result.registered}
 
 
 def write_results(out: Path, result: "RunResult", config: "Config", started: float,
@@ -49,8 +100,13 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
     header = ("unregistered (no pose): " + ", ".join(result.unregistered)) if result.unregistered else None
     write_poses(out / "poses.txt", names, result.poses[keep], comment=header)
     write_kitti(out / "poses_kitti.txt", result.poses[keep])
-    write_g2o(out / "graph.g2o", list(range(len(result.names))), result.poses, result.graph)
-    write_edges_csv(out / "edges.csv", result)
+    if result.covariances is None:
+        from ..gtsam_api import pose_covariances
+
+        result.covariances = pose_covariances(result)
+    status = edge_status(result)
+    write_graphs(out, result, status)
+    write_edges_csv(out / "edges.csv", result, status)
     write_ply(out / "merged.ply", merged)
     with atomic_write(out / "config.json") as f:
         f.write(config.to_json())
@@ -69,6 +125,9 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "pairs_registered": result.graph.num_edges,
         "pairs_exhaustive": n * (n - 1) // 2,
         "edges_kept": int((result.sync.weights > 0).sum()),
+        "edge_status": {key: status.count(key) for key in EDGE_STATUS},
+        "g2o_vertices": {str(k): result.names[k] for k in keep},
+        "pose_covariances": covariance_report(result),
         "seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
         "parameters": asdict(config),

@@ -15,7 +15,7 @@ import small_gicp
 from sghr_gtsam.features.local import GICP_THREADS, NUM_THREADS, ScanFeatures
 from sghr_gtsam.types import InputError
 
-from .information import point_information
+from .information import registration_information
 
 MATCHERS = ("kiss", "ransac")
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
@@ -45,9 +45,9 @@ class PairResult:
     ``T``: (4, 4) ``T_ij``. ``inliers``: descriptor matches that ``T`` brings within ``INLIER_DISTANCE``
     voxels (SGHR's ``r_ij``). ``fitness``: fraction of scan j's grid points with a scan-i point within
     the ICP distance after ``T``; ``rmse``: RMS distance of those pairs. ``information``: (6, 6) in
-    gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, the sum of J^T J over those
-    pairs with unit point noise (open3d's ``get_information_matrix_from_point_clouds``, moved from its
-    left perturbation to gtsam's right one); None with fewer than 3 pairs. ``seconds``: wall time.
+    gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, point-to-plane over those
+    pairs with the point noise estimated from their residuals (``information.registration_information``);
+    None with too few pairs. ``seconds``: wall time.
     """
 
     T: np.ndarray
@@ -150,6 +150,6 @@ def register_pair(
         inliers=inliers,
         fitness=n / len(q),
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
-        information=point_information(q[close]) if n >= 3 else None,
+        information=registration_information(target_i, source_j, T, max_distance),
         seconds=time.perf_counter() - start,
     )

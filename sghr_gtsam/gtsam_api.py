@@ -1,0 +1,195 @@
+"""The public gtsam API: a registration as a ``gtsam.NonlinearFactorGraph`` and ``gtsam.Values`` a SLAM stack
+can extend, re-optimize and query for covariances.
+
+- ``to_gtsam(result)`` (or ``to_gtsam(graph, poses)``): one ``BetweenFactorPose3`` per edge the result rests
+  on, keys of the caller's choosing (default ``gtsam.symbol('x', k)`` for scan ``k`` of ``result.names``),
+  the edges' own information (``"information"``, calibrated from each registration's residuals, see
+  ``registration.information``) or SE-Sync's isotropic precisions (``"isotropic"``), and a robust kernel
+  (``KERNELS``). No prior: the caller anchors the graph (a prior, GNSS, odometry).
+- ``optimize(factors, values, kernel=...)``: the project's polish (Levenberg–Marquardt with the same
+  stopping rule and ordering), or gtsam GNC with a truncated-least-squares loss for ``kernel="tls"``.
+- ``marginal_covariances(factors, values, keys)``: 6×6 covariances from ``gtsam.Marginals``, in gtsam's
+  tangent order [rotation, translation] at each pose (right perturbation ``T exp(ξ)``).
+- ``pose_covariances(result)``: the same for a run, with the world scan (the first of the largest part) held
+  fixed; what the results folder and the recording show.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
+
+import gtsam
+import networkx as nx
+import numpy as np
+from scipy.stats import chi2
+
+from .factor_graph import _ABSOLUTE_TOL, _METIS_NODES, _PRIOR_SCALE, edge_information
+from .io.g2o import isotropic_information
+from .types import InputError, PoseGraph
+
+if TYPE_CHECKING:
+    from .result import RunResult
+
+NOISE_MODELS = ("information", "isotropic")
+KERNELS = ("none", "huber", "cauchy", "tls")
+KERNEL_THRESHOLD = float(np.sqrt(chi2.ppf(0.99, 6)))
+"""Whitened residual norm where Huber turns linear and Cauchy halves a factor's weight: the 99 % point of a
+6-dof residual under the edge's own noise model, the inlier threshold gtsam's GNC uses by default for TLS."""
+RELATIVE_TOL = 1e-6
+"""LM stops when an iteration decreases the error by less than this fraction (the pipeline polish's rule)."""
+
+Keys = Callable[[int], int] | Sequence[int] | None
+
+
+def _key_of(keys: Keys) -> Callable[[int], int]:
+    if keys is None:
+        return lambda k: gtsam.symbol("x", k)
+    if callable(keys):
+        return keys
+    table = list(keys)
+    return lambda k: int(table[k])
+
+
+def check_choice(name: str, value: str, allowed: Sequence[str]) -> None:
+    """One-line ``InputError`` unless ``value`` is one of ``allowed``."""
+    if value not in allowed:
+        raise InputError(f"{name} must be one of {', '.join(allowed)}; got {value!r}")
+
+
+def noise_model(information: np.ndarray, kernel: str = "none") -> gtsam.noiseModel.Base:
+    """Gaussian noise with ``information`` (6, 6), wrapped in the Huber or Cauchy m-estimator (scale
+    ``KERNEL_THRESHOLD``) when asked; ``"tls"`` and ``"none"`` give the plain Gaussian (TLS acts in ``optimize``)."""
+    check_choice("kernel", kernel, KERNELS)
+    gaussian = gtsam.noiseModel.Gaussian.Information(information)
+    if kernel == "huber":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(KERNEL_THRESHOLD), gaussian)
+    if kernel == "cauchy":
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(KERNEL_THRESHOLD), gaussian)
+    return gaussian
+
+
+def _edges_of(result: "RunResult") -> tuple[np.ndarray, list[int]]:
+    """(E,) mask of the edges a run's poses rest on (kept by synchronization, both ends registered) and the
+    registered scans."""
+    nodes = result.registered
+    placed = np.zeros(len(result.names), dtype=bool)
+    placed[nodes] = True
+    g = result.graph
+    return (result.sync.weights > 0) & placed[g.i] & placed[g.j], nodes
+
+
+def graph_information(graph: PoseGraph, edges: np.ndarray, noise: str = "information") -> np.ndarray:
+    """(E, 6, 6) information of ``graph``'s edges in ``edges`` (zero elsewhere): their own (``"information"``)
+    or SE-Sync's isotropic precisions (``"isotropic"``). A graph without information gets the polish's
+    default (``factor_graph.edge_information`` with unit weights: a 2° rotation sigma, not calibrated)."""
+    check_choice("noise", noise, NOISE_MODELS)
+    info = graph.information if graph.information is not None else edge_information(graph, edges.astype(float))
+    if noise == "isotropic":
+        info = isotropic_information(info)
+    return np.where(edges[:, None, None], info, 0.0)
+
+
+def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *, keys: Keys = None,
+             noise: str = "information", kernel: str = "none",
+             edges: np.ndarray | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """The factor graph and initial values of a run (``RunResult``: its kept edges among registered scans, its
+    final poses) or of a ``PoseGraph`` with ``poses`` (N, 4, 4) (default ``edges``: those with weight > 0).
+
+    ``keys``: node index → gtsam key, as a function or a sequence; default ``gtsam.symbol('x', k)``. Factor
+    ``f`` of the graph is the ``f``-th selected edge in the graph's order. Values hold every node of a selected
+    edge (and, for a run, every registered scan).
+    """
+    key = _key_of(keys)
+    if isinstance(source, PoseGraph):
+        if poses is None or np.shape(poses) != (source.n, 4, 4):
+            raise InputError(f"to_gtsam: a PoseGraph needs poses of shape ({source.n}, 4, 4)")
+        graph = source
+        chosen = source.weight > 0 if edges is None else np.asarray(edges, dtype=bool)
+        nodes = sorted(set(graph.i[chosen].tolist()) | set(graph.j[chosen].tolist()))
+    else:
+        graph, poses = source.graph, source.poses if poses is None else poses
+        chosen, nodes = _edges_of(source)
+        if edges is not None:
+            chosen &= np.asarray(edges, dtype=bool)
+    information = graph_information(graph, chosen, noise)
+    factors = gtsam.NonlinearFactorGraph()
+    for e in np.flatnonzero(chosen):
+        factors.add(gtsam.BetweenFactorPose3(key(int(graph.i[e])), key(int(graph.j[e])), gtsam.Pose3(graph.T[e]),
+                                             noise_model(information[e], kernel)))
+    values = gtsam.Values()
+    for k in nodes:
+        values.insert(key(k), gtsam.Pose3(poses[k]))
+    return factors, values
+
+
+def _lm_params(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gtsam.LevenbergMarquardtParams:
+    """The polish's LM settings: its stopping rule, and METIS ordering on large connected graphs."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(RELATIVE_TOL)
+    params.setAbsoluteErrorTol(_ABSOLUTE_TOL * factors.size())
+    params.setMaxIterations(100)
+    if values.size() >= _METIS_NODES:
+        G = nx.Graph()
+        G.add_nodes_from(values.keys())
+        for f in range(factors.size()):
+            k = factors.at(f).keys()
+            G.add_edges_from(zip(k[:-1], k[1:]))
+        if nx.is_connected(G):
+            params.setOrderingType("METIS")
+    return params
+
+
+def optimize(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, *, kernel: str = "none",
+             known_inliers: Sequence[int] | None = None) -> gtsam.Values:
+    """Optimize from ``values``: Levenberg–Marquardt as the pipeline's polish, or with ``kernel="tls"`` gtsam GNC
+    (truncated least squares, inlier threshold χ²₆ at 0.99, the polish's LM inside). ``known_inliers``: factor
+    indices GNC must not reject; default every factor that is not a ``BetweenFactorPose3`` (priors, GNSS).
+    Huber and Cauchy live in the factors' noise models (``to_gtsam(kernel=...)``), so LM handles them."""
+    check_choice("kernel", kernel, KERNELS)
+    params = _lm_params(factors, values)
+    if kernel != "tls":
+        return gtsam.LevenbergMarquardtOptimizer(factors, values, params).optimize()
+    if known_inliers is None:
+        known_inliers = [f for f in range(factors.size())
+                         if not isinstance(factors.at(f), gtsam.BetweenFactorPose3)]
+    gnc = gtsam.GncLMParams(params)
+    gnc.setLossType(gtsam.GncLossType.TLS)
+    gnc.setKnownInliers(list(known_inliers))
+    return gtsam.GncLMOptimizer(factors, values, gnc).optimize()
+
+
+def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                         keys: Sequence[int]) -> np.ndarray:
+    """(K, 6, 6) marginal covariance of each Pose3 key, [rotation (rad), translation] at the pose. The graph must
+    be anchored (a prior or another absolute factor), else the covariances are unbounded and gtsam raises."""
+    marginals = gtsam.Marginals(factors, values)
+    return np.stack([marginals.marginalCovariance(int(k)) for k in keys]) if len(keys) else np.zeros((0, 6, 6))
+
+
+def pose_covariances(result: "RunResult", *, noise: str = "information") -> np.ndarray:
+    """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
+    edges' information; NaN for unregistered scans."""
+    factors, values = to_gtsam(result, noise=noise)
+    nodes = result.registered
+    out = np.full((len(result.names), 6, 6), np.nan)
+    anchor = int(np.flatnonzero(result.sync.component == 0)[0])
+    information = graph_information(result.graph, _edges_of(result)[0], noise)
+    stiff = _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0)
+    key = _key_of(None)
+    factors.add(gtsam.PriorFactorPose3(key(anchor), gtsam.Pose3(result.poses[anchor]),
+                                       gtsam.noiseModel.Isotropic.Precision(6, stiff)))
+    out[nodes] = marginal_covariances(factors, values, [key(k) for k in nodes])
+    out[anchor] = 0.0
+    return out
+
+
+def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Scalar summaries of (N, 6, 6) covariances: the rotation σ in degrees and the translation σ in scene
+    units, each the root of the largest eigenvalue of its 3×3 block (the longest axis of the ellipsoid); NaN
+    where the covariance is."""
+    rot, trans = np.full(len(covariances), np.nan), np.full(len(covariances), np.nan)
+    ok = np.isfinite(covariances).all(axis=(1, 2))
+    rot[ok] = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[ok, :3, :3])[:, -1], 0.0)))
+    trans[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[ok, 3:, 3:])[:, -1], 0.0))
+    return rot, trans
