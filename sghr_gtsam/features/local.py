@@ -56,6 +56,22 @@ class ScanFeatures:
     def __len__(self) -> int:
         return len(self.points)
 
+    # Pickling (to worker processes, sghr_gtsam.executor): small_gicp's cloud and tree cannot be pickled,
+    # so they are rebuilt from the grid on arrival, exactly as compute_features built them.
+    def __getstate__(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k not in ("cloud", "cloud_tree")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.cloud, self.cloud_tree = _gicp_cloud(self.points)
+
+
+def _gicp_cloud(grid: np.ndarray) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+    cloud = small_gicp.PointCloud(grid)
+    cloud_tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
+    small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
+    return cloud, cloud_tree
+
 
 def compute_features(
     points: np.ndarray,
@@ -84,9 +100,7 @@ def compute_features(
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(normal_radius * voxel, NORMAL_MAX_NN))
     pcd.orient_normals_towards_camera_location(np.zeros(3))
     grid = np.asarray(pcd.points)
-    cloud = small_gicp.PointCloud(grid)
-    cloud_tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
-    small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
+    cloud, cloud_tree = _gicp_cloud(grid)
 
     if given is None:
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(
