@@ -1,5 +1,7 @@
 """Speed of full synchronization (M = 50 IRLS iterations with history reweighting + the polish: by default
-the robust one, consensus + gtsam GNC + consensus + LM; ``--polish lm`` for LM alone).
+the loop polish, ``sync.cycles``; ``--polish robust`` for the former consensus + gtsam GNC + consensus + LM,
+``--polish lm`` for LM alone). Columns: seconds by stage, the worst scan of the largest part, and the share of
+all node pairs within 5° / 0.2 m of the truth (``--outliers`` sets the outlier ratio).
 
 Scenes: N scans at random positions, random orientations; each scan is linked to its k = 10 nearest
 scans, as SGHR's top-k overlap graph links scans that see the same place. Layout ``plane`` (default): the
@@ -14,7 +16,7 @@ BLAS threads are set to 1 unless OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is alrea
 blocks are tiny, and a multithreaded BLAS on a busy 2-core machine spends its time synchronising threads.
 
 Run from the repository root (installed, or with ``PYTHONPATH=.``):
-``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish robust]``
+``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish loops] [--outliers 0.2]``
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ ROT_NOISE_DEG = 1.0
 TRANS_NOISE = 0.02
 
 
-def make_scene(n: int, seed: int, layout: str = "plane") -> tuple[np.ndarray, PoseGraph, np.ndarray]:
+def make_scene(n: int, seed: int, layout: str = "plane", outliers: float = OUTLIERS
+               ) -> tuple[np.ndarray, PoseGraph, np.ndarray]:
     """Ground-truth poses, the measured k-nearest-neighbour graph and its outlier mask."""
     rng = np.random.default_rng(seed)
     if layout == "plane":
@@ -57,7 +60,7 @@ def make_scene(n: int, seed: int, layout: str = "plane") -> tuple[np.ndarray, Po
     noise = Rotation.from_rotvec(rng.normal(scale=np.radians(ROT_NOISE_DEG), size=(E, 3))).as_matrix()
     T[:, :3, :3] = T[:, :3, :3] @ noise
     T[:, :3, 3] += rng.normal(scale=TRANS_NOISE, size=(E, 3))
-    outlier = rng.random(E) < OUTLIERS
+    outlier = rng.random(E) < outliers
     T[outlier] = make_T(Rotation.random(int(outlier.sum()), random_state=rng).as_matrix(),
                         rng.normal(scale=2.0, size=(int(outlier.sum()), 3)))
     overlap = np.where(outlier, rng.uniform(0.2, 0.7, E), rng.uniform(0.4, 1.0, E))
@@ -72,35 +75,40 @@ def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str,
                          on_iteration=lambda r: stamps.append((r.stage, time.perf_counter())))
     total, cpu = time.perf_counter() - start, time.process_time() - cpu
     irls_end = max(t for stage, t in stamps if stage == "irls")
-    robust_end = max((t for stage, t in stamps if stage in ("consensus", "gnc")), default=irls_end)
+    robust_end = max((t for stage, t in stamps if stage in ("consensus", "gnc") or stage.startswith("loops")),
+                     default=irls_end)
     main = result.component == 0
     anchor = np.flatnonzero(main)[0]
     rel = inv_T(result.poses[anchor]) @ result.poses[main]
     rot, trans = relative_errors(rel, inv_T(truth[anchor]) @ truth[main])
+    a, b = np.triu_indices(len(truth), 1)
+    pair_rot, pair_trans = relative_errors(inv_T(result.poses[a]) @ result.poses[b], inv_T(truth[a]) @ truth[b])
     return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start,
             "robust": robust_end - irls_end, "lm": total - (robust_end - start),
             "lm_iters": sum(stage == "lm" for stage, _ in stamps), "rot_max": rot.max(), "trans_max": trans.max(),
-            "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum())}
+            "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum()),
+            "all_pairs": float(np.mean((pair_rot <= 5.0) & (pair_trans <= 0.2)))}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[50, 200, 1000, 5000])
     parser.add_argument("--reweight", default="authors", choices=["authors", "paper"])
-    parser.add_argument("--polish", default="robust", choices=list(POLISHES))
+    parser.add_argument("--polish", default="loops", choices=list(POLISHES))
     parser.add_argument("--layout", default="plane", choices=["plane", "cube"])
+    parser.add_argument("--outliers", type=float, default=OUTLIERS, help=f"outlier ratio (default {OUTLIERS})")
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs (1 for N >= 1000)")
     args = parser.parse_args()
 
     synchronize(make_scene(20, 0)[1], iters=2)  # imports gtsam and warms caches outside the timings
-    print(f"layout = {args.layout}, k = {K}, {OUTLIERS:.0%} outliers, noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, "
+    print(f"layout = {args.layout}, k = {K}, {args.outliers:.0%} outliers, noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, "
           f"M = 50, reweight = {args.reweight}, polish = {args.polish}, BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'robust s':>8} {'LM s':>7} {'LM it':>5} "
-          f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10}")
+          f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10} {'all pairs':>9}")
     edges, totals = [], []
     for n in args.sizes:
-        scene = make_scene(n, seed=n, layout=args.layout)
+        scene = make_scene(n, seed=n, layout=args.layout, outliers=args.outliers)
         repeats = args.repeats if n < 1000 else 1
         best = min((run(*scene, args.reweight, args.polish) for _ in range(repeats)), key=lambda r: r["total"])
         edges.append(best["edges"])
@@ -108,7 +116,7 @@ def main() -> None:
         print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} "
               f"{best['robust']:>8.3f} {best['lm']:>7.3f} "
               f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
-              f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10}")
+              f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10} {best['all_pairs']:>9.3f}")
     if len(edges) > 1:
         slope = np.polyfit(np.log(edges), np.log(totals), 1)[0]
         print(f"fitted exponent (least squares on log-log, all sizes): total time ∝ edges^{slope:.2f}")

@@ -64,10 +64,12 @@ class Config:
     reweight: str = "authors"
     """History-reweighting units: 'authors' (residual in degrees, factor 2, as the authors' code; drops
     outliers) or 'paper' (residual in radians as the paper writes it; too weak to reject outliers)."""
-    polish: str = "robust"
-    """After IRLS (``sghr_gtsam.sync.POLISHES``): 'robust' (consensus re-placement of scans, gtsam GNC
-    over every edge, consensus again, then Levenberg-Marquardt on the consistent edges: best on the
-    robustness benchmark), 'lm' (Levenberg-Marquardt on the edges IRLS kept) or 'none'."""
+    polish: str = "loops"
+    """After IRLS (``sghr_gtsam.sync.POLISHES``): 'loops' (scans grown from the most consistent core and
+    the IRLS poses, each re-placed by groups and scans by counted loop evidence, the better kept, then
+    Levenberg-Marquardt on the consistent edges: best on the robustness benchmark, ``sync.cycles``),
+    'robust' (consensus re-placement, gtsam GNC, consensus, LM), 'lm' (Levenberg-Marquardt on the edges
+    IRLS kept) or 'none'."""
     initial_weight: str = "s*r"
     """Initial edge weight w⁰: 's*r' (overlap score × inlier count, SGHR) or the paper's ablations 's'
     (score only) and 'r' (inlier count only)."""

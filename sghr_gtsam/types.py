@@ -62,7 +62,7 @@ class PoseGraph:
 class IterationRecord:
     """State after one IRLS iteration, robust-polish stage or LM iteration, for the recording and the report."""
 
-    stage: str  # "irls", "consensus", "gnc" or "lm"
+    stage: str  # "irls", "consensus", "gnc", "loops/irls", "loops/grow" or "lm"
     iteration: int
     poses: np.ndarray  # (N, 4, 4) T_i
     weights: np.ndarray  # (E,)
@@ -83,3 +83,4 @@ class SyncResult:
     residual_deg: np.ndarray  # (E,)
     component: np.ndarray  # (N,)
     history: list[IterationRecord] = field(default_factory=list)
+    loop_support: np.ndarray | None = None  # (E,) consistent triangles per edge (polish "loops"), else None

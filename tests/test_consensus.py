@@ -2,14 +2,17 @@
 placement is repeated on several of its edges (the paper's Fig. 2 case) is put back where the heavier group
 of its edges says. Synthetic graphs only."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
-from sghr_gtsam.se3 import inv_T, make_T
+from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.sync import synchronize
-from sghr_gtsam.sync.consensus import MARGIN, consensus_placement, consistent_edges
+from sghr_gtsam.sync.consensus import (MARGIN, MAX_DEG, consensus_placement, consistent_edges, placement_support,
+                                       translation_tolerance)
 from sghr_gtsam.types import PoseGraph
 
 from test_sync import gauge_free, max_errors
@@ -85,10 +88,31 @@ def test_robust_polish_recovers_repeated_wrong_placements_that_irls_keeps():
     default robust polish puts every scan within 3° of the truth."""
     graph, truth = ring_with_wrong_groups(1, group=3, every=2)
     assert max_errors(synchronize(graph, polish="lm").poses, truth)[0] > 45.0
-    robust = synchronize(graph)
+    robust = synchronize(graph, polish="robust")
     assert max_errors(robust.poses, truth)[0] < 3.0
     assert np.all(robust.component == 0)
     np.testing.assert_allclose(gauge_free(robust.poses)[0], np.eye(4), atol=1e-12)
+
+
+def test_loop_polish_places_every_scan_the_edge_count_decides():
+    """The same ring for the default loop polish, which votes by edge counts: every scan whose right
+    placement has more edges than any wrong one ends within 3°; a tie (3 right edges against 3 wrong ones,
+    scans 10 and 28 here) the graph does not decide, and the weights are no better than a coin."""
+    graph, truth = ring_with_wrong_groups(1, group=3, every=2)
+    tol = translation_tolerance(graph)
+    count = replace(graph, weight=np.ones(graph.num_edges))
+    decided = []
+    for s in range(graph.n):
+        edges = np.flatnonzero((graph.i == s) | (graph.j == s))
+        _, support, current, right, _ = placement_support(count, truth, s, edges, MAX_DEG, tol)
+        decided.append(current > support[~right].max(initial=0.0))
+    decided = np.array(decided)
+    assert 25 <= decided.sum() < graph.n
+    result = synchronize(graph)
+    anchor = np.flatnonzero(decided)[0]
+    rot, _ = relative_errors(inv_T(result.poses[anchor]) @ result.poses[decided],
+                             inv_T(truth[anchor]) @ truth[decided])
+    assert rot.max() < 3.0
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -97,6 +121,7 @@ def test_robust_polish_keeps_a_right_irls_result(seed):
     right: consensus moves need ``MARGIN`` more support."""
     graph, truth = ring_with_wrong_groups(seed, group=3, every=3)
     assert max_errors(synchronize(graph, polish="lm").poses, truth)[0] < 3.0
+    assert max_errors(synchronize(graph, polish="robust").poses, truth)[0] < 3.0
     assert max_errors(synchronize(graph).poses, truth)[0] < 3.0
 
 
