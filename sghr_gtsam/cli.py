@@ -114,22 +114,26 @@ def demo(
 def sync(
     graph_file: Path = typer.Argument(..., help="A 3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."),
     out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
-    method: str = typer.Option("lm", help="Synchronization method: " + ", ".join(_METHOD_NAMES)
-                               + "; or a baseline: " + ", ".join(_BASELINE_NAMES) + "."),
+    method: str = typer.Option(_DEFAULT.method, help="Synchronization method: " + ", ".join(_METHOD_NAMES)
+                               + "; or a baseline: " + ", ".join(_BASELINE_NAMES) + " [default: the robust one "
+                               "run uses]."),
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods)."),
     polish: str = typer.Option(_DEFAULT.polish, help=_POLISH_HELP + " Method lm always ends with LM."),
-    noise: str = typer.Option("information", help="information: each edge's own 6x6 information; "
+    noise: str = typer.Option(_DEFAULT.noise_model, help="information: each edge's own 6x6 information; "
                               "isotropic: SE-Sync's precisions (2κ rotation, τ translation)."),
+    kernel: str = typer.Option(_DEFAULT.kernel, help="Robust kernel of a final gtsam pass over the kept edges: "
+                               "none (no pass), huber, cauchy or tls (GNC)."),
 ) -> None:
     """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
     import numpy as np
 
+    from .gtsam_api import KERNELS, NOISE_MODELS, check_choice, repolish
     from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
     from .sync import checked_graph, synchronize, unverified
 
     def work() -> None:
-        if noise not in ("information", "isotropic"):
-            raise InputError(f"--noise must be 'information' or 'isotropic', got {noise!r}")
+        check_choice("--noise", noise, NOISE_MODELS)
+        check_choice("--kernel", kernel, KERNELS)
         ids, _, graph = read_g2o(graph_file)
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
@@ -139,6 +143,8 @@ def sync(
             result = BASELINES[method](checked_graph(graph))
         else:
             result = synchronize(graph, method=method, iters=iters, polish=polish)
+        if kernel != "none":
+            result.poses = repolish(graph, result.poses, result.weights > 0, result.component, kernel=kernel)
         write_g2o(out, ids, result.poses, graph)
         parts = int(result.component.max()) + 1
         typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "

@@ -193,3 +193,20 @@ def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rot[ok] = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[ok, :3, :3])[:, -1], 0.0)))
     trans[ok] = np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[ok, 3:, 3:])[:, -1], 0.0))
     return rot, trans
+
+
+def repolish(graph: PoseGraph, poses: np.ndarray, edges: np.ndarray, component: np.ndarray, *,
+             noise: str = "information", kernel: str = "none") -> np.ndarray:
+    """``poses`` re-optimized over ``graph``'s ``edges`` with ``noise`` and ``kernel`` (``optimize``), every
+    part of ``component`` held at its first node's pose by a stiff prior; nodes on no edge stay as they are."""
+    factors, values = to_gtsam(graph, poses, keys=lambda k: k, noise=noise, kernel=kernel, edges=edges)
+    information = graph_information(graph, np.asarray(edges, dtype=bool), noise)
+    prior = gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0))
+    for a in np.unique(component, return_index=True)[1]:
+        if values.exists(int(a)):
+            factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(poses[a]), prior))
+    solved = optimize(factors, values, kernel=kernel)
+    out = poses.copy()
+    for k in solved.keys():
+        out[k] = solved.atPose3(k).matrix()
+    return out

@@ -20,6 +20,8 @@ examined, so a sweep costs a few vectorised passes over the edges plus small per
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from ..se3 import inv_T, rotation_angle
 from ..types import PoseGraph
@@ -48,11 +50,27 @@ def translation_tolerance(graph: PoseGraph, max_deg: float = MAX_DEG) -> float:
 def consistent_edges(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
                      max_trans: float | None = None) -> np.ndarray:
     """(E,) bool: edges with positive weight whose ``T_ij⁻¹ T_i⁻¹ T_j`` is within ``max_deg`` and
-    ``max_trans`` (default ``translation_tolerance``) of the identity."""
+    ``max_trans`` (default ``translation_tolerance``) of the identity, or, with ``graph.information``, within
+    the edge's own noise (``within_noise``): the fixed tolerances suit registrations good to a few degrees, and
+    alone they dropped 55-80 % of the edges of gtsam's clean but noisy grid graphs (σ ≈ 15°), every one of
+    them within its own noise at the least-squares optimum."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
-    return ((graph.weight > 0) & (np.degrees(rotation_angle(E[:, :3, :3])) <= max_deg)
-            & (np.linalg.norm(E[:, :3, 3], axis=1) <= max_trans))
+    close = (np.degrees(rotation_angle(E[:, :3, :3])) <= max_deg) & (np.linalg.norm(E[:, :3, 3], axis=1) <= max_trans)
+    if graph.information is not None:
+        close |= within_noise(E, graph.information)
+    return (graph.weight > 0) & close
+
+
+NOISE_QUANTILE = 0.999
+"""An edge is within its own noise when ``ξᵀ Ω ξ`` is below this quantile of χ²₆ (``ξ`` its residual)."""
+
+
+def within_noise(E: np.ndarray, information: np.ndarray) -> np.ndarray:
+    """(E,) bool: residual transforms ``E`` (E, 4, 4) whose ``ξ = [rotation vector, translation]`` (gtsam's
+    order, the first-order log) has ``ξᵀ Ω ξ ≤ χ²₆(NOISE_QUANTILE)``."""
+    xi = np.hstack([Rotation.from_matrix(E[:, :3, :3]).as_rotvec(), E[:, :3, 3]])
+    return np.einsum("ea,eab,eb->e", xi, information, xi) <= chi2.ppf(NOISE_QUANTILE, 6)
 
 
 def consensus_placement(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,

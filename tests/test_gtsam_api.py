@@ -1,0 +1,322 @@
+"""The public gtsam API, the calibrated information, the results folder a SLAM stack loads, and the
+incremental session, against ground truth."""
+
+import csv
+import json
+
+import gtsam
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from sghr_gtsam.config import Config
+from sghr_gtsam.factor_graph import graph_error
+from sghr_gtsam.gtsam_api import (
+    KERNELS,
+    marginal_covariances,
+    noise_model,
+    optimize,
+    pose_covariances,
+    repolish,
+    sigmas,
+    to_gtsam,
+)
+from sghr_gtsam.incremental import Session
+from sghr_gtsam.pipeline import Scan, register, run
+from sghr_gtsam.registration.information import plane_information
+from sghr_gtsam.se3 import inv_T, make_T, relative_errors
+from sghr_gtsam.synthetic import make_scene, write_scene
+from sghr_gtsam.types import InputError, PoseGraph
+
+SIGMA = np.r_[np.full(3, np.radians(1.0)), np.full(3, 0.02)]  # 1° and 2 cm per edge
+
+
+def _truth(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return make_T(Rotation.random(n, random_state=seed).as_matrix(), rng.uniform(-2, 2, (n, 3)))
+
+
+def noisy_graph(n: int = 6, seed: int = 0, scale: float = 1.0) -> tuple[PoseGraph, np.ndarray]:
+    """Every pair within 2 steps along a ring, measured with Gaussian noise of the edges' own information."""
+    truth = _truth(n, seed)
+    rng = np.random.default_rng(seed + 100)
+    i, j = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if min(b - a, n - b + a) <= 2]).T
+    info = np.diag(SIGMA**-2)
+    T = np.stack([(gtsam.Pose3(inv_T(truth[a]) @ truth[b]) * gtsam.Pose3.Expmap(scale * rng.normal(0, SIGMA))).matrix()
+                  for a, b in zip(i, j)])
+    return PoseGraph(n=n, i=i, j=j, T=T, weight=np.ones(len(i)), information=np.repeat(info[None], len(i), 0)), truth
+
+
+def _anchor(factors: gtsam.NonlinearFactorGraph, key: int, T: np.ndarray) -> None:
+    factors.add(gtsam.PriorFactorPose3(key, gtsam.Pose3(T), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+
+
+def _matrix(values: gtsam.Values, key: int) -> np.ndarray:
+    return values.atPose3(key).matrix()
+
+
+# --- the API on pose graphs -----------------------------------------------------------------------
+
+
+def test_to_gtsam_keys_values_and_error_match_the_polish():
+    graph, truth = noisy_graph()
+    factors, values = to_gtsam(graph, truth)
+    assert factors.size() == graph.num_edges and values.size() == graph.n
+    np.testing.assert_allclose(_matrix(values, gtsam.symbol("x", 3)), truth[3])
+    assert factors.error(values) == pytest.approx(graph_error(graph, truth, graph.information), rel=1e-12)
+    custom, values = to_gtsam(graph, truth, keys=lambda k: 100 + k)
+    assert values.exists(105) and custom.error(values) == pytest.approx(factors.error(to_gtsam(graph, truth)[1]))
+    _, values = to_gtsam(graph, truth, keys=[gtsam.symbol("s", 9 - k) for k in range(graph.n)])
+    np.testing.assert_allclose(_matrix(values, gtsam.symbol("s", 9)), truth[0])
+
+
+def test_bad_choices_are_one_line_input_errors():
+    graph, truth = noisy_graph()
+    for kwargs in ({"kernel": "tukey"}, {"noise": "unit"}):
+        with pytest.raises(InputError, match="must be one of"):
+            to_gtsam(graph, truth, **kwargs)
+    with pytest.raises(InputError, match="poses of shape"):
+        to_gtsam(graph, truth[:3])
+    with pytest.raises(InputError):
+        Config(kernel="welsch").validate()
+
+
+def test_readme_flow_prior_odometry_optimize_marginals():
+    """Anchor, add an odometry factor of one's own, re-optimize: the poses land near the truth and the
+    odometry factor tightens the covariance of the pose it constrains."""
+    graph, truth = noisy_graph(seed=3)
+    factors, values = to_gtsam(graph, truth @ make_T(np.eye(3), np.full(3, 0.05))[None])  # start off the truth
+    x = [gtsam.symbol("x", k) for k in range(graph.n)]
+    _anchor(factors, x[0], truth[0])
+    before = marginal_covariances(factors, optimize(factors, values), x)
+    odometry = gtsam.Pose3(inv_T(truth[2]) @ truth[3])  # an exact odometry step, 1 mm / 0.01°
+    factors.add(gtsam.BetweenFactorPose3(x[2], x[3], odometry, gtsam.noiseModel.Diagonal.Sigmas(
+        np.r_[np.full(3, np.radians(0.01)), np.full(3, 0.001)])))
+    result = optimize(factors, values)
+    rot, trans = relative_errors(np.stack([_matrix(result, k) for k in x]), truth)
+    assert rot.max() < 3.0 and trans.max() < 0.1
+    after = marginal_covariances(factors, result, x)
+    assert np.trace(after[3]) < np.trace(before[3])
+    assert np.all(np.linalg.eigvalsh(after[1:]) > 0)
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "tls"])
+def test_robust_kernels_resist_a_wrong_edge_plain_least_squares_does_not(kernel):
+    graph, truth = noisy_graph(n=8, seed=5)
+    graph.T[0] = graph.T[0] @ make_T(Rotation.from_rotvec([0, 0, 1.2]).as_matrix(), np.array([0.5, 0, 0]))
+    errors = {}
+    for k in ("none", kernel):
+        factors, values = to_gtsam(graph, truth, kernel=k)
+        _anchor(factors, gtsam.symbol("x", 0), truth[0])
+        solved = optimize(factors, values, kernel=k)
+        errors[k] = relative_errors(np.stack([_matrix(solved, gtsam.symbol("x", n)) for n in range(8)]), truth)[0].max()
+    assert errors["none"] > 5.0 and errors[kernel] < 3.0, errors
+
+
+def test_marginal_covariances_are_calibrated_on_graphs_with_known_noise():
+    """Mean NEES of the poses over 200 graphs whose edges carry noise of their own information: within the
+    95 % band of χ²₆ for that many samples (per pose: 200 independent samples)."""
+    nees = []
+    for seed in range(200):
+        graph, truth = noisy_graph(n=5, seed=seed)
+        factors, values = to_gtsam(graph, truth)
+        _anchor(factors, gtsam.symbol("x", 0), truth[0])
+        solved = optimize(factors, values)
+        C = marginal_covariances(factors, solved, [gtsam.symbol("x", 3)])[0]
+        xi = gtsam.Pose3.Logmap(solved.atPose3(gtsam.symbol("x", 3)).between(gtsam.Pose3(truth[3])))
+        nees.append(xi @ np.linalg.solve(C, xi))
+    m = len(nees)
+    assert chi2.ppf(0.025, 6 * m) / m < np.mean(nees) < chi2.ppf(0.975, 6 * m) / m
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000), st.floats(1e-4, 1e-1))
+def test_plane_information_recovers_the_point_noise(seed, sigma):
+    """Points on planes of random orientation with Gaussian normal noise σ: σ̂ is σ (5 %), and the information
+    is Σ JᵀJ / σ̂² with J = [q × n, n]."""
+    rng = np.random.default_rng(seed)
+    normals = Rotation.random(3, random_state=seed).apply(np.eye(3))
+    q = rng.uniform(-1, 1, (3000, 3))
+    n = normals[rng.integers(0, 3, 3000)]
+    r = rng.normal(0, sigma, 3000)
+    info = plane_information(q, n, r)
+    J = np.hstack([np.cross(q, n), n])
+    sigma_hat2 = (J.T @ J)[5, 5] / info[5, 5]
+    assert np.sqrt(sigma_hat2) == pytest.approx(sigma, rel=0.05)
+    np.testing.assert_allclose(info, J.T @ J / sigma_hat2, rtol=1e-10)
+
+
+def test_repolish_with_each_kernel_keeps_a_clean_graph_at_its_optimum():
+    graph, truth = noisy_graph(n=7, seed=2)
+    component = np.zeros(graph.n, dtype=int)
+    plain = repolish(graph, truth, np.ones(graph.num_edges, bool), component)
+    for kernel in KERNELS:
+        poses = repolish(graph, truth, np.ones(graph.num_edges, bool), component, kernel=kernel)
+        rot, trans = relative_errors(poses, plain)
+        assert rot.max() < 0.3 and trans.max() < 0.005, kernel
+    assert isinstance(noise_model(graph.information[0], "huber"), gtsam.noiseModel.Robust)
+
+
+# --- a run: covariances and the results folder -------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def object_run(tmp_path_factory):
+    scene = make_scene(kind="object", n_scans=5, seed=3)
+    folder = tmp_path_factory.mktemp("object")
+    write_scene(scene, folder / "scene")
+    result = run(folder / "scene", folder / "out", Config(voxel=scene.voxel, workers=1, record=True),
+                 log=lambda m: None)
+    return scene, result, folder / "out"
+
+
+def _loaded_graph_stays(out, result, max_deg, max_trans):
+    """gtsam.readG2o + a prior on the world scan + LM from the written vertices: where does it end?"""
+    factors, values = gtsam.readG2o(str(out / "graph.g2o"), True)
+    report = json.loads((out / "report.json").read_text())
+    ids = sorted(int(k) for k in report["g2o_vertices"])
+    assert [report["g2o_vertices"][str(k)] for k in ids] == report["registered"]
+    assert ids == result.registered and values.size() == len(ids)
+    factors.add(gtsam.PriorFactorPose3(ids[0], values.atPose3(ids[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
+    solved = gtsam.LevenbergMarquardtOptimizer(factors, values).optimize()
+    moved = relative_errors(np.stack([solved.atPose3(k).matrix() for k in ids]), result.poses[ids])
+    assert moved[0].max() < max_deg and moved[1].max() < max_trans, moved
+    return factors
+
+
+def test_results_folder_loads_in_gtsam_and_stays(object_run):
+    scene, result, out = object_run
+    factors = _loaded_graph_stays(out, result, max_deg=0.05, max_trans=0.5 * scene.voxel / 10)
+    with open(out / "edges.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == result.graph.num_edges
+    assert factors.size() - 1 == sum(r["status"] == "kept" for r in rows)
+    rejected = [line for line in (out / "graph_rejected.g2o").read_text().splitlines() if line]
+    assert len(rejected) == sum(r["status"] != "kept" for r in rows)
+    assert all(line.startswith("EDGE_SE3:QUAT") for line in rejected)
+
+
+def test_run_covariances_are_written_and_match_the_errors(object_run):
+    scene, result, out = object_run
+    report = json.loads((out / "report.json").read_text())["pose_covariances"]
+    assert set(report) == {result.names[k] for k in result.registered}
+    C = pose_covariances(result)
+    np.testing.assert_allclose(np.array(report[result.names[2]]["covariance"]), C[2])
+    rot_sigma, trans_sigma = sigmas(C)
+    rot, trans = relative_errors(result.poses, inv_T(scene.poses[0])[None] @ scene.poses)
+    others = result.registered[1:]
+    # Calibrated: every scan's error is within 4σ (longest axis), and σ is not 20x the error either.
+    assert np.all(rot[others] < 4 * rot_sigma[others]) and np.all(trans[others] < 4 * trans_sigma[others])
+    assert np.median(rot_sigma[others] / np.maximum(rot[others], 1e-6)) < 20
+
+
+def test_to_gtsam_of_a_run_uses_the_kept_edges_and_registered_scans(object_run):
+    _, result, _ = object_run
+    factors, values = to_gtsam(result)
+    assert values.size() == len(result.registered)
+    assert factors.size() == int(np.sum(result.sync.weights > 0))
+
+
+# --- real scenes (slow) --------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene,max_deg,max_trans", [("kitchen", 0.05, 0.005), ("bunny", 0.05, 0.0002)])
+def test_real_results_folder_loads_in_gtsam_and_stays(data_dir, tmp_path, scene, max_deg, max_trans):
+    result = run(data_dir / scene, tmp_path, Config(record=False, workers=1), log=lambda m: None)
+    _loaded_graph_stays(tmp_path, result, max_deg, max_trans)
+
+
+# --- incremental ---------------------------------------------------------------------------------------
+
+
+def test_session_fed_scan_by_scan_ends_at_the_batch_result():
+    scene = make_scene(kind="object", n_scans=5, seed=3)
+    cfg = Config(record=False, workers=1, voxel=scene.voxel)
+    batch = register([Scan(n, P) for n, P in zip(scene.names, scene.scans)], cfg, log=lambda m: None)
+    session = Session(cfg, scene.voxel)
+    for name, points in zip(scene.names, scene.scans):
+        session.add_scan(name, points)
+    rot, trans = relative_errors(session.poses[batch.registered], batch.poses[batch.registered])
+    assert rot.max() < 0.1 and trans.max() < 0.001
+
+
+def test_session_back_end_rejects_a_contradicting_edge():
+    graph, truth = noisy_graph(n=8, seed=4)
+    wrong = make_T(Rotation.from_rotvec([0, 0, 1.5]).as_matrix(), np.array([1.0, 0, 0]))
+    session = Session(Config(), voxel=0.01)
+    session.add_node("0", [])
+    for k in range(1, graph.n):
+        edges = [(int(a), graph.T[e] @ (wrong if (a, k) == (5, 7) else np.eye(4)), 1.0, graph.information[e])
+                 for e, a in enumerate(graph.i) if graph.j[e] == k]
+        step = session.add_node(str(k), edges)
+        assert step.robust == ((k == 7))
+    rejected = [(e.i, e.j) for e in session.edges if not e.kept]
+    assert rejected == [(5, 7)]
+    rot, _ = relative_errors(session.poses, inv_T(truth[0])[None] @ truth)
+    assert rot.max() < 3.0
+
+
+# --- `sync`: the robust default, optimal on clean graphs -----------------------------------------------
+
+
+def _sync_cli(*args):
+    from typer.testing import CliRunner
+
+    from sghr_gtsam.cli import app
+
+    result = CliRunner().invoke(app, ["sync", *map(str, args)])
+    assert result.exit_code == 0 and "Traceback" not in result.output, result.output
+    return result
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("name,published", [("sphere2500", 1.687e3), ("parking-garage", 1.263e0)])
+def test_sync_default_is_robust_and_reaches_the_published_optimum(data_dir, tmp_path, name, published):
+    """`sync --noise isotropic` with the method and polish `run` uses: SE-Sync's certified optimum (Rosen et
+    al. 2019, Table 2, 4 digits)."""
+    from sghr_gtsam.io.g2o import read_g2o, sesync_objective
+
+    _sync_cli(data_dir / "posegraph" / f"{name}.g2o", "--out", tmp_path / "out.g2o", "--noise", "isotropic")
+    _, poses, _ = read_g2o(tmp_path / "out.g2o")
+    _, _, original = read_g2o(data_dir / "posegraph" / f"{name}.g2o")
+    half_unit = 0.5 * 10.0 ** (np.floor(np.log10(published)) - 3)
+    assert abs(sesync_objective(poses, original) - published) <= half_unit + 1e-4 * published
+
+
+@pytest.mark.data
+def test_robust_stage_keeps_every_edge_of_a_clean_noisy_grid(data_dir):
+    """tinyGrid3D's edges are ~15° noisy but consistent (all within their own noise at the least-squares
+    optimum): the robust polish keeps them all and lands on that optimum."""
+    from dataclasses import replace
+
+    from sghr_gtsam.io.g2o import isotropic_information, read_g2o, sesync_objective
+    from sghr_gtsam.sync import synchronize
+
+    _, _, graph = read_g2o(data_dir / "posegraph" / "tinyGrid3D.g2o")
+    graph = replace(graph, information=isotropic_information(graph.information))
+    robust = synchronize(graph, polish="robust")
+    assert np.all(robust.weights > 0)
+    optimum = sesync_objective(synchronize(graph, method="lm").poses, graph)
+    assert sesync_objective(robust.poses, graph) == pytest.approx(optimum, rel=1e-6)
+
+
+def test_sync_kernel_option(tmp_path):
+    from sghr_gtsam.io.g2o import read_g2o, write_g2o
+
+    graph, truth = noisy_graph(n=8, seed=6, scale=0.0)
+    write_g2o(tmp_path / "in.g2o", list(range(8)), truth, graph)
+    for kernel in KERNELS:
+        _sync_cli(tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--kernel", kernel)
+        _, poses, _ = read_g2o(tmp_path / "out.g2o")
+        rot, trans = relative_errors(poses, inv_T(truth[0])[None] @ truth)
+        assert rot.max() < 1e-4 and trans.max() < 1e-6, kernel
+    from typer.testing import CliRunner
+
+    from sghr_gtsam.cli import app
+
+    bad = CliRunner().invoke(app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "o.g2o"), "--kernel", "l1"])
+    assert bad.exit_code == 2 and "kernel must be one of" in bad.output
