@@ -62,6 +62,7 @@ def run(
     features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: Optional[int] = typer.Option(None, help=f"Seed of every random choice [default: {_DEFAULT.seed}]."),
+    workers: Optional[int] = typer.Option(None, help="Processes for pairwise registration, refinement and loop closure [default: every core]."),
     record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun viewer [default: record]."),
     config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options given here override it."),
 ) -> None:
@@ -69,7 +70,7 @@ def run(
     from .pipeline import run as run_pipeline
 
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
-                 record=record, global_feature=global_feature, features=features and str(features),
+                 workers=workers, record=record, global_feature=global_feature, features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
     out = out or Path("results") / scene_dir.resolve().name
     result = _guard(run_pipeline, scene_dir, out, cfg, log=typer.echo)
@@ -86,6 +87,7 @@ def demo(
     out: Path = typer.Option(Path("results/demo"), "--out", help="Where the generated scene and the results go."),
     scans: int = typer.Option(8, help="Number of generated scans."),
     seed: int = typer.Option(0, help="Seed of the generated scene and of the run."),
+    workers: Optional[int] = typer.Option(None, help="Processes for the parallel stages [default: every core]."),
 ) -> None:
     """Generate a small room scanned from several stations (known poses), register it, print the errors."""
     from .evaluate import scan_errors
@@ -96,7 +98,7 @@ def demo(
     scene = make_scene(kind="room", n_scans=scans, seed=seed)
     scene_dir = out / "scene"
     write_scene(scene, scene_dir)
-    cfg = Config(seed=seed)
+    cfg = _guard(_config, None, seed=seed, workers=workers)
     result = _guard(run_pipeline, scene_dir, out / "results", cfg, log=typer.echo)
     gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
     gt = gt[[gt_names.index(n) for n in result.names]]

@@ -87,6 +87,9 @@ class Config:
 
     # --- run ----------------------------------------------------------------------------------------
     seed: int = 0
+    workers: int | None = None
+    """Processes for pairwise registration, refinement and loop closure (``sghr_gtsam.executor``); None:
+    every core. Results do not depend on it."""
     record: bool = True
     """Write recording.rrd (rerun)."""
 
@@ -106,6 +109,8 @@ class Config:
         for name in ("k", "iters", "min_points"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
+        if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):
+            raise InputError(f"workers must be a positive integer; got {self.workers!r}")
         if self.voxel is not None and not (self.voxel > 0):
             raise InputError(f"voxel must be positive; got {self.voxel!r}")
         return self

@@ -25,7 +25,7 @@ from .io.features import read_features
 from .io.results import write_results
 from .io.scans import finite_points, list_scans, load_scan
 from .recording import Recorder
-from .registration.pairwise import PairResult, register_pair
+from .registration.batch import register_edges
 from .result import RunResult
 from .se3 import inv_T, transform_points
 from .sync import synchronize, unverified
@@ -174,11 +174,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(edges)} of {n_all} pairs "
         f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")
 
-    pairs: list[PairResult] = []
     with timer.stage("pairwise"):
-        for a, b in edges:
-            pairs.append(register_pair(features[a], features[b], voxel, matcher=config.matcher,
-                                       icp_distance=config.icp_distance, seed=config.seed))
+        pairs = register_edges(features, edges, voxel, config)
     s = scores[edges[:, 0], edges[:, 1]]
     r = np.array([p.inliers for p in pairs], dtype=float)
     r[r < config.min_inliers] = 0.0  # a failed pair is no measurement at all

@@ -1,0 +1,67 @@
+"""One way to run a stage's independent tasks over processes: ``parallel_map(fn, shared, tasks, workers)``.
+
+Every parallel stage (pairwise registration, refinement, loop closure, retries) calls it. A task is
+``fn(shared, task)``; ``shared`` is the stage's read-only state (the scans' features), sent once to each
+worker; tasks and results cross process boundaries one by one. Results come back in the tasks' order and
+every task is a pure function of its inputs, so a run gives the same result for any number of workers. This
+is the seam a cluster executor (Ray) replaces: the same call with ``shared`` put in its object store.
+
+Workers start from a fork server, not by forking this process: kiss-matcher and open3d run TBB thread pools,
+and a child forked from a process whose pool is running deadlocks in its first parallel call (seen here).
+The server imports ``fn``'s module once, so each worker starts in milliseconds.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+_SHARED: Any = None  # the running stage's shared state, in each worker
+
+
+def default_workers() -> int:
+    """Every core this process may run on."""
+    return len(os.sched_getaffinity(0))
+
+
+def _receive(shared: Any) -> None:
+    global _SHARED
+    _SHARED = shared
+
+
+def _call(fn: Callable[[Any, T], R], task: T) -> R:
+    return fn(_SHARED, task)
+
+
+def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None = None,
+                 on_result: Callable[[int, R], None] | None = None) -> list[R]:
+    """``[fn(shared, t) for t in tasks]`` over ``workers`` processes (None: every core; 1: in this process).
+
+    ``fn`` must be a module-level function; ``shared`` and the results must pickle. ``on_result(k, result)``
+    is called in this process, in task order, as results arrive (progress, recording).
+    """
+    workers = default_workers() if workers is None else workers
+    workers = min(workers, len(tasks))
+    if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
+        results = []
+        for k, task in enumerate(tasks):
+            results.append(fn(shared, task))
+            if on_result is not None:
+                on_result(k, results[-1])
+        return results
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload([fn.__module__])
+    # chunksize 1 keeps both workers busy when task costs vary (a wrong pair costs more than a right one).
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared,)) as pool:
+        results = []
+        for k, result in enumerate(pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)):
+            results.append(result)
+            if on_result is not None:
+                on_result(k, result)
+        return results

@@ -1,0 +1,22 @@
+"""Global registration of many pairs at once, over the executor's processes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..config import Config
+from ..executor import parallel_map
+from ..features.local import ScanFeatures
+from .pairwise import PairResult, register_pair
+
+
+def _register(shared: tuple[list[ScanFeatures], float, Config], pair: tuple[int, int]) -> PairResult:
+    features, voxel, config = shared
+    a, b = pair
+    return register_pair(features[a], features[b], voxel, matcher=config.matcher,
+                         icp_distance=config.icp_distance, seed=config.seed)
+
+
+def register_edges(features: list[ScanFeatures], edges: np.ndarray, voxel: float, config: Config) -> list[PairResult]:
+    """``register_pair`` on every (i, j) row of ``edges``, over ``config.workers`` processes."""
+    return parallel_map(_register, (features, voxel, config), [(int(a), int(b)) for a, b in edges], config.workers)
