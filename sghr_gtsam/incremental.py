@@ -9,7 +9,9 @@
 3. ``add_node``: the back end alone (also for callers with their own front end). The scan is placed by its
    heaviest edge to a placed scan, its edges become ``BetweenFactorPose3`` in a ``gtsam.ISAM2``, and one
    update runs. A scan with no edge to a placed scan waits, and is placed when a later scan connects it.
-4. Contradiction: when a new edge is not consistent with the updated poses (``sync.consensus.consistent_edges``:
+4. Contradiction: where the new scan's edges propose different placements, those agreeing with the placement
+   most of their weight proposes are kept and the rest rejected (``sync.consensus`` tolerances); when no
+   placement has a majority, or a kept new edge is not consistent with the updated poses (``sync.consensus.consistent_edges``:
    off by more than the registration tolerances and more than its own noise), the robust stage re-runs
    (``synchronize`` with the ``Config``'s method and polish, over every edge so far) and ISAM2 restarts from
    its poses and the edges it kept.
@@ -36,7 +38,8 @@ from .registration.pairwise import PairResult, register_pair
 from .result import RunResult
 from .se3 import inv_T
 from .sync import synchronize
-from .sync.consensus import consistent_edges
+from .se3 import rotation_angle
+from .sync.consensus import MAX_DEG, consistent_edges, translation_tolerance
 from .sync.rotation import connected_components, rotation_residuals
 from .types import InputError, PoseGraph, SyncResult
 
@@ -144,8 +147,10 @@ class Session:
             self._place(0, np.eye(4))
             self._isam_add([], {0: np.eye(4)}, prior=True)
         else:
-            self._place_waiting()
-            robust = self._contradicted(new)
+            robust = not self._local_consensus(node, new)
+            if not robust:
+                self._place_waiting()
+                robust = self._contradicted(new)
             if robust:
                 self._robust()
         return Step(node, len(new), node in self._placed, robust, back_seconds=time.perf_counter() - start)
@@ -240,9 +245,30 @@ class Session:
         if edges or new_values:
             self._isam_add(edges, new_values)
 
+    def _local_consensus(self, node: int, new: list[int]) -> bool:
+        """Where the new scan's edges to placed scans disagree, keep those agreeing with the placement most of
+        their weight proposes and reject the rest (a wrong registration of the new scan, settled without the
+        batch stage). False when no placement has more than half of the weight: only the batch can tell."""
+        linked = [k for k in new if self.edges[k].i in self._placed]
+        if len(linked) < 2:
+            return True
+        estimate = self._isam.calculateEstimate()
+        proposals = np.stack([estimate.atPose3(self.edges[k].i).matrix() @ self.edges[k].T for k in linked])
+        weights = np.array([self.edges[k].weight for k in linked])
+        D = inv_T(proposals)[:, None] @ proposals[None]
+        agree = ((np.degrees(rotation_angle(D[..., :3, :3])) <= MAX_DEG)
+                 & (np.linalg.norm(D[..., :3, 3], axis=-1) <= translation_tolerance(self.graph())))
+        support = agree @ weights
+        best = int(np.argmax(support))
+        if support[best] <= 0.5 * weights.sum():
+            return False
+        for k, ok in zip(linked, agree[best]):
+            self.edges[k].kept = bool(ok)
+        return True
+
     def _contradicted(self, new: list[int]) -> bool:
         """Does an edge just added disagree with the updated poses?"""
-        idx = [k for k in new if self.edges[k].i in self._placed and self.edges[k].j in self._placed]
+        idx = [k for k in new if self.edges[k].kept and self.edges[k].i in self._placed and self.edges[k].j in self._placed]
         if not idx:
             return False
         graph = self.graph()
@@ -250,8 +276,6 @@ class Session:
                         information=graph.information[idx])
         poses = np.where(np.isnan(self.poses), 0.0, self.poses)
         # The fixed tolerances scale with the median edge length: measure it on every edge so far.
-        from .sync.consensus import translation_tolerance
-
         return not consistent_edges(sub, poses, max_trans=translation_tolerance(graph)).all()
 
     def _robust(self) -> None:
