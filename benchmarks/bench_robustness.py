@@ -60,7 +60,7 @@ IRLS_METHODS = ("history", "constant", "current")  # the METHODS entries that ta
 Runner = Callable[[PoseGraph, np.ndarray], SyncResult]  # (graph, outlier mask) -> result
 
 
-def _project(method: str, reweight: str = "authors", polish: str = "robust") -> Runner:
+def _project(method: str, reweight: str = "authors", polish: str = "loops") -> Runner:
     return lambda graph, _: synchronize(graph, method=method, reweight=reweight, polish=polish)
 
 
@@ -217,6 +217,8 @@ def main() -> None:
                         help="top-k by overlap + N(0, 0.1) instead of the GT overlap (make_graph's variant)")
     parser.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
     parser.add_argument("--records", help="write every run as a JSON line to this file")
+    parser.add_argument("--tables-from", nargs="+", metavar="JSONL",
+                        help="no runs: print the tables of the --methods rows of these --records files")
     parser.add_argument("--list", action="store_true", help="list the methods and exit")
     parser.add_argument("--identifiability", action="store_true",
                         help="only the table of outvoted scans and the recall bound they imply (no method runs)")
@@ -231,6 +233,10 @@ def main() -> None:
             parser.error(f"unknown methods {unknown}; --list shows them")
         names = [n for n in names if n in args.methods]
     seeds, ratios = (1, [0.0, 0.5]) if args.quick else (args.seeds, sorted(args.ratios))
+    if args.tables_from:
+        runs = [Run(**json.loads(line)) for path in args.tables_from for line in open(path)]
+        print(tables([r for r in runs if r.ratio in ratios], names, args.kinds, ratios))
+        return
     if args.identifiability:
         print(f"outvoted scans / recall bound, {len(SCENES)} scenes × {seeds} seeds, top-k by "
               f"{'noisy' if args.noisy_overlap else 'GT'} overlap")

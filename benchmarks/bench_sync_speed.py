@@ -1,7 +1,8 @@
 """Speed of full synchronization (M = 50 IRLS iterations with history reweighting + the polish: by default
 the loop polish, ``sync.cycles``; ``--polish robust`` for the former consensus + gtsam GNC + consensus + LM,
 ``--polish lm`` for LM alone). Columns: seconds by stage, the worst scan of the largest part, and the share of
-all node pairs within 5° / 0.2 m of the truth (``--outliers`` sets the outlier ratio).
+all node pairs within 5° / 0.2 m of the truth, and that of the oracle (gtsam LM told the inliers; not timed);
+``--outliers`` sets the outlier ratio.
 
 Scenes: N scans at random positions, random orientations; each scan is linked to its k = 10 nearest
 scans, as SGHR's top-k overlap graph links scans that see the same place. Layout ``plane`` (default): the
@@ -16,7 +17,8 @@ BLAS threads are set to 1 unless OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is alrea
 blocks are tiny, and a multithreaded BLAS on a busy 2-core machine spends its time synchronising threads.
 
 Run from the repository root (installed, or with ``PYTHONPATH=.``):
-``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish loops] [--outliers 0.2]``
+``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish loops] [--outliers 0.2]``;
+a real graph: ``--run-dir <output of sghr_gtsam run> --gt <scene>/gt_poses.txt`` (every polish).
 """
 
 from __future__ import annotations
@@ -26,14 +28,20 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "1"))
 
 import argparse  # noqa: E402
+import csv  # noqa: E402
+import tempfile  # noqa: E402
 import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from sghr_gtsam.io.g2o import read_g2o  # noqa: E402
+from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors  # noqa: E402
 from sghr_gtsam.sync import POLISHES, synchronize  # noqa: E402
+from sghr_gtsam.sync.baselines import oracle  # noqa: E402
 from sghr_gtsam.types import PoseGraph  # noqa: E402
 
 K = 10
@@ -68,6 +76,84 @@ def make_scene(n: int, seed: int, layout: str = "plane", outliers: float = OUTLI
     return poses, PoseGraph(n=n, i=i, j=j, T=T, weight=overlap * inliers), outlier
 
 
+def load_run(run_dir: Path) -> tuple[list[int], PoseGraph]:
+    """The pose graph of a ``sghr_gtsam run`` output directory: every edge of ``graph.g2o`` and, if present,
+    ``graph_rejected.g2o`` (measured T and information), with the initial weight of ``edges.csv``."""
+    ids, _, graph = read_g2o(run_dir / "graph.g2o")
+    rejected = run_dir / "graph_rejected.g2o"
+    if rejected.exists():
+        lines = [ln for ln in (run_dir / "graph.g2o").read_text().splitlines() if ln.startswith("VERTEX")]
+        with tempfile.NamedTemporaryFile("w", suffix=".g2o") as f:
+            f.write("\n".join(lines + rejected.read_text().splitlines()))
+            f.flush()
+            _, _, more = read_g2o(f.name)
+        graph = PoseGraph(n=graph.n, i=np.r_[graph.i, more.i], j=np.r_[graph.j, more.j], T=np.r_[graph.T, more.T],
+                          weight=np.ones(graph.num_edges + more.num_edges),
+                          information=np.r_[graph.information, more.information])
+    with open(run_dir / "edges.csv") as f:
+        w0 = {(int(r["i"]), int(r["j"])): float(r["initial_weight"]) for r in csv.DictReader(f)}
+    graph.weight = np.array([w0[(ids[a], ids[b])] for a, b in zip(graph.i, graph.j)])
+    if (np.linalg.eigvalsh(graph.information)[:, 0] <= 0).any():
+        graph.information = None  # older runs wrote zero information for edges synchronization dropped
+    return ids, graph
+
+
+def placement_groups(poses: np.ndarray, truth: np.ndarray, ids: list[int]) -> list[str]:
+    """Where the scans went: scans whose correction ``T_est T_gt⁻¹`` agrees (5° / 0.2 m at their positions)
+    form one rigidly placed group, largest first; each as 'count: fragment ranges (rotation of the group
+    relative to the largest one)'."""
+    G = poses @ inv_T(truth)
+    left = list(range(len(ids)))
+    groups = []
+    while left:
+        s = max(left, key=lambda k: sum(_same(G[k], G[m], truth[m]) for m in left))
+        members = [m for m in left if _same(G[s], G[m], truth[m])]
+        groups.append((s, members))
+        left = [m for m in left if m not in members]
+    out = []
+    for s, members in groups:
+        turn = np.degrees(np.arccos(np.clip((np.trace(G[s][:3, :3] @ G[groups[0][0]][:3, :3].T) - 1) / 2, -1, 1)))
+        out.append(f"{len(members)}: {_ranges([ids[m] for m in members])} ({turn:.0f}°)")
+    return out
+
+
+def _same(A: np.ndarray, B: np.ndarray, T: np.ndarray) -> bool:
+    D = A @ inv_T(B)
+    angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    return bool(angle <= 5.0 and np.linalg.norm((D @ T)[:3, 3] - T[:3, 3]) <= 0.2)
+
+
+def _ranges(values: list[int]) -> str:
+    values = sorted(values)
+    out, start = [], values[0]
+    for a, b in zip(values, values[1:] + [None]):
+        if b != a + 1:
+            out.append(f"{start}" if start == a else f"{start}–{a}")
+            start = b
+    return " ".join(out)
+
+
+def real_graph(run_dir: Path, gt_file: Path, polishes: list[str], repeats: int) -> None:
+    """Median seconds and all-pairs recall (5° / 0.2 m against ``gt_file``, fragment k = ``cloud_bin_k``) of
+    every polish on a real run's graph."""
+    ids, graph = load_run(run_dir)
+    names, P = read_poses(gt_file)
+    gt = {int(name.split("_")[-1].split(".")[0]): T for name, T in zip(names, P)}
+    truth = np.stack([gt[k] for k in ids])
+    synchronize(graph, iters=2)
+    print(f"{run_dir}: {graph.n} scans, {graph.num_edges} edges; load average {os.getloadavg()[0]:.1f}")
+    print("| polish | median s | all pairs (5° / 0.2 m) | kept edges | groups placed rigidly (scans: fragments (turn)) |\n"
+          "|---|---:|---:|---:|---|")
+    for polish in polishes:
+        seconds = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            result = synchronize(graph, polish=polish)
+            seconds.append(time.perf_counter() - start)
+        print(f"| {polish} | {np.median(seconds):.3f} | {all_pairs(result.poses, truth):.3f} | "
+              f"{int((result.weights > 0).sum())} | {'; '.join(placement_groups(result.poses, truth, ids))} |")
+
+
 def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str, polish: str) -> dict[str, float]:
     stamps: list[tuple[str, float]] = []
     start, cpu = time.perf_counter(), time.process_time()
@@ -81,13 +167,18 @@ def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str,
     anchor = np.flatnonzero(main)[0]
     rel = inv_T(result.poses[anchor]) @ result.poses[main]
     rot, trans = relative_errors(rel, inv_T(truth[anchor]) @ truth[main])
-    a, b = np.triu_indices(len(truth), 1)
-    pair_rot, pair_trans = relative_errors(inv_T(result.poses[a]) @ result.poses[b], inv_T(truth[a]) @ truth[b])
     return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start,
             "robust": robust_end - irls_end, "lm": total - (robust_end - start),
             "lm_iters": sum(stage == "lm" for stage, _ in stamps), "rot_max": rot.max(), "trans_max": trans.max(),
             "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum()),
-            "all_pairs": float(np.mean((pair_rot <= 5.0) & (pair_trans <= 0.2)))}
+            "all_pairs": all_pairs(result.poses, truth), "oracle": all_pairs(oracle(graph, ~outlier).poses, truth)}
+
+
+def all_pairs(poses: np.ndarray, truth: np.ndarray) -> float:
+    """Share of all node pairs within 5° / 0.2 m of their true relative pose."""
+    a, b = np.triu_indices(len(truth), 1)
+    rot, trans = relative_errors(inv_T(poses[a]) @ poses[b], inv_T(truth[a]) @ truth[b])
+    return float(np.mean((rot <= 5.0) & (trans <= 0.2)))
 
 
 def main() -> None:
@@ -98,14 +189,19 @@ def main() -> None:
     parser.add_argument("--layout", default="plane", choices=["plane", "cube"])
     parser.add_argument("--outliers", type=float, default=OUTLIERS, help=f"outlier ratio (default {OUTLIERS})")
     parser.add_argument("--repeats", type=int, default=3, help="best of this many runs (1 for N >= 1000)")
+    parser.add_argument("--run-dir", type=Path, help="time a real graph instead: a run's output directory")
+    parser.add_argument("--gt", type=Path, help="with --run-dir: the scene's gt_poses.txt")
     args = parser.parse_args()
+    if args.run_dir:
+        real_graph(args.run_dir, args.gt, list(POLISHES), args.repeats)
+        return
 
     synchronize(make_scene(20, 0)[1], iters=2)  # imports gtsam and warms caches outside the timings
     print(f"layout = {args.layout}, k = {K}, {args.outliers:.0%} outliers, noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, "
           f"M = 50, reweight = {args.reweight}, polish = {args.polish}, BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
     print(f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'robust s':>8} {'LM s':>7} {'LM it':>5} "
-          f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10} {'all pairs':>9}")
+          f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10} {'all pairs':>9} {'oracle':>6}")
     edges, totals = [], []
     for n in args.sizes:
         scene = make_scene(n, seed=n, layout=args.layout, outliers=args.outliers)
@@ -116,7 +212,7 @@ def main() -> None:
         print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} "
               f"{best['robust']:>8.3f} {best['lm']:>7.3f} "
               f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
-              f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10} {best['all_pairs']:>9.3f}")
+              f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10} {best['all_pairs']:>9.3f} {best['oracle']:>6.3f}")
     if len(edges) > 1:
         slope = np.polyfit(np.log(edges), np.log(totals), 1)[0]
         print(f"fitted exponent (least squares on log-log, all sizes): total time ∝ edges^{slope:.2f}")

@@ -22,9 +22,9 @@ from .irls import REWEIGHTS, irls, kept_edges, solve_poses
 from .rotation import connected_components, rotation_residuals
 
 POLISHES: dict[str, str] = {
-    "loops": "loop evidence (sync.cycles): scans grown outward from the most consistent core, and the IRLS poses, "
-             "each re-placed by groups and by scans and polished by gtsam Levenberg-Marquardt on the edges "
-             "consistent with them; the one whose consistent edges close more consistent loops wins; then LM",
+    "loops": "loop evidence (sync.cycles): the IRLS poses and scans grown outward from the most consistent "
+             "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups "
+             "and by scans where most edges agree; the one with more consistent edges wins; then LM",
     "robust": "consensus re-placement of scans, gtsam GNC (TLS) over every edge, consensus again, then "
               "gtsam Levenberg-Marquardt on the edges consistent with the poses",
     "lm": "gtsam Levenberg-Marquardt on the edges IRLS kept",
@@ -54,8 +54,11 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     ``polish``: a key of ``POLISHES`` (method ``"lm"`` always ends with Levenberg-Marquardt). Every edge that
     enters a gtsam solve has its initial weight as precision scale (``factor_graph.edge_information``).
     Edges whose reweighted weight is below ``min_weight`` times the largest are dropped; with ``"robust"``
-    the edges left are those consistent with the final poses (``consensus.consistent_edges``). Dropped
-    edges have weight 0 in the result; kept ones their last IRLS weight (``"robust"``: ``w⁰``).
+    the edges left are those consistent with the final poses (``consensus.consistent_edges``), with
+    ``"loops"`` (default; ``_loop_placement``) those consistent at tolerances widened to the residual spread
+    among the edges whose initial weight is not below ``min_weight`` times the largest. Dropped edges have
+    weight 0 in the result; kept ones their last IRLS weight (``"robust"``, ``"loops"``: ``w⁰``).
+    ``"loops"`` also fills ``SyncResult.loop_support``.
 
     The nodes split into connected parts over the kept edges; ``SyncResult.component`` labels them (0 =
     the largest) and every part is anchored at its own first node (the identity). A node without kept
@@ -120,12 +123,15 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     """The loop polish before its last LM (``sync.cycles``): the poses, the (E,) mask of the edges
     consistent with them and every edge's loop support.
 
-    Two starts: the scans grown from the most consistent core, and ``poses`` (the IRLS warm start). Each is
-    polished by LM on its consistent edges (growing chains registration errors, which the consistency
-    test would read as disagreement), then whole groups and single scans move where their edges' loop
-    evidence puts them. Growing fails by single scans; the IRLS poses hold where 70 % of the edges are
-    wrong and the core's evidence runs thin (docs/BENCHMARKS.md): the start whose consistent edges carry
-    more credibility is kept. Edges negligible from the start (below ``min_weight``) stay out, as in IRLS.
+    Two starts: ``poses`` (the IRLS warm start) and the scans grown from the most consistent core. Each is
+    polished by LM on its consistent edges (growing chains registration errors, which the consistency test
+    would read as disagreement), then whole groups and single scans move where most of their edges agree
+    (``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a look-alike from
+    dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the core's evidence
+    runs thin (docs/BENCHMARKS.md). The start with more consistent edges is kept (IRLS on a tie); its
+    kept edges are those consistent at tolerances widened to the residual spread (``kept_edges_at``), so
+    that without outliers every edge stays and the final LM is plain least squares. Edges negligible from
+    the start (below ``min_weight``) stay out, as in IRLS.
     """
     from ..factor_graph import edge_information, polish as lm_polish
 

@@ -3,20 +3,25 @@
 Residual reweighting (IRLS, GNC) and the weighted consensus judge an edge by its own weight and by how well
 it fits poses that the heavy edges made; a wrong placement of a scan repeated on 2-4 heavy edges (look-alike
 scans in a symmetric room) or a majority of random outliers then drags a whole group of scans with it.
-This module counts evidence instead:
+Here placements are decided by how many edges agree on them — every agreement of two edges is a loop
+through the placed scans — and each edge's vote (``credibility``) is 1 plus at most 1 for its weight:
 
-- **Loop support** (``triangle_support``): the number of triangles ``a → b → c → a`` of the graph whose
-  composed transform ``T_ab T_bc T_ca`` is within the agreement tolerances of the identity (those of
-  ``consensus``: ``MAX_DEG`` and ``translation_tolerance``) that an edge is part of. A random outlier closes
-  no consistent triangle; a look-alike edge closes only the triangles it shares with the other edges of
-  its wrong placement.
-- **Growing** (``grow``): place the scan with the most credible edge first, then repeatedly the unplaced scan
-  whose placements, proposed by its edges to placed scans (``T_a T_as``), are least ambiguous: the largest
-  *margin* between the credibility of the proposals agreeing with the best placement and that of the best
-  placement disagreeing with it. Two proposals that agree close a loop through the placed scans, of any
-  length, so sparse graphs with long cycles get the check too. An ambiguous scan waits until all its
-  partners are placed; a wrong placement stays the scan's own — its edges to the right scans propose
-  their placements moved by the same wrong transform, which the rest of their edges outvote.
+- **Loop support** (``triangle_support``): how many triangles ``a → b → c → a`` whose composed transform
+  ``T_ab T_bc T_ca`` is within the agreement tolerances of the identity (those of ``consensus``: ``MAX_DEG``
+  and ``translation_tolerance``) an edge is part of. A random outlier closes no consistent triangle; a
+  look-alike edge only those it shares with the other edges of its wrong placement. It picks the seed and
+  ranks placements that rest on one edge; ``SyncResult.loop_support`` reports it. (As a vote weight it
+  favours tightly knit wrong groups over a scan's scattered right edges: measured, not used.)
+- **Growing** (``grow``): seed at the edge with the most loop support, then repeatedly place the unplaced
+  scan whose placements, proposed by its edges to placed scans (``T_a T_as``), are least ambiguous: first
+  scans where two proposals agree, then single edges on a consistent triangle, then lone edges; within a
+  tier, the largest *margin* between the votes of the best placement and of the best one disagreeing with
+  it. An ambiguous scan waits until its partners are placed; a wrong placement stays the scan's own — its
+  edges to the right scans propose their placements moved by the same wrong transform, which the rest of
+  their edges outvote.
+- **Group moves** (``replace_groups``): after least squares, the blocks of the consistent edges once the
+  bridges are cut (groups held by loops but hung on one edge) move as a whole where their other edges
+  agree they belong — the failure growing and IRLS share, which no single-scan move repairs.
 
 Each connected part of the graph is grown from its own seed (identity). Cost: one pass over the triangles
 (vectorised) and, per placed scan, one small dense comparison for each unplaced partner.
@@ -82,13 +87,11 @@ def triangle_support(graph: PoseGraph, max_deg: float = MAX_DEG, max_trans: floa
 
 
 def credibility(graph: PoseGraph) -> np.ndarray:
-    """(E,) an edge's vote: 1 for an edge with positive weight (else 0), plus ``w⁰ / (max w⁰ · (d + 1))`` with
-    ``d`` the largest number of edges at a scan, so that the weights only break ties between counts."""
-    used = graph.weight > 0
+    """(E,) an edge's vote: ``1 + w⁰ / max w⁰`` for an edge with positive weight, else 0 — between 1 and 2,
+    so a placement more edges agree on wins unless the fewer are much heavier (measured against pure
+    counts and against ``w⁰`` alone on the development draws: docs/BENCHMARKS.md)."""
     top = graph.weight.max(initial=0.0)
-    degree = np.bincount(np.r_[graph.i[used], graph.j[used]], minlength=graph.n).max(initial=0)
-    tie = graph.weight / (top * (degree + 1)) if top > 0 else 0.0
-    return np.where(used, 1.0 + tie, 0.0)
+    return np.where(graph.weight > 0, 1.0 + graph.weight / (top if top > 0 else 1.0), 0.0)
 
 
 def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None) -> np.ndarray:
