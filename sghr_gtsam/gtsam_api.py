@@ -11,7 +11,8 @@ can extend, re-optimize and query for covariances.
 - ``marginal_covariances(factors, values, keys)``: 6×6 covariances from ``gtsam.Marginals``, in gtsam's
   tangent order [rotation, translation] at each pose (right perturbation ``T exp(ξ)``).
 - ``pose_covariances(result)``: the same for a run, with the world scan (the first of the largest part) held
-  fixed; what the results folder and the recording show.
+  fixed and the ``variance_factor`` of the graph's loops applied; what the results folder and the recording
+  show.
 """
 
 from __future__ import annotations
@@ -167,9 +168,22 @@ def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Valu
     return np.stack([marginals.marginalCovariance(int(k)) for k in keys]) if len(keys) else np.zeros((0, 6, 6))
 
 
+def variance_factor(result: "RunResult", *, noise: str = "information") -> float:
+    """The a posteriori variance factor ``σ̂₀² = Σ_e r_eᵀ Ω_e r_e / (6 (E − N + 1))`` of a run's kept edges at its
+    poses (E edges among N registered scans; ``r_e`` the edge's residual): 1 when the edges' residuals are as
+    large as their information says, above 1 when the loops of the graph show them overconfident. NaN
+    without redundancy (a tree of edges)."""
+    factors, values = to_gtsam(result, noise=noise)
+    dof = 6 * (factors.size() - len(result.registered) + 1)
+    return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
+
+
 def pose_covariances(result: "RunResult", *, noise: str = "information") -> np.ndarray:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
-    edges' information; NaN for unregistered scans."""
+    edges' information, scaled by the variance factor when the graph's loops show that information
+    overconfident (``max(1, σ̂₀²)``: real scans have systematic errors that per-point noise does not see); NaN
+    for unregistered scans."""
+    factor = variance_factor(result, noise=noise)
     factors, values = to_gtsam(result, noise=noise)
     nodes = result.registered
     out = np.full((len(result.names), 6, 6), np.nan)
@@ -180,6 +194,8 @@ def pose_covariances(result: "RunResult", *, noise: str = "information") -> np.n
     factors.add(gtsam.PriorFactorPose3(key(anchor), gtsam.Pose3(result.poses[anchor]),
                                        gtsam.noiseModel.Isotropic.Precision(6, stiff)))
     out[nodes] = marginal_covariances(factors, values, [key(k) for k in nodes])
+    if factor > 1.0:
+        out[nodes] *= factor
     out[anchor] = 0.0
     return out
 

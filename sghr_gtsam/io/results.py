@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
 from ..result import peak_memory_mb
 from ..types import PoseGraph
 from .atomic import atomic_write
@@ -61,8 +62,6 @@ def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
 
 def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
     """graph.g2o (registered scans, kept edges) and graph_rejected.g2o (every other pair), module doc."""
-    from ..gtsam_api import graph_information
-
     g, nodes = result.graph, result.registered
     kept = np.array([s == "kept" for s in status], dtype=bool)
     index = np.full(len(result.names), -1)
@@ -79,8 +78,6 @@ def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
 def covariance_report(result: "RunResult") -> dict[str, dict]:
     """Per registered scan: its pose covariance (6×6, [rotation rad, translation], at the pose) and the
     longest axes of its rotation (degrees) and translation (scene units) ellipsoids."""
-    from ..gtsam_api import sigmas
-
     C = result.covariances
     rot, trans = sigmas(C)
     return {result.names[k]: {"sigma_rotation_deg": float(rot[k]), "sigma_translation": float(trans[k]),
@@ -101,10 +98,9 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
     write_poses(out / "poses.txt", names, result.poses[keep], comment=header)
     write_kitti(out / "poses_kitti.txt", result.poses[keep])
     if result.covariances is None:
-        from ..gtsam_api import pose_covariances
-
         result.covariances = pose_covariances(result)
     status = edge_status(result)
+    factor = variance_factor(result)
     write_graphs(out, result, status)
     write_edges_csv(out / "edges.csv", result, status)
     write_ply(out / "merged.ply", merged)
@@ -127,6 +123,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "edges_kept": int((result.sync.weights > 0).sum()),
         "edge_status": {key: status.count(key) for key in EDGE_STATUS},
         "g2o_vertices": {str(k): result.names[k] for k in keep},
+        "variance_factor": None if np.isnan(factor) else round(factor, 4),
         "pose_covariances": covariance_report(result),
         "seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
