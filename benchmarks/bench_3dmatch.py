@@ -127,7 +127,8 @@ def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb:
     }
 
 
-def _labels(names: list[str]) -> str:
+def labels(names: list[str]) -> str:
+    """Fragment numbers (or file stems) of scans, for a table cell."""
     return " ".join(fragment_label(n) for n in names) or "-"
 
 
@@ -146,8 +147,8 @@ def print_table(rows: list[dict]) -> None:
               f"| {len(r['unverified'])} | {rr} | {r['within']}/{r['scans']} | {r['ate_rmse']:.4g} "
               f"| {r['median_rot']:.3g} | {r['worst_rot']:.3g} | "
               + " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages)
-              + f" | {r['wall']:.0f} | {r['peak_mb']:.0f} | {_labels(r['doubted'])} "
-              f"| {_labels(r['unverified'])}; {_labels(r['unregistered'])} |")
+              + f" | {r['wall']:.0f} | {r['peak_mb']:.0f} | {labels(r['doubted'])} "
+              f"| {labels(r['unverified'])}; {labels(r['unregistered'])} |")
 
 
 def child(scene_dir: str, overrides_json: str, workers: str) -> None:
