@@ -56,6 +56,18 @@ class Config:
     inliers and wrong ones <= 11 on both the kitchen and the bunny; a handful of matches agree with
     a random pose by chance."""
 
+    # --- after the first synchronization (registration.densify) ------------------------------------
+    refine: bool = True
+    """Re-register every kept edge by multi-scale GICP (v, v/2, v/4) from the synchronized relative pose."""
+    loops: bool = True
+    """Register the pairs never tried that overlap under the synchronized poses (loop closures)."""
+    retry: bool = True
+    """Give scans left unregistered, unverified or on fewer than 2 kept edges global registration against
+    their next k candidates by overlap score."""
+    rounds: int = 2
+    """At most this many rounds of refine / loops / retry, each followed by synchronization; a round that
+    changes nothing ends them."""
+
     # --- synchronization -----------------------------------------------------------------------------
     iters: int = 50
     """IRLS iterations M with history reweighting."""
@@ -106,7 +118,7 @@ class Config:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
-        for name in ("k", "iters", "min_points"):
+        for name in ("k", "iters", "min_points", "rounds"):
             if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
         if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):

@@ -30,9 +30,17 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0))
 
 
-def _receive(shared: Any) -> None:
+def _receive(shared: Any, started: Any) -> None:
+    """Worker start: keep the stage's state and take one core of its own. kiss-matcher's TBB and open3d's
+    OpenMP size their thread pools by the cores a process may use; left at every core, two workers run four
+    spinning threads on two cores and the stage ran slower than in one process (seen here)."""
     global _SHARED
     _SHARED = shared
+    with started.get_lock():
+        index = started.value
+        started.value += 1
+    cores = sorted(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {cores[index % len(cores)]})
 
 
 def _call(fn: Callable[[Any, T], R], task: T) -> R:
@@ -58,7 +66,8 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([fn.__module__])
     # chunksize 1 keeps both workers busy when task costs vary (a wrong pair costs more than a right one).
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared,)) as pool:
+    started = context.Value("i", 0)
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared, started)) as pool:
         results = []
         for k, result in enumerate(pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)):
             results.append(result)

@@ -26,10 +26,14 @@ from .io.results import write_results
 from .io.scans import finite_points, list_scans, load_scan
 from .recording import Recorder
 from .registration.batch import register_edges
+from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
+from .registration.edges import EdgeSet
+from .registration.refine import build_pyramid
+from .registration.retry import weak_scans
 from .result import RunResult
 from .se3 import inv_T, transform_points
 from .sync import synchronize, unverified
-from .types import InputError, Keypoints, PoseGraph
+from .types import InputError, Keypoints, PoseGraph, SyncResult
 
 Log = Callable[[str], None]
 
@@ -164,55 +168,81 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     with timer.stage("global_graph"):
         if scores is None:
             F, feature_kind = _global_features(features, config)
-            edges, _, scores = top_k_graph(F, config.k, full_scores=True)
+            top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
             scores, feature_kind = _given_scores(scores, len(scans)), "overlap scores given by the caller"
-            edges = top_k_edges(scores, config.k)
+            top_k = top_k_edges(scores, config.k)
         if config.connect:
-            edges = bridge_components(edges, scores)
+            top_k = bridge_components(top_k, scores)
     n, n_all = len(scans), len(scans) * (len(scans) - 1) // 2
-    log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(edges)} of {n_all} pairs "
+    log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(top_k)} of {n_all} pairs "
         f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")
 
+    edges = EdgeSet()
     with timer.stage("pairwise"):
-        pairs = register_edges(features, edges, voxel, config)
-    s = scores[edges[:, 0], edges[:, 1]]
-    r = np.array([p.inliers for p in pairs], dtype=float)
-    r[r < config.min_inliers] = 0.0  # a failed pair is no measurement at all
-    info = [p.information for p in pairs]
-    graph = PoseGraph(
-        n=n, i=edges[:, 0].copy(), j=edges[:, 1].copy(),
-        T=np.stack([p.T for p in pairs]) if pairs else np.zeros((0, 4, 4)),
-        weight={"s*r": s * r, "s": np.where(r > 0, s, 0.0), "r": r}[config.initial_weight],
-        information=np.stack(info) if pairs and all(x is not None for x in info) else None,
-    )
-    log(f"pairwise: {len(pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
+        edges.add(top_k, register_edges(features, top_k, voxel, config), "top-k")
+    graph = edges.pose_graph(n, scores, config.min_inliers, config.initial_weight)
+    log(f"pairwise: {graph.num_edges} pairs in {timer.seconds['pairwise']:.2f} s")
     if recorder:
         recorder.log_graph(graph, scores)
-
     if not np.any(graph.weight > 0):
         raise InputError("no pair of scans could be registered (do the scans overlap?)")
     with timer.stage("sync"):
-        result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
-                             polish=config.polish,
-                             min_weight=config.min_weight,
-                             on_iteration=recorder.on_iteration if recorder else None)
-
+        result = _synchronize(graph, config, recorder)
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
+
+    # Steps 2-4 of the front end, then synchronize again, while they change the graph (at most config.rounds).
+    densify = DensifyReport()
+    first_weak = weak_scans(n, graph.i, graph.j, result.weights > 0, result.component, unverified(graph, result))
+    pyramids = None
+    for _ in range(config.rounds):
+        changed = 0
+        if (config.refine or config.loops) and pyramids is None:
+            with timer.stage("pyramids"):
+                pyramids = [build_pyramid(s.points, voxel) for s in scans]
+        if config.refine:
+            with timer.stage("refine"):
+                changed += refine_edges(features, pyramids, edges, result, voxel, config, densify)
+        if config.loops:
+            with timer.stage("loops"):
+                changed += close_loops(features, pyramids, edges, result, voxel, config, densify)
+        if config.retry:
+            with timer.stage("retry"):
+                changed += retry_weak(features, scores, edges, result, unverified(graph, result), voxel, config,
+                                      densify)
+        if not changed:
+            break
+        densify.rounds += 1
+        graph = edges.pose_graph(n, scores, config.min_inliers, config.initial_weight)
+        log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
+            f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
+        if recorder:
+            recorder.log_graph(graph, scores)
+        with timer.stage("sync"):
+            result = _synchronize(graph, config, recorder)
+
     # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
     main = np.flatnonzero(result.component == 0)
     poses = inv_T(result.poses[main[0]])[None] @ result.poses
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     for name in unregistered:
         log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
-    weak = [names[k] for k in np.flatnonzero(unverified(graph, result))]
+    flagged = unverified(graph, result)
+    weak = [names[k] for k in np.flatnonzero(flagged)]
     for name in weak:
         log(f"UNVERIFIED {name}: placed through a single registration that no loop of the graph checks")
     if recorder:
         recorder.log_final(poses, unregistered, weak)
-    return RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=pairs,
-                     sync=result, unregistered=unregistered, skipped=dict(skipped or {}), features=features,
+    densify.rescued = [names[k] for k in np.flatnonzero(first_weak & (result.component == 0) & ~flagged)]
+    return RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
+                     edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered, skipped=dict(skipped or {}), features=features,
                      timings=timer.seconds, global_feature=feature_kind, unverified=weak)
+
+
+def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None) -> SyncResult:
+    return synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
+                       polish=config.polish, min_weight=config.min_weight,
+                       on_iteration=recorder.on_iteration if recorder else None)
 
 
 def merged_cloud(result: RunResult) -> np.ndarray:

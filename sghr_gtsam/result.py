@@ -31,6 +31,11 @@ class RunResult:
     timings: dict[str, float] = field(default_factory=dict)
     global_feature: str = ""
     unverified: list[str] = field(default_factory=list)
+    edge_origin: list[str] = field(default_factory=list)
+    """Per edge of ``graph``: how it entered (``registration.edges.ORIGINS``)."""
+    densify: dict = field(default_factory=dict)
+    """What refinement, loop closure and retries did (``registration.densify.DensifyReport``), and the
+    scans they rescued (weak after the first synchronization, placed and verified at the end)."""
     covariances: np.ndarray | None = None
     """(N, 6, 6) covariance of each scan's pose relative to the world scan, gtsam order [rotation, translation]
     at the pose (``gtsam_api.pose_covariances``); NaN for unregistered scans. None: not computed yet."""

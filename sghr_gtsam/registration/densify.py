@@ -1,0 +1,131 @@
+"""What the first synchronization teaches the front end (issue 10, steps 2-4): refine the kept edges from the
+synchronized poses, close the loops those poses predict, and give the weak scans more partners. Each stage
+adds to or improves the ``EdgeSet``; the pipeline synchronizes again while they change it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import Config
+from ..features.local import ScanFeatures
+from ..se3 import inv_T
+from ..types import SyncResult
+from .batch import register_edges
+from .edges import EdgeSet
+from .loops import predicted_overlap, propose_loops
+from .refine import Pyramid, confirms, register_from_guesses
+from .retry import retry_pairs, weak_scans
+
+
+@dataclass
+class DensifyReport:
+    """What each stage did over all rounds: edges re-registered and confirmed by refinement, loop pairs tried
+    and closed, pairs tried for weak scans and how many of them registered, the rounds run, and the scans
+    rescued (weak after the first synchronization, placed and verified at the end)."""
+
+    refined: int = 0
+    refine_tried: int = 0
+    loops_closed: int = 0
+    loops_tried: int = 0
+    retry_registered: int = 0
+    retry_tried: int = 0
+    rounds: int = 0
+    rescued: list[str] = field(default_factory=list)
+    _tried: set = field(default_factory=set, repr=False)  # pairs any stage already re-registered
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in vars(self).items() if not k.startswith("_")}
+
+
+def _kept(edges: EdgeSet, sync: SyncResult) -> np.ndarray:
+    """(E,) bool over the edge set: kept by the last synchronization (edges added since are not)."""
+    kept = np.zeros(len(edges.ij), dtype=bool)
+    kept[: len(sync.weights)] = sync.weights > 0
+    return kept
+
+
+def _guesses(poses: np.ndarray, ij: np.ndarray) -> np.ndarray:
+    return inv_T(poses[ij[:, 0]]) @ poses[ij[:, 1]]
+
+
+def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
+                 voxel: float, config: Config, report: DensifyReport) -> int:
+    """Re-register every kept edge of the largest part not refined yet by multi-scale ICP from the
+    synchronized ``T_i⁻¹ T_j``; an edge takes the result when it ``confirms`` the guess. Returns the count."""
+    main = sync.component == 0
+    todo = np.flatnonzero(_kept(edges, sync) & ~edges.refined & main[edges.ij[:, 0]] & main[edges.ij[:, 1]])
+    if not len(todo):
+        return 0
+    guesses = _guesses(sync.poses, edges.ij[todo])
+    results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel,
+                                               config.icp_distance, config.workers)
+    changed = 0
+    for e, result, ok, guess in zip(todo, results, converged, guesses):
+        edges.refined[e] = True
+        if confirms(result, ok, guess, voxel, config.min_inliers):
+            edges.pairs[e] = result
+            changed += 1
+    report.refine_tried += len(todo)
+    report.refined += changed
+    return changed
+
+
+def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
+                voxel: float, config: Config, report: DensifyReport) -> int:
+    """Register the pairs of the largest part that overlap under the synchronized poses but have no kept edge,
+    by multi-scale ICP from the synchronized guess: pairs never tried, and pairs whose global registration
+    synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
+    as loop edges (a rejected edge's registration is replaced). Each pair is tried once a run."""
+    n = len(features)
+    overlap = predicted_overlap([f.points for f in features], sync.poses, sync.component == 0, voxel)
+    kept = np.zeros((n, n), dtype=bool)
+    ij_kept = edges.ij[_kept(edges, sync)]
+    kept[ij_kept[:, 0], ij_kept[:, 1]] = kept[ij_kept[:, 1], ij_kept[:, 0]] = True
+    for a, b in report._tried:
+        kept[a, b] = kept[b, a] = True
+    ij = propose_loops(overlap, kept, config.k)
+    if not len(ij):
+        return 0
+    report._tried.update(map(tuple, ij.tolist()))
+    index = {(int(a), int(b)): e for e, (a, b) in enumerate(edges.ij)}
+    ij = np.array([(b, a) if (b, a) in index else (a, b) for a, b in ij.tolist()], dtype=np.int64)  # as registered
+    guesses = _guesses(sync.poses, ij)
+    results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config.icp_distance,
+                                               config.workers)
+    closed = 0
+    for (a, b), result, ok, guess in zip(ij, results, converged, guesses):
+        if not confirms(result, ok, guess, voxel, config.min_inliers):
+            continue
+        closed += 1
+        e = index.get((int(a), int(b)))
+        if e is None:
+            edges.add(np.array([[a, b]]), [result], "loop")
+            edges.refined[-1] = True
+        else:
+            edges.pairs[e], edges.origin[e], edges.refined[e] = result, "loop", True
+    report.loops_tried += len(ij)
+    report.loops_closed += closed
+    return closed
+
+
+def retry_weak(features: list[ScanFeatures], scores: np.ndarray, edges: EdgeSet, sync: SyncResult,
+               unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport) -> int:
+    """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
+    by overlap score; the pairs that register enter as retry edges. Returns how many registered."""
+    n = len(features)
+    weak = weak_scans(n, edges.ij[:, 0], edges.ij[:, 1], _kept(edges, sync), sync.component, unverified)
+    tried = edges.contains(n)
+    for a, b in report._tried:
+        tried[a, b] = tried[b, a] = True
+    ij = retry_pairs(weak, scores, tried, config.k)
+    if not len(ij):
+        return 0
+    report._tried.update(map(tuple, ij.tolist()))
+    results = register_edges(features, ij, voxel, config)
+    good = [k for k, p in enumerate(results) if p.inliers >= config.min_inliers]
+    edges.add(ij[good], [results[k] for k in good], "retry")
+    report.retry_tried += len(ij)
+    report.retry_registered += len(good)
+    return len(good)

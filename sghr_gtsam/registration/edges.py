@@ -1,0 +1,52 @@
+"""The registered pairs of a run as they grow: global registrations of the top-k graph, then refinements,
+loop closures and retries (``EdgeSet``), and the ``PoseGraph`` they make."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..types import PoseGraph
+from .pairwise import PairResult
+
+ORIGINS = ("top-k", "loop", "retry")
+"""How an edge entered: the sparse graph (with its bridges), a loop closure, or a retry of a weak scan."""
+
+
+@dataclass
+class EdgeSet:
+    """``ij`` (E, 2) scan pairs, ``pairs[e]`` the registration of ``ij[e]`` (``T_ij``), ``origin[e]`` one of
+    ``ORIGINS``, ``refined[e]`` whether ``pairs[e]`` comes from multi-scale refinement."""
+
+    ij: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
+    pairs: list[PairResult] = field(default_factory=list)
+    origin: list[str] = field(default_factory=list)
+    refined: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    def add(self, ij: np.ndarray, pairs: list[PairResult], origin: str) -> None:
+        self.ij = np.concatenate([self.ij, np.asarray(ij, dtype=np.int64).reshape(-1, 2)])
+        self.pairs.extend(pairs)
+        self.origin.extend([origin] * len(pairs))
+        self.refined = np.concatenate([self.refined, np.zeros(len(pairs), dtype=bool)])
+
+    def contains(self, n: int) -> np.ndarray:
+        """(n, n) bool: the pairs already registered, either way round."""
+        has = np.zeros((n, n), dtype=bool)
+        has[self.ij[:, 0], self.ij[:, 1]] = has[self.ij[:, 1], self.ij[:, 0]] = True
+        return has
+
+    def pose_graph(self, n: int, scores: np.ndarray, min_inliers: int, initial_weight: str) -> PoseGraph:
+        """The graph synchronization sees: ``w⁰ = s · r`` (or the ``initial_weight`` ablation), 0 for pairs
+        with fewer than ``min_inliers`` inliers (a failed pair is no measurement at all)."""
+        i, j = self.ij[:, 0].copy(), self.ij[:, 1].copy()
+        s = scores[i, j]
+        r = np.array([p.inliers for p in self.pairs], dtype=float)
+        r[r < min_inliers] = 0.0
+        info = [p.information for p in self.pairs]
+        return PoseGraph(
+            n=n, i=i, j=j,
+            T=np.stack([p.T for p in self.pairs]) if self.pairs else np.zeros((0, 4, 4)),
+            weight={"s*r": s * r, "s": np.where(r > 0, s, 0.0), "r": r}[initial_weight],
+            information=np.stack(info) if self.pairs and all(x is not None for x in info) else None,
+        )
