@@ -436,3 +436,26 @@ def test_derived_poses_keep_nan_for_unreachable_fragments(data_dir):
     unreachable = np.isnan(poses).any(axis=(1, 2))
     assert unreachable.sum() == 1 and names[0] == "0"
     np.testing.assert_array_equal(poses[0], np.eye(4))
+
+
+def test_g2o_edges_only_file_names_its_vertices_by_id(tmp_path):
+    """``write_g2o`` without poses (graph_rejected.g2o): edge lines only, node k written as ids[k], the
+    transform and information kept exactly."""
+    from sghr_gtsam.io.g2o import read_g2o, write_g2o
+    from sghr_gtsam.types import PoseGraph
+
+    T = _rigid(2, seed=4)
+    info = np.stack([np.diag(np.arange(1.0, 7.0)), 3.0 * np.eye(6)])
+    graph = PoseGraph(n=3, i=np.array([0, 2]), j=np.array([1, 0]), T=T, weight=np.ones(2), information=info)
+    write_g2o(tmp_path / "edges.g2o", [7, 8, 9], None, graph)
+    lines = (tmp_path / "edges.g2o").read_text().splitlines()
+    assert [line.split()[:3] for line in lines] == [["EDGE_SE3:QUAT", "7", "8"], ["EDGE_SE3:QUAT", "9", "7"]]
+    # With the vertices prepended it reads back exactly.
+    vertices = "".join(f"VERTEX_SE3:QUAT {v} 0 0 0 0 0 0 1\n" for v in (7, 8, 9))
+    (tmp_path / "full.g2o").write_text(vertices + "\n".join(lines) + "\n")
+    ids, _, back = read_g2o(tmp_path / "full.g2o")
+    assert ids == [7, 8, 9]
+    np.testing.assert_allclose(back.T, graph.T, atol=1e-12)
+    np.testing.assert_array_equal(back.information, info)
+    with pytest.raises(InputError, match="refers to a vertex"):
+        read_g2o(tmp_path / "edges.g2o")
