@@ -1,0 +1,120 @@
+"""The front end's parallel executor and its steps after the first synchronization (refine, loops, retries)."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from sghr_gtsam.config import Config
+from sghr_gtsam.evaluate import scan_errors
+from sghr_gtsam.executor import parallel_map
+from sghr_gtsam.pipeline import Scan, register
+from sghr_gtsam.registration import batch
+from sghr_gtsam.registration.loops import predicted_overlap, propose_loops
+from sghr_gtsam.registration.pairwise import register_pair
+from sghr_gtsam.registration.retry import retry_pairs, weak_scans
+from sghr_gtsam.se3 import make_T
+from sghr_gtsam.synthetic import make_scene
+
+
+def _square(shared, x):
+    return shared * x * x
+
+
+def test_parallel_map_keeps_task_order_and_matches_one_process():
+    tasks = list(range(23))
+    seen = []
+    two = parallel_map(_square, 3, tasks, workers=2, on_result=lambda k, r: seen.append(k))
+    assert two == parallel_map(_square, 3, tasks, workers=1) == [3 * t * t for t in tasks]
+    assert seen == tasks
+
+
+@pytest.fixture(scope="module")
+def room():
+    scene = make_scene(kind="room", n_scans=6, seed=3)
+    return scene, [Scan(n, P) for n, P in zip(scene.names, scene.scans)]
+
+
+def test_result_does_not_depend_on_the_number_of_workers(room):
+    _, scans = room
+    one = register(scans, Config(record=False, workers=1), log=lambda m: None)
+    two = register(scans, Config(record=False, workers=2), log=lambda m: None)
+    np.testing.assert_array_equal(one.poses, two.poses)
+    assert one.densify == two.densify
+
+
+def test_refinement_lands_on_ground_truth_and_is_reported(room):
+    scene, scans = room
+    result = register(scans, Config(record=False, workers=1), log=lambda m: None)
+    gt = scene.poses[[scene.names.index(n) for n in result.names]]
+    err = scan_errors(result.names, result.poses, gt)
+    assert err.rotation_deg.max() < 0.5 and err.translation.max() < result.voxel, (err.rotation_deg, err.translation)
+    assert result.densify["refine_tried"] > 0 and result.densify["refined"] > 0
+    assert len(result.edge_origin) == result.graph.num_edges
+
+
+def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, monkeypatch):
+    """One scan hangs on a single edge (k = 1, given scores) whose registration is replaced by a wrong one.
+    Whatever refinement, loops and retries do, the scan ends flagged (unverified or unregistered) or right."""
+    scene, scans = room
+    n = len(scans)
+    scores = np.full((n, n), 0.1)
+    for a in range(n - 2):  # a chain 0-1-2-3-4 with its triangles, and scan 5 on one edge to scan 4
+        scores[a, a + 1] = scores[a + 1, a] = scores[a, a + 2] = scores[a + 2, a] = 0.9
+    scores[4, 5] = scores[5, 4] = 0.95
+    np.fill_diagonal(scores, 0.0)
+    wrong = make_T(np.diag([-1.0, -1.0, 1.0]), np.array([0.7, -0.4, 0.0]))
+
+    def planted(shared, pair):
+        result = register_pair(shared[0][pair[0]], shared[0][pair[1]], shared[1])
+        if set(pair) == {4, 5}:
+            result.T = wrong if pair == (4, 5) else np.linalg.inv(wrong)
+        return result
+
+    monkeypatch.setattr(batch, "_register", planted)
+    for densify in (False, True):
+        cfg = Config(record=False, workers=1, k=2, refine=densify, loops=densify, retry=densify)
+        result = register(scans, cfg, log=lambda m: None, scores=scores)
+        gt = scene.poses[[scene.names.index(nm) for nm in result.names]]
+        err = scan_errors(result.names, result.poses, gt)
+        flagged = set(result.unverified) | set(result.unregistered)
+        wrong_scans = {result.names[k] for k in range(n) if err.rotation_deg[k] > 2.0 or err.translation[k] > 0.2}
+        assert wrong_scans <= flagged, (densify, wrong_scans, flagged)
+        if not densify:  # the plant works: scan 5 hangs on the wrong edge alone
+            assert result.names[5] in wrong_scans
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_predicted_overlap_of_copies_and_of_distant_scans(seed):
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(0, 1, (300, 3))
+    T = make_T(np.eye(3), rng.normal(size=3))
+    # scan 1 is scan 0 in its own frame moved by T, and placed back by T^-1... i.e. the same world points
+    poses = np.stack([np.eye(4), np.linalg.inv(T), np.eye(4)])
+    points = [P, P @ T[:3, :3].T + T[:3, 3], P + [10.0, 0.0, 0.0]]
+    O = predicted_overlap(points, poses, np.ones(3, dtype=bool), 0.05)
+    np.testing.assert_allclose(O, O.T)
+    assert O[0, 1] == pytest.approx(1.0)
+    assert O[0, 2] == 0.0 and O[1, 2] == 0.0 and np.all(np.diag(O) == 0)
+    assert not predicted_overlap(points, poses, np.array([True, False, True]), 0.05)[:, 1].any()
+
+
+def test_propose_loops_skips_registered_pairs_and_caps_each_scan():
+    O = np.array([[0, .9, .8, .7], [.9, 0, .6, .1], [.8, .6, 0, .5], [.7, .1, .5, 0]])
+    registered = np.zeros((4, 4), dtype=bool)
+    registered[0, 1] = registered[1, 0] = True
+    pairs = propose_loops(O, registered, per_scan=1)
+    assert pairs.tolist() == [[0, 2]]  # (0, 1) is registered; 0 and 2 are then full
+    assert propose_loops(O, registered, per_scan=3).tolist() == [[0, 2], [0, 3], [1, 2], [2, 3]]
+
+
+def test_weak_scans_get_their_best_untried_partners():
+    i, j = np.array([0, 1, 0]), np.array([1, 2, 2])
+    kept = np.array([True, True, True])
+    weak = weak_scans(4, i, j, kept, np.array([0, 0, 0, 1]), np.zeros(4, dtype=bool))
+    assert weak.tolist() == [False, False, False, True]  # 3 is outside the largest part
+    scores = np.array([[0, .9, .8, .1], [.9, 0, .7, .6], [.8, .7, 0, .3], [.1, .6, .3, 0]])
+    tried = np.zeros((4, 4), dtype=bool)
+    tried[[0, 1, 0], [1, 2, 2]] = tried[[1, 2, 2], [0, 1, 0]] = True
+    assert retry_pairs(weak, scores, tried, per_scan=2).tolist() == [[1, 3], [2, 3]]
