@@ -31,7 +31,8 @@ if TYPE_CHECKING:
     from ..config import Config
     from ..result import RunResult
 
-EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status"]
+EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status",
+                "origin"]
 EDGE_STATUS = {
     "kept": "in graph.g2o: synchronization kept it and both scans are registered",
     "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
@@ -57,7 +58,8 @@ def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
         for e in range(g.num_edges):
             a, b = int(g.i[e]), int(g.j[e])
             w.writerow([a, b, f"{result.scores[a, b]:.6f}", result.pairs[e].inliers, f"{g.weight[e]:.6g}",
-                        f"{s.weights[e]:.6g}", f"{s.residual_deg[e]:.4f}", status[e]])
+                        f"{s.weights[e]:.6g}", f"{s.residual_deg[e]:.4f}", status[e],
+                        result.edge_origin[e] if result.edge_origin else "top-k"])
 
 
 def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
@@ -115,6 +117,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "registered": names,
         "unregistered": result.unregistered,
         "unverified": result.unverified,
+        "front_end": result.densify,
         "skipped": result.skipped,
         "voxel": result.voxel,
         "global_feature": result.global_feature,
