@@ -134,11 +134,29 @@ class WholeModelErrors:
         return [n for n, ok in zip(self.names, self.within(max_deg, max_trans)) if not ok]
 
 
-def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray) -> WholeModelErrors:
-    """Align the positions of ``poses`` (N, 4, 4) to those of ``gt_poses`` (same order) by ``align_rigid``,
-    then per scan the rotation error (degrees) and position error of ``A @ T_i`` against ``T_i^gt``."""
+ALIGNMENTS = ("positions", "poses")
+
+
+def align_poses(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The rigid transform A (4, 4) aligning whole poses (N, 4, 4): rotation the SO(3) projection of
+    Σ R_dst,k R_src,kᵀ (the chordal mean), translation the mean position offset after it. For object scans
+    whose sensor positions nearly coincide or lie on a circle around the object, the positions alone
+    leave the rotation poorly determined; the scans' orientations fix it."""
+    src, dst = np.asarray(src, float), np.asarray(dst, float)
+    R = project_to_so3(np.einsum("kij,klj->il", dst[:, :3, :3], src[:, :3, :3]))
+    return make_T(R, (dst[:, :3, 3] - src[:, :3, 3] @ R.T).mean(0))
+
+
+def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray,
+                       align: str = "positions") -> WholeModelErrors:
+    """Align ``poses`` (N, 4, 4) to ``gt_poses`` (same order) by their positions (``align_rigid``, as
+    ``evo_ape --align``) or by whole poses (``align_poses``), then per scan the rotation error (degrees) and
+    position error of ``A @ T_i`` against ``T_i^gt``."""
     poses, gt_poses = np.asarray(poses, float), np.asarray(gt_poses, float)
-    A = align_rigid(poses[:, :3, 3], gt_poses[:, :3, 3])
+    if align not in ALIGNMENTS:
+        raise InputError(f"align must be one of {', '.join(ALIGNMENTS)}; got {align!r}")
+    A = (align_rigid(poses[:, :3, 3], gt_poses[:, :3, 3]) if align == "positions"
+         else align_poses(poses, gt_poses))
     rot, trans = relative_errors(A[None] @ poses, gt_poses)
     return WholeModelErrors(list(names), rot, trans, A)
 
@@ -170,7 +188,8 @@ class SceneScore:
 
 def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses: np.ndarray, *,
               unregistered: list[str] = (), unverified: list[str] = (), gt_log: dict | None = None,
-              gt_info: dict | None = None, max_deg: float = 5.0, max_trans: float = 0.2) -> SceneScore:
+              gt_info: dict | None = None, max_deg: float = 5.0, max_trans: float = 0.2,
+              align: str = "positions") -> SceneScore:
     """Score estimated ``poses`` of ``names`` (scans in ``unregistered`` have no pose that counts) against
     GT poses by name (``io.poses.read_poses`` of a ``gt_poses.txt``); with ``gt_log``/``gt_info`` also the
     registration recall by the paper's protocol (``registration_recall_counting_unplaced``)."""
@@ -185,7 +204,8 @@ def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses
         raise InputError("no scan was placed: nothing to score")
     placed_set = set(placed)
     missing = [n for n in gt_names if n not in placed_set]
-    whole = whole_model_errors(placed, np.asarray(poses)[keep], np.asarray(gt_poses)[[gt_index[n] for n in placed]])
+    whole = whole_model_errors(placed, np.asarray(poses)[keep], np.asarray(gt_poses)[[gt_index[n] for n in placed]],
+                               align)
     recall = None
     if gt_log is not None and gt_info is not None:
         recall = registration_recall_counting_unplaced(

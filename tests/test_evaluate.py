@@ -166,3 +166,14 @@ def test_score_result_reads_the_runs_own_lists():
     score = score_result(result, names, gt)
     assert score.unregistered == [names[1]] and score.unverified == [names[4]] and score.within == 5
     assert score.recall is None
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1))
+def test_pose_alignment_recovers_a_rigid_change_of_world(seed):
+    rng = np.random.default_rng(seed)
+    gt = np.stack([make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3) * 0.01)
+                   for _ in range(6)])  # an object's scans: positions nearly coincide
+    A = make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3))
+    w = whole_model_errors([str(k) for k in range(6)], inv_T(A)[None] @ gt, gt, align="poses")
+    assert w.rotation_deg.max() < 1e-6 and w.translation.max() < 1e-9
