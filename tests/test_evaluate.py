@@ -176,4 +176,4 @@ def test_pose_alignment_recovers_a_rigid_change_of_world(seed):
                    for _ in range(6)])  # an object's scans: positions nearly coincide
     A = make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3))
     w = whole_model_errors([str(k) for k in range(6)], inv_T(A)[None] @ gt, gt, align="poses")
-    assert w.rotation_deg.max() < 1e-6 and w.translation.max() < 1e-9
+    assert w.rotation_deg.max() < 1e-4 and w.translation.max() < 1e-9  # arccos resolves ~1e-6 deg
