@@ -3,6 +3,7 @@
     python benchmarks/bench_sparse_graph.py [--data ../shared/data] [--scenes kitchen bunny]
                                             [--ks 2 3 4] [--random-seeds 5]
     python benchmarks/bench_sparse_graph.py --sim-rooms 0 1 2 [--sim-scans 50] --ks 5 10 --random-seeds 1
+    python benchmarks/bench_sparse_graph.py --sim-rooms 0 --steps [--ks 10]
 
 Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
 pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
@@ -35,6 +36,13 @@ mean over seeds of every column (errors are over each run's registered scans onl
 paper's claim is about 3DMatch scenes of ~54 scans and k = 10. These rows run that setting on R simulated
 rooms of ``--sim-scans`` scans (``data_tools.simulate``, a dataset seed no head was trained or selected on),
 scored as the kitchen (``sim_scene``), with one exhaustive row (the learned-weights one would register the same pairs).
+
+``--steps`` (issue 10, with ``--sim-rooms``): three rows a room instead, default ``Config`` (VLAD codebook)
+with ``workers=2``: top-k (the first of ``--ks``) with the front end's steps 2-4 (refine, loops, retry: the
+default), the same graph with them off, and the exhaustive graph with them off. Besides recall, it counts the
+pairs that got *global* registration (FPFH matching + estimator: the top-k graph with its bridges, plus every
+pair the retries tried) and, separately, the pairs loop closure tried and closed by ICP from the synchronized
+poses, which are not global registrations.
 """
 
 from __future__ import annotations
@@ -59,6 +67,7 @@ from sghr_gtsam import pipeline  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
 from sghr_gtsam.evaluate import fragment_id, registration_recall, scan_errors  # noqa: E402
 from sghr_gtsam.features.local import default_voxel  # noqa: E402
+from sghr_gtsam.graph import bridge_components, top_k_edges  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read_poses  # noqa: E402
 from sghr_gtsam.se3 import inv_T  # noqa: E402
 from sghr_gtsam.types import InputError  # noqa: E402
@@ -264,16 +273,83 @@ def bench_scene(scene: Scene, ks: list[int], seeds: int, exhaustive_learned: boo
         print(line)
 
 
+STEPS_PLAN = (("top-k + steps 2-4 (default)", False, True), ("top-k, steps 2-4 off", False, False),
+              ("exhaustive, steps 2-4 off", True, False))
+"""(label, exhaustive, steps 2-4 on) of the ``--steps`` rows."""
+
+
+def global_pairs(res: pipeline.RunResult, k: int, connect: bool = True) -> int:
+    """Pairs the run registered globally: its top-k graph (recomputed from ``res.scores`` exactly as
+    ``pipeline.register`` builds it, bridges included) plus the pairs the retries tried."""
+    top_k = top_k_edges(res.scores, k)
+    if connect:
+        top_k = bridge_components(top_k, res.scores)
+    return len(top_k) + res.densify.get("retry_tried", 0)
+
+
+def bench_steps(scene: Scene, k: int) -> None:
+    """Issue 10: top-k with and without steps 2-4 against the exhaustive graph without them."""
+    n = len(scene.scans)
+    n_all = n * (n - 1) // 2
+    try:  # warm-up (imports, torch); two scans that do not overlap are fine for that
+        pipeline.register(scene.scans[:2], Config(record=False, workers=1, k=1), log=lambda m: None)
+    except InputError:
+        pass
+    load0 = os.getloadavg()
+    t0 = time.perf_counter()
+    lines = []
+    for label, exhaustive, on in STEPS_PLAN:
+        kk = n - 1 if exhaustive else k
+        config = Config(k=kk, record=False, workers=2, refine=on, loops=on, retry=on)
+        w0, cpu0 = time.perf_counter(), time.process_time()
+        res = run_row(scene.scans, config, None)
+        wall, cpu = time.perf_counter() - w0, time.process_time() - cpu0
+        r = score_run(res, scene.gt, scene.max_deg, scene.max_t, scene)
+        d = res.densify
+        g = global_pairs(res, kk, config.connect)
+        kept = int(np.sum(res.sync.weights > 0))
+        print(f"  {scene.name} {label}: {g} global pairs, recall {r['recalled']}/{r['recall_total']}, "
+              f"{r['registered']} reg, {r['within']} within, {wall:.0f} s, densify {d}", file=sys.stderr, flush=True)
+        unreg = ", ".join(u.rsplit(".", 1)[0] for u in r["unregistered"]) or "-"
+        lines.append(
+            f"| {label} | {kk} | {g} ({100 * g / n_all:.0f} %) | {d.get('retry_registered', 0)}/{d.get('retry_tried', 0)} "
+            f"| {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} | {d.get('refined', 0)}/{d.get('refine_tried', 0)} "
+            f"| {kept} | {r['registered']} / {r['within']} | {r['recalled']}/{r['recall_total']} = "
+            f"{r['recalled'] / r['recall_total']:.3f} | {r['rot_mean']:.3f} / {r['rot_max']:.3f} "
+            f"| {r['t_mean']:.3f} / {r['t_max']:.3f} | {wall:.0f} | {cpu:.0f} | {r['flagged']} ({r['caught']} of "
+            f"{r['misplaced']}) | {unreg} |")
+    load1 = os.getloadavg()
+    print(f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
+          f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end ({os.cpu_count()} cores); "
+          f"{time.perf_counter() - t0:.0f} s for the table\n")
+    print("| graph | k | global registrations (% of all pairs) | retry registered / tried | loops closed / tried "
+          "(ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
+          "| rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
+          "| unverified (of the misplaced) | unregistered |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+    for line in lines:
+        print(line)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA)
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    ap.add_argument("--ks", nargs="+", type=int, default=[2, 3, 4])
+    ap.add_argument("--ks", nargs="+", type=int, default=None, help="default 2 3 4; 10 with --steps")
     ap.add_argument("--random-seeds", type=int, default=5)
     ap.add_argument("--sim-rooms", type=int, nargs="+", default=[],
                     help="instead of the real scenes: these simulated rooms (indices; the paper's scale)")
     ap.add_argument("--sim-scans", type=int, default=50, help="scans per simulated room (default 50)")
+    ap.add_argument("--steps", action="store_true",
+                    help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive (issue 10)")
     args = ap.parse_args(argv)
+    if args.steps:
+        if not args.sim_rooms:
+            ap.error("--steps needs --sim-rooms")
+        for index in args.sim_rooms:
+            bench_steps(sim_scene(index, args.sim_scans), (args.ks or [10])[0])
+        return 0
+    args.ks = args.ks or [2, 3, 4]
     if args.sim_rooms:
         for index in args.sim_rooms:  # one exhaustive row: the learned-weights one registers the same 1225 pairs
             bench_scene(sim_scene(index, args.sim_scans), args.ks, args.random_seeds, exhaustive_learned=False)

@@ -22,7 +22,8 @@ kitchen: 4.3–7.5k, bunny: 4.0–4.8k); raw scans have 8k–90k points (real fr
 
 ``make_training_scene`` returns the scans, poses and GT overlaps (``data_tools.gt_overlap``, kitchen
 calibration scaled to the scene's voxel: radius 0.72 voxel on a 0.24-voxel grid, symmetric mean);
-``cache_dataset`` adds FPFH descriptors (``sghr_gtsam.features.local.compute_features`` at the scene's voxel)
+``make_turntable`` is an evaluation scene, not training data: an object turned in equal steps in front of one
+sensor (``benchmarks/bench_turntable.py``). ``cache_dataset`` adds FPFH descriptors (``sghr_gtsam.features.local.compute_features`` at the scene's voxel)
 and writes one file per scene in the form ``sghr_gtsam.train`` reads. Command line (resumable: scenes already
 in the folder are kept)::
 
@@ -45,7 +46,8 @@ import open3d as o3d
 from data_tools.gt_overlap import combine, directed_overlap_matrix, relative_params
 from sghr_gtsam.features.local import compute_features, default_voxel
 from sghr_gtsam.se3 import inv_T, make_T
-from sghr_gtsam.synthetic import _Sensor, _clutter, _look_at, _object, _random_rotation, _room, _scan
+from sghr_gtsam.synthetic import (SyntheticScene, _Sensor, _clutter, _look_at, _object, _random_rotation, _room,
+                                  _scan)
 
 KINDS = ("room", "object")
 MIN_SCANS, MAX_SCANS = 8, 60
@@ -192,6 +194,29 @@ def _object_scans(n: int, rng: np.random.Generator) -> tuple[list[np.ndarray], n
         scans.append(P)
         poses.append(T)
     return scans, np.stack(poses)
+
+
+def make_turntable(n_scans: int, seed: int = 0, noise: float = 0.001, elevation_deg: float = 20.0,
+                   distance: float = 2.2) -> SyntheticScene:
+    """An object on a turntable: ``n_scans`` range scans ``360 / n_scans`` degrees apart, as one fixed sensor sees
+    the demo's lumpy object (``synthetic._object``, ~1 m across) turned in equal steps. In the object's frame the
+    sensor moves on a horizontal circle of radius ``distance`` · cos(elevation), ``elevation_deg`` above the
+    turntable's centre, looking at that centre with no roll; 40° field of view, 220 × 220 rays with sub-ray jitter,
+    Gaussian range noise of std ``noise`` m (1 mm: the middle of the training objects' 0.5–2 mm). Scans in the
+    sensor frame, ``poses[i]`` the GT sensor pose in the object frame; the object and the turntable's start angle
+    depend on ``seed``. Returns a ``synthetic.SyntheticScene`` (voxel 2 cm as ``make_scene``'s objects)."""
+    if n_scans < 2:
+        raise ValueError("a turntable needs at least 2 scans")
+    rng = np.random.default_rng(seed)
+    mesh = _object(rng)
+    angles = rng.uniform(0, 2 * np.pi) + 2 * np.pi * np.arange(n_scans) / n_scans
+    e = np.radians(elevation_deg)
+    eyes = distance * np.stack([np.cos(angles) * np.cos(e), np.sin(angles) * np.cos(e), np.full(n_scans, np.sin(e))], 1)
+    sensor = _Sensor(eyes, np.zeros((n_scans, 3)), fov_deg=(40.0, 40.0), grid=(220, 220), max_roll=0.0)
+    poses = np.stack([_look_at(eye, np.zeros(3), 0.0) for eye in eyes])
+    scene = _raycaster(mesh)
+    scans = [_scan(scene, T, sensor, noise, rng) for T in poses]
+    return SyntheticScene([f"scan_{k:02d}" for k in range(n_scans)], scans, poses, 0.02)
 
 
 # --- scenes and the cache -----------------------------------------------------------------------------------
