@@ -3,16 +3,22 @@
 Every kept edge becomes ``BetweenFactorPose3(i, j, Pose3(T_ij), Gaussian.Information(Ω'_e))``; its error is
 ``½ r_eᵀ Ω'_e r_e`` with ``r_e = Log(T_ij⁻¹ T_i⁻¹ T_j)`` in gtsam's tangent order [rotation, translation].
 
-Weight → noise (``edge_information``): ``Ω'_e = (w_e / ŵ) · Ω_e`` where ``w_e`` is the weight the caller
-gives the edge, ``ŵ`` the median of the nonzero ones (so a typical edge keeps its base information and the
-scale of the problem does not depend on the weights' units), and ``Ω_e`` the edge's own information
-(``PoseGraph.information``) or, without one, ``diag(σ_r⁻² I₃, σ_t⁻² I₃)``. Edges with ``w_e = 0`` get no
-factor. ``synchronize`` passes the initial weight ``w⁰`` (overlap × inliers) of the edges it kept — those
+Weight → noise (``edge_information``): an edge with its own information (``PoseGraph.information``: calibrated
+from the registration's residuals, or a g2o file's) enters with exactly that, ``Ω'_e = Ω_e``, so the polished
+poses are the maximum-likelihood ones under it and the graph written to graph.g2o is the one they optimize
+(scaling it by ``w⁰`` as well counted the registration's support twice, and moved the optimum 0.05-0.15° from
+what ``gtsam.readG2o`` + LM on the exported graph gives on the bunny and the kitchen). Without one,
+``Ω'_e = (w_e / ŵ) · diag(σ_r⁻² I₃, σ_t⁻² I₃)``, ``w_e`` the weight the caller gives the edge and ``ŵ`` the
+median of the nonzero ones (so a typical edge keeps the base information and the scale of the problem does not
+depend on the weights' units). Edges with ``w_e = 0`` get no factor.
+
+``synchronize`` passes the initial weight ``w⁰`` (overlap × inliers) of the edges it kept — those
 consistent with the poses after the robust stages (default polish ``"robust"``), or those the history
 reweighting kept (``"lm"``) — and 0 for the others: on synthetic graphs with 20-30 % outliers this lands
 within 0.1-0.5° (worst scan) of least squares on the true inliers, while the history weights themselves as
 precisions (they span e^(−2 × residual in degrees)) leave it 0.8-1.4° further off. The history weights
-decide which edges enter; the noise model of an edge that enters is its ``w⁰``-scaled information. GNC
+decide which edges enter; the noise model of an edge that enters is its own information (``w⁰``-scaled
+default without one). GNC
 (``gnc_tls_poses``, the robust polish's middle stage) gets every edge with this same mapping.
 
 Each connected part gets a prior on its anchor (its first node), which pins the gauge without moving the
@@ -47,7 +53,8 @@ noise level), so that noise-free graphs, whose error is ~1e-26, do not iterate o
 
 def edge_information(graph: PoseGraph, weights: np.ndarray, *, rot_sigma_deg: float = ROT_SIGMA_DEG,
                      trans_sigma: float | None = None) -> np.ndarray:
-    """(E, 6, 6) information of every edge for the polish: ``(w_e / ŵ) · Ω_e`` (module doc).
+    """(E, 6, 6) information of every edge for the polish: ``Ω_e`` where ``w_e > 0`` with the graph's own
+    information, else ``(w_e / ŵ) · diag(σ_r⁻², σ_t⁻²)`` (module doc).
 
     Without ``graph.information``: ``σ_r = rot_sigma_deg`` and ``σ_t`` defaults to ``σ_r`` (radians) times the
     median ‖t_ij‖ of the kept edges — the displacement a rotation error of ``σ_r`` causes at a typical
@@ -58,7 +65,7 @@ def edge_information(graph: PoseGraph, weights: np.ndarray, *, rot_sigma_deg: fl
         return np.zeros((graph.num_edges, 6, 6))
     scale = np.where(kept, weights / np.median(weights[kept]), 0.0)
     if graph.information is not None:
-        return scale[:, None, None] * graph.information
+        return np.where(kept[:, None, None], graph.information, 0.0)
     sigma_r = np.radians(rot_sigma_deg)
     if trans_sigma is None:
         length = float(np.median(np.linalg.norm(graph.T[kept, :3, 3], axis=1)))

@@ -16,8 +16,8 @@
    (``synchronize`` with the ``Config``'s method and polish, over every edge so far) and ISAM2 restarts from
    its poses and the edges it kept.
 
-Factors carry the batch polish's weighting (``w⁰ · Ω``, ``factor_graph.edge_information`` up to a common
-scale, which does not move the optimum), so a session fed every scan ends where the batch run's polish does.
+Factors carry each edge's calibrated information, as the batch polish's do (``factor_graph.edge_information``),
+so a session fed every scan ends where batch synchronization of the same registrations does.
 ``run_result()`` returns a ``RunResult`` for ``gtsam_api`` and the writers (covariances from the calibrated
 information, as for a batch run).
 """
@@ -95,7 +95,6 @@ class Session:
             raise InputError(f"voxel must be positive; got {self.voxel!r}")
         self._head = None
         self._F: list[np.ndarray] = []
-        self._reference = 0.0  # the weight that scales every factor (the first edge's w⁰)
         self._placed: dict[int, np.ndarray] = {}
         self._reset_isam()
 
@@ -140,8 +139,6 @@ class Session:
                 raise InputError(f"{name}: edge to unknown node {i}")
             self.edges.append(Edge(i, node, np.asarray(T, dtype=float), float(w), np.asarray(info, dtype=float)))
             new.append(len(self.edges) - 1)
-        if not self._reference and new:
-            self._reference = self.edges[new[0]].weight
         robust = False
         if node == 0:
             self._place(0, np.eye(4))
@@ -157,11 +154,13 @@ class Session:
 
     @property
     def poses(self) -> np.ndarray:
-        """(N, 4, 4) current poses; NaN for scans not placed yet."""
+        """(N, 4, 4) current poses, scan 0 exactly the identity; NaN for scans not placed yet."""
         out = np.full((len(self.names), 4, 4), np.nan)
         estimate = self._isam.calculateEstimate()
         for k in self._placed:
             out[k] = estimate.atPose3(k).matrix()
+        if len(out):  # the stiff but finite prior leaves scan 0 a hair off the identity
+            out = inv_T(out[0])[None] @ out
         return out
 
     def graph(self) -> PoseGraph:
@@ -201,8 +200,7 @@ class Session:
 
     def _factor(self, e: Edge) -> gtsam.BetweenFactorPose3:
         kernel = self.config.kernel if self.config.kernel != "tls" else "none"
-        info = (e.weight / self._reference) * e.information
-        return gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise_model(info, kernel))
+        return gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise_model(e.information, kernel))
 
     def _isam_add(self, edges: list[int], values: dict[int, np.ndarray], prior: bool = False) -> None:
         factors = gtsam.NonlinearFactorGraph()
