@@ -46,15 +46,17 @@ class Config:
     sghr_gtsam/weights (33-d FPFH, trained on simulated scans)."""
 
     # --- pairwise registration ---------------------------------------------------------------------
-    matcher: str = "kiss"
-    """Robust estimator on mutual-nearest-neighbour matches: 'kiss' (kiss-matcher) or 'ransac' (open3d)."""
+    matcher: str = "sc2"
+    """Robust estimator on mutual-nearest-neighbour matches: 'sc2' (second-order spatial compatibility,
+    ``registration.estimators``), 'kiss' (kiss-matcher) or 'ransac' (open3d). 'sc2' gets the most pairs
+    right on the 3DMatch scenes and the kitchen at about the same cost (docs/BENCHMARKS.md)."""
     icp_distance: float = 1.5
     """ICP correspondence distance, in voxels."""
     min_inliers: int = 15
     """A pair whose final transform agrees with fewer descriptor matches than this counts as not
-    registered (initial weight 0). Measured (benchmarks/bench_pairwise.py): right pairs have >= 28
-    inliers and wrong ones <= 11 on both the kitchen and the bunny; a handful of matches agree with
-    a random pose by chance."""
+    registered (initial weight 0). Measured (benchmarks/bench_pairwise.py, sc2): wrong pairs have <= 14
+    inliers on the kitchen and the bunny, right ones >= 20 on the bunny (the kitchen's go down to 9); on
+    the 3DMatch home_at 5 of 45 grossly wrong pairs reach 15-27 (chance agreement between alike objects)."""
 
     # --- after the first synchronization (registration.densify) ------------------------------------
     refine: bool = True

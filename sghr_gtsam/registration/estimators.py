@@ -106,7 +106,7 @@ def sc2_estimate(p_i: np.ndarray, p_j: np.ndarray, voxel: float, params: SC2Para
         C, eig = C[np.ix_(keep, keep)], eig[keep]
     a_k, b_k = a[keep], b[keep]
 
-    count = min(params.max_seeds, max(1, int(round(params.seed_fraction * len(keep)))))
+    count = min(params.max_seeds, max(1, round(params.seed_fraction * len(keep))))
     seeds = _pick_seeds(eig, a_k, params.nms_radius, count)
     k1 = min(params.k1, len(keep))
     first = np.stack([_first_stage(C, s, k1) for s in seeds])  # (M, k1)
