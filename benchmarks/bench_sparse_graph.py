@@ -3,7 +3,7 @@
     python benchmarks/bench_sparse_graph.py [--data ../shared/data] [--scenes kitchen bunny]
                                             [--ks 2 3 4] [--random-seeds 5]
     python benchmarks/bench_sparse_graph.py --sim-rooms 0 1 2 [--sim-scans 50] --ks 5 10 --random-seeds 1
-    python benchmarks/bench_sparse_graph.py --sim-rooms 0 --steps [--ks 10]
+    python benchmarks/bench_sparse_graph.py --sim-rooms 0 --steps [on off exhaustive] [--ks 10]
 
 Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
 pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
@@ -273,9 +273,9 @@ def bench_scene(scene: Scene, ks: list[int], seeds: int, exhaustive_learned: boo
         print(line)
 
 
-STEPS_PLAN = (("top-k + steps 2-4 (default)", False, True), ("top-k, steps 2-4 off", False, False),
-              ("exhaustive, steps 2-4 off", True, False))
-"""(label, exhaustive, steps 2-4 on) of the ``--steps`` rows."""
+STEPS_PLAN = {"on": ("top-k + steps 2-4 (default)", False, True), "off": ("top-k, steps 2-4 off", False, False),
+              "exhaustive": ("exhaustive, steps 2-4 off", True, False)}
+"""row name: (label, exhaustive, steps 2-4 on) of the ``--steps`` rows."""
 
 
 def global_pairs(res: pipeline.RunResult, k: int, connect: bool = True) -> int:
@@ -287,18 +287,25 @@ def global_pairs(res: pipeline.RunResult, k: int, connect: bool = True) -> int:
     return len(top_k) + res.densify.get("retry_tried", 0)
 
 
-def bench_steps(scene: Scene, k: int) -> None:
-    """Issue 10: top-k with and without steps 2-4 against the exhaustive graph without them."""
+def bench_steps(scene: Scene, k: int, rows: list[str]) -> None:
+    """Issue 10: top-k with and without steps 2-4 against the exhaustive graph without them (``rows`` of
+    ``STEPS_PLAN``); each row is printed as soon as it is measured (the exhaustive one takes long)."""
     n = len(scene.scans)
     n_all = n * (n - 1) // 2
     try:  # warm-up (imports, torch); two scans that do not overlap are fine for that
         pipeline.register(scene.scans[:2], Config(record=False, workers=1, k=1), log=lambda m: None)
     except InputError:
         pass
-    load0 = os.getloadavg()
     t0 = time.perf_counter()
-    lines = []
-    for label, exhaustive, on in STEPS_PLAN:
+    print(f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
+          f"load average {os.getloadavg()[0]:.1f} at start ({os.cpu_count()} cores)\n")
+    print("| graph | k | global registrations (% of all pairs) | retry registered / tried | loops closed / tried "
+          "(ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
+          "| rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
+          "| unverified (of the misplaced) | unregistered |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
+    for row in rows:
+        label, exhaustive, on = STEPS_PLAN[row]
         kk = n - 1 if exhaustive else k
         config = Config(k=kk, record=False, workers=2, refine=on, loops=on, retry=on)
         w0, cpu0 = time.perf_counter(), time.process_time()
@@ -308,27 +315,14 @@ def bench_steps(scene: Scene, k: int) -> None:
         d = res.densify
         g = global_pairs(res, kk, config.connect)
         kept = int(np.sum(res.sync.weights > 0))
-        print(f"  {scene.name} {label}: {g} global pairs, recall {r['recalled']}/{r['recall_total']}, "
-              f"{r['registered']} reg, {r['within']} within, {wall:.0f} s, densify {d}", file=sys.stderr, flush=True)
         unreg = ", ".join(u.rsplit(".", 1)[0] for u in r["unregistered"]) or "-"
-        lines.append(
-            f"| {label} | {kk} | {g} ({100 * g / n_all:.0f} %) | {d.get('retry_registered', 0)}/{d.get('retry_tried', 0)} "
-            f"| {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} | {d.get('refined', 0)}/{d.get('refine_tried', 0)} "
-            f"| {kept} | {r['registered']} / {r['within']} | {r['recalled']}/{r['recall_total']} = "
-            f"{r['recalled'] / r['recall_total']:.3f} | {r['rot_mean']:.3f} / {r['rot_max']:.3f} "
-            f"| {r['t_mean']:.3f} / {r['t_max']:.3f} | {wall:.0f} | {cpu:.0f} | {r['flagged']} ({r['caught']} of "
-            f"{r['misplaced']}) | {unreg} |")
-    load1 = os.getloadavg()
-    print(f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
-          f"load average {load0[0]:.1f} at start, {load1[0]:.1f} at end ({os.cpu_count()} cores); "
-          f"{time.perf_counter() - t0:.0f} s for the table\n")
-    print("| graph | k | global registrations (% of all pairs) | retry registered / tried | loops closed / tried "
-          "(ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
-          "| rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
-          "| unverified (of the misplaced) | unregistered |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
-    for line in lines:
-        print(line)
+        print(f"| {label} | {kk} | {g} ({100 * g / n_all:.0f} %) | {d.get('retry_registered', 0)}/"
+              f"{d.get('retry_tried', 0)} | {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} "
+              f"| {d.get('refined', 0)}/{d.get('refine_tried', 0)} | {kept} | {r['registered']} / {r['within']} "
+              f"| {r['recalled']}/{r['recall_total']} = {r['recalled'] / r['recall_total']:.3f} "
+              f"| {r['rot_mean']:.3f} / {r['rot_max']:.3f} | {r['t_mean']:.3f} / {r['t_max']:.3f} | {wall:.0f} "
+              f"| {cpu:.0f} | {r['flagged']} ({r['caught']} of {r['misplaced']}) | {unreg} |", flush=True)
+    print(f"\nload average {os.getloadavg()[0]:.1f} at the end; {time.perf_counter() - t0:.0f} s for the table")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -340,14 +334,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sim-rooms", type=int, nargs="+", default=[],
                     help="instead of the real scenes: these simulated rooms (indices; the paper's scale)")
     ap.add_argument("--sim-scans", type=int, default=50, help="scans per simulated room (default 50)")
-    ap.add_argument("--steps", action="store_true",
-                    help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive (issue 10)")
+    ap.add_argument("--steps", nargs="*", choices=list(STEPS_PLAN), default=None,
+                    help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive (issue 10); "
+                         "no value: all three rows")
     args = ap.parse_args(argv)
-    if args.steps:
+    if args.steps is not None:
         if not args.sim_rooms:
             ap.error("--steps needs --sim-rooms")
         for index in args.sim_rooms:
-            bench_steps(sim_scene(index, args.sim_scans), (args.ks or [10])[0])
+            bench_steps(sim_scene(index, args.sim_scans), (args.ks or [10])[0], args.steps or list(STEPS_PLAN))
         return 0
     args.ks = args.ks or [2, 3, 4]
     if args.sim_rooms:

@@ -1,6 +1,6 @@
 """Simulated turntable objects end to end, with and without the front end's steps 2-4 (issue 10).
 
-    python benchmarks/bench_turntable.py [--steps 24 36] [--seeds 0 1 2] [--workers 2]
+    python benchmarks/bench_turntable.py [--steps 24 36] [--seeds 0 1 2] [--noise 0.001] [--workers 2]
 
 An object turned in equal steps in front of one sensor (``data_tools.simulate.make_turntable``: 360/step scans,
 24° → 15 scans, 36° → 10), registered by ``pipeline.register`` with the default ``Config`` (``workers`` and
@@ -57,8 +57,8 @@ def errors(res: pipeline.RunResult, gt: np.ndarray) -> tuple[np.ndarray, np.ndar
     return relative_errors(A[None] @ res.poses[reg], gt[reg])
 
 
-def run(step: int, seed: int, steps_on: bool, workers: int) -> dict:
-    scene = make_turntable(round(360 / step), seed)
+def run(step: int, seed: int, steps_on: bool, workers: int, noise: float) -> dict:
+    scene = make_turntable(round(360 / step), seed, noise=noise)
     scans = [pipeline.Scan(name, P) for name, P in zip(scene.names, scene.scans)]
     config = Config(record=False, workers=workers, refine=steps_on, loops=steps_on, retry=steps_on)
     t0 = time.perf_counter()
@@ -80,6 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", nargs="+", type=int, default=[24, 36], help="turntable steps in degrees")
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--noise", type=float, default=0.001, help="range noise std (m; the object is ~1 m across)")
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args(argv)
     if any(s <= 0 or 360 % s for s in args.steps):
@@ -91,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     for step in args.steps:
         for seed in args.seeds:
             for on in (False, True):
-                r = run(step, seed, on, args.workers)
+                r = run(step, seed, on, args.workers, args.noise)
                 rows.append(r)
                 print(f"  {step}° seed {seed} steps {'on' if on else 'off'}: max {r['rot_max']:.3f}°, "
                       f"{r['unverified']} unverified, {r['seconds']:.0f} s", file=sys.stderr, flush=True)
