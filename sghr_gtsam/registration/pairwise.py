@@ -151,10 +151,22 @@ def register_pair(
         translation_epsilon=GICP_TRANSLATION_EPS * voxel,
     ).T_target_source
 
-    residual = np.linalg.norm(p_j @ T[:3, :3].T + T[:3, 3] - p_i, axis=1)
+    result = score_pair(target_i, source_j, T, voxel, icp_distance, (a, b))
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
+               matches: tuple[np.ndarray, np.ndarray] | None = None) -> PairResult:
+    """The ``PairResult`` of ``T`` (however it was found): its mutual descriptor ``matches`` (computed when not
+    given) within ``INLIER_DISTANCE`` voxels (``r_ij``) and the cells they cover, fitness, rmse and information
+    on the matching grid; ``seconds`` 0."""
+    a, b = mutual_matches(target_i, source_j) if matches is None else matches
+    p_i = target_i.keypoints[a]
+    residual = np.linalg.norm(source_j.keypoints[b] @ T[:3, :3].T + T[:3, 3] - p_i, axis=1)
     agree = residual < INLIER_DISTANCE * voxel
     cells = np.floor(p_i[agree] / (COVERAGE_CELL * voxel)).astype(np.int64)
-
+    max_distance = icp_distance * voxel
     q = source_j.points
     _, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], GICP_THREADS)
     sq_dist = np.asarray(sq_dist)
@@ -166,6 +178,6 @@ def register_pair(
         fitness=n / len(q),
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
         information=registration_information(target_i, source_j, T, max_distance),
-        seconds=time.perf_counter() - start,
+        seconds=0.0,
         coverage=len(np.unique(cells, axis=0)),
     )

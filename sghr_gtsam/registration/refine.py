@@ -18,8 +18,7 @@ import small_gicp
 
 from ..features.local import COV_NEIGHBORS, GICP_THREADS, ScanFeatures
 from ..se3 import inv_T, rotation_angle
-from .information import registration_information
-from .pairwise import INLIER_DISTANCE, PairResult, mutual_matches
+from .pairwise import PairResult, score_pair
 
 LEVELS = (1.0, 0.5)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six bunny pairs started a voxel
@@ -91,24 +90,6 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
                                   num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[level])
         T, converged = result.T_target_source, bool(result.converged)
     return T, converged
-
-
-def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float,
-               icp_distance: float) -> PairResult:
-    """A ``PairResult`` for ``T`` found some other way than global registration: its descriptor matches
-    within ``INLIER_DISTANCE`` voxels (``r_ij``), fitness, rmse and information on the matching grid."""
-    a, b = mutual_matches(target_i, source_j)
-    R, t = T[:3, :3], T[:3, 3]
-    inliers = int(np.count_nonzero(np.linalg.norm(source_j.keypoints[b] @ R.T + t - target_i.keypoints[a], axis=1)
-                                   < INLIER_DISTANCE * voxel))
-    max_distance = icp_distance * voxel
-    _, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(source_j.points @ R.T + t, GICP_THREADS)
-    sq_dist = np.asarray(sq_dist)
-    close = sq_dist < max_distance**2
-    n = int(np.count_nonzero(close))
-    return PairResult(T=T, inliers=inliers, fitness=n / len(sq_dist),
-                      rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
-                      information=registration_information(target_i, source_j, T, max_distance), seconds=0.0)
 
 
 def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyramid, pyramid_j: Pyramid,
