@@ -21,6 +21,7 @@ from .features.netvlad import (
     load_default_head,
 )
 from .graph import bridge_components, top_k_edges, top_k_graph
+from .gtsam_api import pose_covariances
 from .io.features import read_features
 from .io.results import write_results
 from .io.scans import finite_points, list_scans, load_scan
@@ -231,12 +232,21 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     weak = [names[k] for k in np.flatnonzero(flagged)]
     for name in weak:
         log(f"UNVERIFIED {name}: placed through a single registration that no loop of the graph checks")
+    densify.rescued = [names[k] for k in np.flatnonzero(first_weak & (result.component == 0) & ~flagged)]
+    run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
+                    edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered,
+                    skipped=dict(skipped or {}), features=features, timings=timer.seconds,
+                    global_feature=feature_kind, unverified=weak)
+    with timer.stage("covariances"):
+        try:
+            run.covariances = pose_covariances(run)
+        except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
+            run.covariances = np.full((n, 6, 6), np.nan)
+            log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
     if recorder:
         recorder.log_final(poses, unregistered, weak)
-    densify.rescued = [names[k] for k in np.flatnonzero(first_weak & (result.component == 0) & ~flagged)]
-    return RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
-                     edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered, skipped=dict(skipped or {}), features=features,
-                     timings=timer.seconds, global_feature=feature_kind, unverified=weak)
+        recorder.log_covariances(poses, run.covariances)
+    return run
 
 
 def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None) -> SyncResult:
