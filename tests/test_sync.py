@@ -101,6 +101,7 @@ def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common
     # converges fast enough to stop at the same point.
     # Above DENSE_NODES the iterative eigen-solver stops at its tolerance: poses agree to ~1e-6, not 1e-12.
     atol = 1e-6 if n <= DENSE_NODES else 5e-5
+    rtol = 1e-5 if n <= DENSE_NODES else 1e-4  # the weights carry those residual differences (1.5e-5 seen, n = 158)
     for method, outliers in (("spectral", 0.15), ("history", 0.15), ("lm", 0.0)):
         graph, _, _ = random_graph(seed, n, extra=3, rot_deg=2.0, trans_sigma=0.05, outliers=outliers)
         shuffle = rng.permutation(graph.num_edges)
@@ -109,7 +110,7 @@ def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common
         a = synchronize(graph, method=method, iters=10, polish="none", reweight="paper", min_weight=0.0)
         b = synchronize(moved, method=method, iters=10, polish="none", reweight="paper", min_weight=0.0)
         np.testing.assert_allclose(gauge_free(b.poses[perm]), gauge_free(a.poses @ S), atol=atol)
-        np.testing.assert_allclose(b.weights[np.argsort(shuffle)], a.weights, rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(b.weights[np.argsort(shuffle)], a.weights, rtol=rtol, atol=1e-12)
 
 
 # --- parts of the graph ----------------------------------------------------------------------------------
