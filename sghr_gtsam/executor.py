@@ -15,8 +15,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-from collections.abc import Callable, Sequence
+import sys
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import contextmanager
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -68,9 +70,28 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
     # chunksize 1 keeps both workers busy when task costs vary (a wrong pair costs more than a right one).
     started = context.Value("i", 0)
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared, started)) as pool:
+        with _main_not_rerun(fn):
+            pending = pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)  # starts the workers
         results = []
-        for k, result in enumerate(pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)):
+        for k, result in enumerate(pending):
             results.append(result)
             if on_result is not None:
                 on_result(k, result)
         return results
+
+
+@contextmanager
+def _main_not_rerun(fn: Callable) -> Iterator[None]:
+    """Workers re-import the caller's ``__main__`` script unless it has no file; a script without an
+    ``if __name__ == "__main__":`` guard then runs again in every worker (and hung in open3d, seen here). A task
+    defined outside ``__main__`` needs none of it, so the script's file is hidden while the workers start."""
+    main = sys.modules["__main__"]
+    path = getattr(main, "__file__", None)
+    if fn.__module__ == "__main__" or path is None or getattr(main, "__spec__", None) is not None:
+        yield
+        return
+    del main.__file__
+    try:
+        yield
+    finally:
+        main.__file__ = path

@@ -7,7 +7,7 @@ import hashlib
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -228,7 +228,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     for name in unregistered:
         log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
-    flagged = unverified(graph, result)
+    # Loop closures start from the synchronized poses, so they confirm a weak scan where it is, right or wrong (a
+    # 50-scan room: one scan 114° off lost its flag that way). A scan weak after the first synchronization is
+    # verified only by the global registrations (top-k and retries) it now rests on, without the loop edges.
+    global_only = replace(result, weights=np.where(np.array(edges.origin) != "loop", result.weights, 0.0))
+    flagged = unverified(graph, result) | (first_weak & (result.component == 0) & unverified(graph, global_only))
     weak = [names[k] for k in np.flatnonzero(flagged)]
     for name in weak:
         log(f"UNVERIFIED {name}: placed through a single registration that no loop of the graph checks")

@@ -118,3 +118,19 @@ def test_weak_scans_get_their_best_untried_partners():
     tried = np.zeros((4, 4), dtype=bool)
     tried[[0, 1, 0], [1, 2, 2]] = tried[[1, 2, 2], [0, 1, 0]] = True
     assert retry_pairs(weak, scores, tried, per_scan=2).tolist() == [[1, 3], [2, 3]]
+
+
+def test_a_script_without_a_main_guard_runs_with_workers(tmp_path):
+    """Workers must not re-run the caller's script: an unguarded script would run again in every worker (it hung)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "unguarded.py"
+    script.write_text("from sghr_gtsam.executor import parallel_map\n"
+                      "from tests.test_front_end import _square\n"
+                      "print(parallel_map(_square, 2, [1, 2, 3], workers=2))\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[1], env={**__import__("os").environ, "PYTHONPATH": "."})
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.splitlines() == ["[2, 8, 18]"]  # once: the workers did not run the script
