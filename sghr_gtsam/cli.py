@@ -17,8 +17,8 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
 _DEFAULT = Config()
 _METHOD_NAMES = ("history", "constant", "current", "spectral", "lm")
 _BASELINE_NAMES = ("eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d", "open3d_all_uncertain")
-_POLISH_HELP = ("After IRLS: robust (consensus re-placement, gtsam GNC, consensus, LM on the consistent edges), "
-                "lm (LM on the edges IRLS kept) or none.")
+_POLISH_HELP = ("After IRLS: loops (scans placed by counted loop evidence, then LM on the consistent edges), "
+                "robust (consensus re-placement, gtsam GNC, consensus, LM), lm (LM on the edges IRLS kept) or none.")
 
 
 def _fail(message: str, code: int = 2) -> None:

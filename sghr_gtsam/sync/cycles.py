@@ -35,7 +35,7 @@ import numpy as np
 
 from ..se3 import inv_T, rotation_angle
 from ..types import PoseGraph
-from .consensus import MAX_DEG, translation_tolerance
+from .consensus import MAX_DEG, translation_tolerance, within_noise
 
 
 def triangles(graph: PoseGraph) -> np.ndarray:
@@ -229,7 +229,8 @@ against a base of ~9 cm, tails to 25 cm) would otherwise drop right edges and co
 def kept_edges_at(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
                   max_trans: float | None = None) -> np.ndarray:
     """(E,) bool: edges consistent with ``poses`` at the base tolerances widened to ``SPREAD`` times the
-    median residual of the edges consistent at the base tolerances."""
+    median residual of the edges consistent at the base tolerances, or, with ``graph.information``, within
+    their own noise (``consensus.within_noise``; gtsam's grid graphs have σ ≈ 15° on every edge)."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
     rot = np.degrees(rotation_angle(E[:, :3, :3]))
@@ -238,7 +239,10 @@ def kept_edges_at(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
     if base.any():
         max_deg = max(max_deg, SPREAD * float(np.median(rot[base])))
         max_trans = max(max_trans, SPREAD * float(np.median(trans[base])))
-    return (graph.weight > 0) & (rot <= max_deg) & (trans <= max_trans)
+    close = (rot <= max_deg) & (trans <= max_trans)
+    if graph.information is not None:
+        close |= within_noise(E, graph.information)
+    return (graph.weight > 0) & close
 
 
 __all__ = ["triangles", "triangle_support", "credibility", "grow", "replace_groups", "kept_edges_at"]
