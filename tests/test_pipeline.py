@@ -74,6 +74,7 @@ def test_recording_holds_every_iteration(room_run):
     for name in result.names:
         assert f"/world/scans/{name}" in summary
     assert "/world/edges" in summary and "/metrics/median_residual_deg" in summary
+    assert "/residuals" in summary and "/weights" in summary  # every edge a series of one entity
     irls = [r for r in result.sync.history if r.stage == "irls"]
     assert len(irls) == Config().iters
     stages = {r.stage for r in result.sync.history}
