@@ -80,6 +80,8 @@ def run(
         typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
     if result.unverified:
         typer.echo(f"unverified (pose rests on one unchecked registration): {', '.join(result.unverified)}", err=True)
+    if result.contested:
+        typer.echo(f"contested (dropped registrations outweigh the kept ones): {', '.join(result.contested)}", err=True)
 
 
 @app.command()
@@ -106,7 +108,8 @@ def demo(
     typer.echo(f"{'scan':<16}{'rot err [deg]':>15}{'trans err [m]':>15}")
     for k, name in enumerate(result.names):
         flag = ("  (unregistered)" if name in result.unregistered
-                else "  (unverified)" if name in result.unverified else "")
+                else "  (unverified)" if name in result.unverified
+                else "  (contested)" if name in result.contested else "")
         typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
     typer.echo(f"{len(result.registered)}/{len(result.names)} scans registered in "
                f"{result.timings['total']:.1f} s; results in {out / 'results'}")

@@ -33,7 +33,7 @@ from .registration.refine import build_pyramid
 from .registration.retry import weak_scans
 from .result import RunResult
 from .se3 import inv_T, transform_points
-from .sync import synchronize, unverified
+from .sync import contested, synchronize, unverified
 from .types import InputError, Keypoints, PoseGraph, SyncResult
 
 Log = Callable[[str], None]
@@ -237,10 +237,13 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     for name in weak:
         log(f"UNVERIFIED {name}: placed through a single registration that no loop of the graph checks")
     densify.rescued = [names[k] for k in np.flatnonzero(first_weak & (result.component == 0) & ~flagged)]
+    disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
+    for name in disputed:
+        log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
                     edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=dict(skipped or {}), features=features, timings=timer.seconds,
-                    global_feature=feature_kind, unverified=weak)
+                    global_feature=feature_kind, unverified=weak, contested=disputed)
     with timer.stage("covariances"):
         try:
             run.covariances = pose_covariances(run)
@@ -248,7 +251,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
             run.covariances = np.full((n, 6, 6), np.nan)
             log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
     if recorder:
-        recorder.log_final(poses, unregistered, weak)
+        recorder.log_final(poses, unregistered, weak, disputed)
         recorder.log_covariances(poses, run.covariances)
     return run
 

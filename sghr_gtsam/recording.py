@@ -107,10 +107,11 @@ class Recorder:
         self.rec.log("residuals", rr.Scalars(np.asarray(record.residual_deg, dtype=float)))
         self.rec.log("weights", rr.Scalars(w_rel))
 
-    def log_final(self, poses: np.ndarray, unregistered: list[str], unverified: list[str]) -> None:
+    def log_final(self, poses: np.ndarray, unregistered: list[str], unverified: list[str],
+                  contested: list[str] = ()) -> None:
         self.rec.set_time(TIMELINE, sequence=self._step + 1)
         self.log_poses(poses)
-        for label, names in (("unregistered", unregistered), ("unverified", unverified)):
+        for label, names in (("unregistered", unregistered), ("unverified", unverified), ("contested", contested)):
             if names:
                 self.rec.log("log", rr.TextLog(f"{label}: " + ", ".join(names), level=rr.TextLogLevel.WARN))
 

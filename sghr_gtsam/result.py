@@ -16,7 +16,9 @@ from .types import PoseGraph, SyncResult
 class RunResult:
     """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
     first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
-    ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``)."""
+    ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``); scans in
+    ``contested`` have one against which the graph holds more registration evidence than for it
+    (``sync.contested``)."""
 
     names: list[str]
     poses: np.ndarray
@@ -31,6 +33,7 @@ class RunResult:
     timings: dict[str, float] = field(default_factory=dict)
     global_feature: str = ""
     unverified: list[str] = field(default_factory=list)
+    contested: list[str] = field(default_factory=list)
     edge_origin: list[str] = field(default_factory=list)
     """Per edge of ``graph``: how it entered (``registration.edges.ORIGINS``)."""
     densify: dict = field(default_factory=dict)

@@ -7,7 +7,7 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
-from sghr_gtsam.sync import METHODS, synchronize, unverified
+from sghr_gtsam.sync import METHODS, contested, synchronize, unverified
 from sghr_gtsam.sync.irls import irls, schedule_weights
 from sghr_gtsam.sync.rotation import DENSE_NODES, rotation_residuals, spectral_rotations
 from sghr_gtsam.types import InputError, PoseGraph, SyncResult
@@ -180,6 +180,33 @@ def test_a_cluster_hung_on_one_wrong_edge_is_flagged_unverified():
     result = synchronize(graph)
     rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
     assert rot.max() < 3.0 and not unverified(graph, result).any()
+
+
+@FAST
+@given(seed=st.integers(0, 10**6), weak=st.integers(3, 8), heavier=st.floats(1.2, 20.0))
+def test_a_look_alike_placement_is_right_or_contested(seed, weak, heavier):
+    """home_at's fragment 32 in miniature: ``weak`` light edges put a scan 90° off; two edges whose summed
+    initial weight is ``heavier`` times theirs put it right. Whatever the polish chooses, the scan is right,
+    or wrong and flagged."""
+    strong = heavier * weak / 2
+    base, truth, _ = random_graph(seed, 20, extra=3, rot_deg=1.0, trans_sigma=0.02)
+    rng = np.random.default_rng(seed)
+    scan = 20
+    truth = np.concatenate([truth, truth[:1] @ make_T(Rotation.random(random_state=rng).as_matrix(),
+                                                      rng.uniform(-2, 2, 3))[None]])
+    wrong = truth[scan] @ make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [0.5, 0.0, 0.0])
+    group = rng.choice(20, weak + 2, replace=False)
+    partners, right = group[:weak], group[weak:]
+    T = [inv_T(truth[p]) @ wrong for p in partners] + [inv_T(truth[p]) @ truth[scan] for p in right]
+    base_w = float(np.median(base.weight))
+    graph = PoseGraph(n=21, i=np.r_[base.i, group], j=np.r_[base.j, np.full(len(group), scan)],
+                      T=np.concatenate([base.T, T]),
+                      weight=np.r_[base.weight, np.full(weak, base_w / 10), np.full(2, strong * base_w / 10)])
+    result = synchronize(graph)
+    rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
+    assert rot[:scan].max() < 5.0
+    flagged = contested(graph, result) | unverified(graph, result) | (result.component != 0)
+    assert flagged[scan] == (rot[scan] >= 5.0)
 
 
 @FAST

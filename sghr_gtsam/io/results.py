@@ -117,6 +117,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "registered": names,
         "unregistered": result.unregistered,
         "unverified": result.unverified,
+        "contested": result.contested,
         "front_end": result.densify,
         "skipped": result.skipped,
         "voxel": result.voxel,

@@ -270,6 +270,21 @@ def unverified(graph: PoseGraph, result: SyncResult) -> np.ndarray:
     return out
 
 
+def contested(graph: PoseGraph, result: SyncResult) -> np.ndarray:
+    """(N,) bool: nodes of the largest part whose edges the result dropped carry more initial weight ``w⁰``
+    than those it kept: the graph holds more registration evidence against the node's placement than for it.
+
+    The vote that placed it counted agreeing edges, and edges from scans that see the same place agree
+    without being independent: 3DMatch home_at fragment 32 sat 90° off on 8 weak edges from fragments
+    11-18 (``w⁰`` 117 in all) against 2 strong ones to fragments 23 and 31 (490). No right scan of that run
+    came above 0.68 of that ratio (docs/BENCHMARKS.md).
+    """
+    main = result.component == 0
+    signed = np.where(result.weights > 0, graph.weight, -graph.weight)
+    balance = np.bincount(graph.i, signed, graph.n) + np.bincount(graph.j, signed, graph.n)
+    return main & (balance < 0)
+
+
 def checked_graph(graph: PoseGraph) -> PoseGraph:
     """``graph`` with its checks passed: integer indices, float arrays, rotations projected onto SO(3).
 
@@ -315,4 +330,4 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     return replace(graph, n=n, i=i.astype(np.int64), j=j.astype(np.int64), T=T, weight=w, information=info)
 
 
-__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph", "unverified"]
+__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph", "unverified", "contested"]
