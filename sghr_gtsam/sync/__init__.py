@@ -15,13 +15,13 @@ from collections.abc import Callable
 from dataclasses import replace
 from functools import lru_cache
 
-import networkx as nx
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from ..io.g2o import sesync_precisions
 from ..se3 import inv_T, project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
+from .bridges import blocks
 from .consensus import consensus_placement, consistent_edges
 from .cycles import credibility, grow, kept_edges_at, replace_groups, triangle_support
 from .irls import REWEIGHTS, irls, kept_edges, solve_poses
@@ -158,13 +158,14 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, min_weight: 
     """The loop polish's kept edges re-judged at least-squares optima (``kept_edges_at``), at most
     ``REFIT_ROUNDS`` solves: the placement steps judge edges at poses before least squares and with tolerances
     for registrations good to a few degrees, so on a clean graph with large noise (gtsam's grids: σ ≈ 11°
-    on every edge) they leave edges out that the optimum over all of them fits within their noise. Every
-    usable edge is tried from the current poses; the larger consistent set wins, and that set is solved again."""
+    on every edge) they leave edges out that the optimum over all of them fits within their noise. With
+    the edges' own information (the only noise model an edge can be re-admitted by), every usable edge is
+    tried from the current poses too; the larger consistent set wins, and that set is solved again."""
     usable_graph = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
     usable = usable_graph.weight > 0
     for _ in range(REFIT_ROUNDS - 1):
         refit = kept_edges_at(usable_graph, poses)
-        if not refit.all() and not np.array_equal(kept, usable):
+        if graph.information is not None and not np.array_equal(refit, usable):
             trial = solve(poses, usable, record=False)
             widest = kept_edges_at(usable_graph, trial)
             if widest.sum() > refit.sum():
@@ -260,14 +261,10 @@ def unverified(graph: PoseGraph, result: SyncResult) -> np.ndarray:
     """
     main = result.component == 0
     kept = (result.weights > 0) & main[graph.i] & main[graph.j]
-    G = nx.Graph()
-    G.add_nodes_from(np.flatnonzero(main).tolist())
-    G.add_edges_from(zip(graph.i[kept].tolist(), graph.j[kept].tolist()))
-    G.remove_edges_from(list(nx.bridges(G)))
-    core = max(nx.connected_components(G), key=lambda c: (len(c), -min(c)))
-    out = main.copy()
-    out[list(core)] = False
-    return out
+    label = blocks(graph.n, graph.i, graph.j, kept)
+    # The largest block of the main part (ties: the one with the smallest node), as labels are ordered.
+    core = label[np.flatnonzero(main)].min()
+    return main & (label != core)
 
 
 def contested(graph: PoseGraph, result: SyncResult) -> np.ndarray:

@@ -175,8 +175,7 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
     correction with the most ``cred`` among the proposals agreeing with it (at least two), if that beats
     the correction it has now (identity). Round after round, all groups at once, until none moves.
     """
-    import networkx as nx
-
+    from .bridges import blocks as block_labels
     from .consensus import consistent_edges
 
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
@@ -184,16 +183,9 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
     poses = poses.copy()
     for _ in range(max_rounds):
         kept = consistent_edges(graph, poses, max_deg, max_trans)
-        G = nx.Graph()
-        G.add_nodes_from(range(graph.n))
-        G.add_edges_from(zip(graph.i[kept].tolist(), graph.j[kept].tolist()))
-        G.remove_edges_from(list(nx.bridges(G)))
-        blocks = sorted(nx.connected_components(G), key=len, reverse=True)
-        label = np.empty(graph.n, dtype=np.int64)
-        for k, nodes in enumerate(blocks):
-            label[list(nodes)] = k
+        label = block_labels(graph.n, graph.i, graph.j, kept)
         moved = False
-        for k in range(1, len(blocks)):
+        for k in range(1, int(label.max()) + 1):
             inside_i, inside_j = label[graph.i] == k, label[graph.j] == k
             cross = np.flatnonzero((inside_i != inside_j) & (cred > 0))
             if len(cross) < 2:
@@ -204,7 +196,8 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
             b = np.where(a_in, graph.j[cross], graph.i[cross])
             M = poses[b] @ _directed(graph, cross, b) @ inv_T(poses[a])
             M = np.concatenate([M, np.eye(4)[None]])
-            centre = poses[list(blocks[k]), :3, 3].mean(axis=0)
+            nodes = np.flatnonzero(label == k)
+            centre = poses[nodes, :3, 3].mean(axis=0)
             moved_centre = M[:, :3, :3] @ centre + M[:, :3, 3]
             R = M[:, :3, :3]
             agree = (((np.einsum("kab,lab->kl", R, R) - 1.0) / 2.0 >= cos_tol)
@@ -212,7 +205,6 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
             support = agree[:, :-1] @ cred[cross]
             best = int(np.argmax(support[:-1]))
             if agree[best, :-1].sum() >= 2 and support[best] > support[-1] and not agree[best, -1]:
-                nodes = list(blocks[k])
                 poses[nodes] = M[best] @ poses[nodes]
                 moved = True
         if not moved:
