@@ -117,22 +117,24 @@ def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float
     version = np.zeros(n, dtype=np.int64)
     heap: list[tuple[int, float, int, int]] = []
 
+    max_trans2 = max_trans ** 2
+
     def evaluate(s: int) -> None:
-        k = slice(start[s], start[s + 1])
-        on = placed[others[k]]
-        if not on.any():
+        k = start[s] + np.flatnonzero(placed[others[start[s]:start[s + 1]]])
+        if len(k) == 0:
             return
-        P = poses[others[k][on]] @ rel[k][on]
-        c = c_inc[k][on]
-        R = P[:, :3, :3]
-        cos = (np.einsum("kab,lab->kl", R, R) - 1.0) / 2.0
-        agree = (cos >= cos_tol) & (np.linalg.norm(P[:, None, :3, 3] - P[None, :, :3, 3], axis=-1) <= max_trans)
+        P = poses[others[k]] @ rel[k]
+        c = c_inc[k]
+        R = P[:, :3, :3].reshape(len(k), 9)
+        t = P[:, :3, 3]
+        # cos of the angle between two proposals: (trace(R_aᵀ R_b) − 1) / 2, the trace as a flat dot product.
+        agree = ((R @ R.T - 1.0) / 2.0 >= cos_tol) & (((t[:, None] - t[None]) ** 2).sum(axis=-1) <= max_trans2)
         score = agree @ c
         best = int(np.argmax(score))
         rival = score[~agree[best]].max(initial=0.0)
         # Tiers: a placement two placed partners agree on (a loop through the placed scans), then one
         # edge on a consistent triangle, then a lone edge; within a tier, the least ambiguous first.
-        tier = 0 if agree[best].sum() >= 2 else (1 if looped[k][on][best] else 2)
+        tier = 0 if agree[best].sum() >= 2 else (1 if looped[k[best]] else 2)
         version[s] += 1
         heapq.heappush(heap, (tier, -(score[best] - rival), int(version[s]), s))
         best_pose[s] = P[best]
