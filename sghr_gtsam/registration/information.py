@@ -17,12 +17,25 @@ the point-to-point one (with its σ̂ from the full 3-d residuals) is 3-15× ove
 
 from __future__ import annotations
 
-import numpy as np
+from typing import Protocol
 
-from ..features.local import GICP_THREADS, ScanFeatures
+import numpy as np
+import small_gicp
+
+from ..features.local import GICP_THREADS
 
 MIN_PAIRS = 7
 """Fewer close pairs than this leave σ̂² without a degree of freedom: no information."""
+
+
+class Grid(Protocol):
+    """A scan's points on one grid, in its own frame, with unit ``normals`` (sign free: the information does
+    not depend on it) and a k-d tree ``cloud_tree`` over ``points``: a ``ScanFeatures`` (the matching grid)
+    or a ``refine.Pyramid`` level."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    cloud_tree: small_gicp.KdTree
 
 
 def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray) -> np.ndarray:
@@ -33,10 +46,11 @@ def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray)
     return J.T @ J / max(sigma2, np.finfo(float).tiny)
 
 
-def registration_information(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray,
+def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
                              max_distance: float) -> np.ndarray | None:
     """Information (6, 6) of ``T`` (``T_ij``: scan j into scan i's frame) for ``T exp(ξ)``, from the grid
-    points of scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``."""
+    points of scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``.
+    Both grids must be those ``T`` was aligned on: its residuals there are what σ̂ and the sum measure."""
     q = source_j.points
     R, t = T[:3, :3], T[:3, 3]
     moved = q @ R.T + t

@@ -52,9 +52,10 @@ class PairResult:
     ``T``: (4, 4) ``T_ij``. ``inliers``: descriptor matches that ``T`` brings within ``INLIER_DISTANCE``
     voxels (SGHR's ``r_ij``). ``fitness``: fraction of scan j's grid points with a scan-i point within
     the ICP distance after ``T``; ``rmse``: RMS distance of those pairs. ``information``: (6, 6) in
-    gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, point-to-plane over those
-    pairs with the point noise estimated from their residuals (``information.registration_information``);
-    None with too few pairs. ``seconds``: wall time. ``coverage``: cells of ``COVERAGE_CELL`` voxels
+    gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, point-to-plane over the close
+    pairs of the grid ``T`` was aligned on (those pairs here; the finest pyramid level for a refined edge or
+    a loop closure) with the point noise estimated from their residuals
+    (``information.registration_information``); None with too few pairs. ``seconds``: wall time. ``coverage``: cells of ``COVERAGE_CELL`` voxels
     (a grid in scan i's frame) that hold at least one of the ``inliers``: how spread the agreement is.
     """
 

@@ -4,7 +4,9 @@ closures (issue 10, steps 2 and 3).
 A scan's ``Pyramid`` holds its points on grids of voxel v and v/2 (never finer than the scan's own spacing). ``refine_pair`` runs GICP coarse to fine from ``T_init`` (in the synchronized poses: ``T_i⁻¹ T_j``),
 each level starting where the coarser one ended, as Open3D's reconstruction system refines its fragments; the
 final transform is then scored on the matching grid like a global registration (``score_pair``), so that a
-refined edge and a loop closure carry the same kind of weight and information as the edges they join.
+refined edge and a loop closure carry the same kind of weight as the edges they join. Its information comes
+from the finest level instead, the grid the transform was aligned on: on the matching grid the same transform
+gets σ 2-3× what its error spread is (docs/BENCHMARKS.md, calibrated covariances).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import small_gicp
 
 from ..features.local import COV_NEIGHBORS, GICP_THREADS, ScanFeatures
 from ..se3 import inv_T, rotation_angle
+from .information import registration_information
 from .pairwise import PairResult, score_pair
 
 LEVELS = (1.0, 0.5)
@@ -38,30 +41,41 @@ MIN_FITNESS = 0.2
 
 
 @dataclass
+class Level:
+    """One pyramid grid ready for GICP and ``registration_information`` (an ``information.Grid``)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    cloud: small_gicp.PointCloud
+    cloud_tree: small_gicp.KdTree
+
+
+@dataclass
 class Pyramid:
     """One scan's points on the grids ``voxels`` (coarse to fine), in the scan's own frame. Pickles as
-    arrays; the GICP clouds are built on first use in whichever process uses them."""
+    arrays; each level's GICP cloud is built on first use in whichever process uses it."""
 
     voxels: tuple[float, ...]
     grids: tuple[np.ndarray, ...]
 
     def __post_init__(self) -> None:
-        self._clouds: dict[int, tuple[small_gicp.PointCloud, small_gicp.KdTree]] = {}
+        self._levels: dict[int, Level] = {}
 
     def __getstate__(self) -> dict:
         return {"voxels": self.voxels, "grids": self.grids}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self._clouds = {}
+        self._levels = {}
 
-    def cloud(self, level: int) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
-        if level not in self._clouds:
-            cloud = small_gicp.PointCloud(self.grids[level])
+    def level(self, k: int) -> Level:
+        if k not in self._levels:
+            cloud = small_gicp.PointCloud(self.grids[k])
             tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
-            small_gicp.estimate_covariances(cloud, tree, COV_NEIGHBORS, GICP_THREADS)
-            self._clouds[level] = (cloud, tree)
-        return self._clouds[level]
+            # The same covariances as estimate_covariances, and the normals from the same neighbourhoods.
+            small_gicp.estimate_normals_covariances(cloud, tree, COV_NEIGHBORS, GICP_THREADS)
+            self._levels[k] = Level(self.grids[k], np.asarray(cloud.normals())[:, :3], cloud, tree)
+        return self._levels[k]
 
 
 def build_pyramid(points: np.ndarray, voxel: float) -> Pyramid:
@@ -78,27 +92,40 @@ def build_pyramid(points: np.ndarray, voxel: float) -> Pyramid:
     return Pyramid(tuple(voxels), tuple(grids))
 
 
+def _levels(target_i: Pyramid, source_j: Pyramid) -> int:
+    return min(len(target_i.voxels), len(source_j.voxels))
+
+
+def _distance(target_i: Pyramid, k: int) -> float:
+    return LEVEL_DISTANCE[k] * target_i.voxels[k]
+
+
 def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> tuple[np.ndarray, bool]:
     """GICP of scan j onto scan i, coarse to fine from ``T_init``; the final ``T_ij`` and whether the finest
     level converged."""
     T, converged = np.asarray(T_init, dtype=float), False
-    for level in range(min(len(target_i.voxels), len(source_j.voxels))):
-        target, tree = target_i.cloud(level)
-        source, _ = source_j.cloud(level)
-        result = small_gicp.align(target, source, tree, init_T_target_source=T, registration_type="GICP",
-                                  max_correspondence_distance=LEVEL_DISTANCE[level] * target_i.voxels[level],
-                                  num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[level])
+    for k in range(_levels(target_i, source_j)):
+        target, source = target_i.level(k), source_j.level(k)
+        result = small_gicp.align(target.cloud, source.cloud, target.cloud_tree, init_T_target_source=T,
+                                  registration_type="GICP", max_correspondence_distance=_distance(target_i, k),
+                                  num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[k])
         T, converged = result.T_target_source, bool(result.converged)
     return T, converged
 
 
 def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyramid, pyramid_j: Pyramid,
                 T_init: np.ndarray, voxel: float, icp_distance: float) -> tuple[PairResult, bool]:
-    """Multi-scale ICP from ``T_init``, the pair scored at the result (``score_pair``), and whether the
-    finest level converged."""
+    """Multi-scale ICP from ``T_init``, the pair scored at the result (``score_pair``) with the information of
+    the finest level's alignment (the matching grid's when that level has too few close pairs), and whether
+    the finest level converged."""
     start = time.perf_counter()
     T, converged = multiscale_icp(pyramid_i, pyramid_j, T_init)
     result = score_pair(target_i, source_j, T, voxel, icp_distance)
+    finest = _levels(pyramid_i, pyramid_j) - 1
+    information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
+                                           _distance(pyramid_i, finest))
+    if information is not None:
+        result.information = information
     result.seconds = time.perf_counter() - start
     return result, converged
 
