@@ -158,10 +158,11 @@ def register_pair(
 
 
 def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
-               matches: tuple[np.ndarray, np.ndarray] | None = None) -> PairResult:
+               matches: tuple[np.ndarray, np.ndarray] | None = None,
+               information: np.ndarray | None = None) -> PairResult:
     """The ``PairResult`` of ``T`` (however it was found): its mutual descriptor ``matches`` (computed when not
-    given) within ``INLIER_DISTANCE`` voxels (``r_ij``) and the cells they cover, fitness, rmse and information
-    on the matching grid; ``seconds`` 0."""
+    given) within ``INLIER_DISTANCE`` voxels (``r_ij``) and the cells they cover, fitness, rmse, and
+    ``information`` when given (from the grid ``T`` was aligned on), else the matching grid's; ``seconds`` 0."""
     a, b = mutual_matches(target_i, source_j) if matches is None else matches
     p_i = target_i.keypoints[a]
     residual = np.linalg.norm(source_j.keypoints[b] @ T[:3, :3].T + T[:3, 3] - p_i, axis=1)
@@ -178,7 +179,8 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
         inliers=int(np.count_nonzero(agree)),
         fitness=n / len(q),
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
-        information=registration_information(target_i, source_j, T, max_distance),
+        information=information if information is not None else registration_information(target_i, source_j, T,
+                                                                                          max_distance),
         seconds=0.0,
         coverage=len(np.unique(cells, axis=0)),
     )

@@ -120,12 +120,10 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
     the finest level converged."""
     start = time.perf_counter()
     T, converged = multiscale_icp(pyramid_i, pyramid_j, T_init)
-    result = score_pair(target_i, source_j, T, voxel, icp_distance)
     finest = _levels(pyramid_i, pyramid_j) - 1
     information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
                                            _distance(pyramid_i, finest))
-    if information is not None:
-        result.information = information
+    result = score_pair(target_i, source_j, T, voxel, icp_distance, information=information)
     result.seconds = time.perf_counter() - start
     return result, converged
 
