@@ -1,6 +1,11 @@
-"""Pose graphs with known outliers, built on the 8 real 3DMatch test scenes (the robustness benchmark).
+"""Pose graphs with known outliers, built on the 8 real 3DMatch test scenes (the robustness benchmark) or on
+generated buildings of any size (``data_tools.building``).
 
-Only the scenes' ground truth is used (``3dmatch-test-gt/`` of the shared data; no point clouds):
+The corruption (``corrupt``) runs on any ground truth (``SceneGT``: poses, symmetric overlap, vertical, and
+the gt.log pairs with their 6×6 information for the paper's recall). ``make_graph`` applies it to the scene
+``ground_truth`` names: a real scene, or ``gen<N>`` for a generated building of N scans drawn with the
+graph's seed. For the real scenes only their ground truth is used (``3dmatch-test-gt/`` of the shared data;
+no point clouds):
 
 - **Nodes**: the fragments with a finite pose in ``derived_abs_poses/<scene>.txt`` (the one NaN fragment of
   mit_lab_hj, which no GT edge reaches, is dropped; ``SceneGT.ids`` maps node → fragment number).
@@ -26,6 +31,9 @@ Scene-level details without point clouds: a fragment's centre is the point (0, �
 the direction in which the fragments' camera positions vary least (a hand-held camera moves at about
 constant height).
 
+A generated building's scans use the same camera frame (x right, y down, z forward), so the same
+``SCAN_CENTRE`` and perturbations apply; its vertical is the world's z.
+
 Random streams: the overlap noise, inlier noise and counts depend on (seed, scene) only, so every ratio and
 kind corrupts the same inlier graph; the outlier draw depends on (seed, scene, ratio, kind, noisy_overlap).
 """
@@ -33,6 +41,7 @@ kind corrupts the same inlier graph; the outlier draw depends on (seed, scene, r
 from __future__ import annotations
 
 import os
+import re
 import zlib
 from dataclasses import dataclass
 from functools import lru_cache
@@ -75,15 +84,15 @@ MIN_GROUP = 2  # edges sharing one structured wrong placement: MIN_GROUP + Poiss
 
 @dataclass
 class SceneGT:
-    """Ground truth of one 3DMatch test scene, indexed by graph node."""
+    """Ground truth of one scene (a 3DMatch test scene or a generated building), indexed by graph node."""
 
-    name: str
-    ids: list[int]  # fragment number of each node
+    name: str  # seeds the corruption's random streams
+    ids: list[int]  # fragment number of each node (the names gt_log and gt_info use)
     poses: np.ndarray  # (N, 4, 4) GT T_i, rotations projected to SO(3)
     overlap: np.ndarray  # (N, N) symmetric GT overlap, 0 on the diagonal
     vertical: np.ndarray  # (3,) unit vertical axis in the world frame (sign arbitrary)
     gt_log: dict[tuple[int, int], np.ndarray]  # fragment pair -> T_ij, for evaluate.registration_recall
-    gt_info: dict[tuple[int, int], np.ndarray]
+    gt_info: dict[tuple[int, int], np.ndarray]  # fragment pair -> 6×6 information, order [translation, rotation]
 
 
 def data_root() -> Path:
@@ -118,10 +127,32 @@ WEIGHTS = ("s*r", "r", "s")
 """Initial edge weights: SGHR's ``s · r``, and the paper's ablations without ``s`` and without ``r``."""
 
 
+GENERATED = re.compile(r"gen(\d+)")
+"""Scene names of generated buildings: ``gen200`` is a building of 200 scans."""
+
+
+def ground_truth(scene: str, seed: int, root: Path | None = None) -> SceneGT:
+    """A real scene's GT (``load_scene``; ``seed`` unused) or, for ``gen<N>``, the building of N scans drawn
+    with ``seed`` (``data_tools.building.make_building``; cached, so callers must not modify the arrays)."""
+    generated = GENERATED.fullmatch(scene)
+    if generated is None:
+        return load_scene(scene, root)
+    from data_tools.building import make_building  # open3d's ray casting, only for generated scenes
+
+    return make_building(int(generated.group(1)), seed)
+
+
 def make_graph(scene: str, ratio: float, kind: str, seed: int, noisy_overlap: bool = False,
                root: Path | None = None, weight: str = "s*r") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
-    """The scene's top-k pose graph with ``round(ratio · E)`` outlier edges of ``kind``; ``weight``: one of
-    ``WEIGHTS`` (the same edges and measurements whichever is chosen).
+    """``corrupt`` on the ground truth of ``scene`` (``ground_truth``: a real scene or ``gen<N>``)."""
+    return corrupt(ground_truth(scene, seed, root), ratio, kind, seed, noisy_overlap, weight)
+
+
+def corrupt(gt: SceneGT, ratio: float, kind: str, seed: int, noisy_overlap: bool = False,
+            weight: str = "s*r") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+    """The top-k pose graph of ``gt`` with ``round(ratio · E)`` outlier edges of ``kind``; ``weight``: one of
+    ``WEIGHTS`` (the same edges and measurements whichever is chosen). The random streams are keyed by
+    ``seed`` and ``gt.name``.
 
     Returns the graph, the GT poses (N, 4, 4) of its nodes and the (E,) boolean outlier mask.
     """
@@ -131,9 +162,8 @@ def make_graph(scene: str, ratio: float, kind: str, seed: int, noisy_overlap: bo
         raise ValueError(f"unknown outlier kind {kind!r} ({', '.join(KINDS)})")
     if not 0.0 <= ratio < 1.0:
         raise ValueError(f"outlier ratio must be in [0, 1), got {ratio}")
-    gt = load_scene(scene, root)
     P, n = gt.poses, len(gt.ids)
-    key = [seed, zlib.crc32(scene.encode())]
+    key = [seed, zlib.crc32(gt.name.encode())]
     rng = np.random.default_rng(key)
 
     predicted = gt.overlap
