@@ -1,7 +1,9 @@
-"""Robustness to outlier edges: every synchronization method on pose graphs of the 8 real 3DMatch test scenes.
+"""Robustness to outlier edges: every synchronization method on pose graphs of the 8 real 3DMatch test scenes,
+or (``--scenes gen200 gen1000``) of generated buildings of that many scans.
 
 Graphs: ``data_tools.outlier_graphs.make_graph`` (top-10 GT-overlap graph, inliers with 2° / 5 cm noise, a
-fraction ρ of edges replaced by ``random`` or ``structured`` outliers; see that module). Methods: the
+fraction ρ of edges replaced by ``random`` or ``structured`` outliers; see that module); a generated
+building (``data_tools.building``) is drawn anew for every seed, with 3DMatch-like gt.log pairs and gt.info. Methods: the
 project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones — history and the
 paper's ablations constant g and no history — with both reweightings, ``authors`` and ``paper``, and the
 default robust polish; ``history/authors`` also with the other polishes and on graphs whose initial weight
@@ -22,7 +24,7 @@ graphs in parallel processes instead.
 
 Run from the repository root (installed, or with ``PYTHONPATH=.``):
 ``python benchmarks/bench_robustness.py [--quick] [--seeds 5] [--first-seed 0] [--ratios 0 0.1 ...] [--methods ...]
-[--kinds random structured] [--noisy-overlap] [--jobs 2] [--records runs.jsonl]``
+[--kinds random structured] [--scenes gen200 ...] [--noisy-overlap] [--jobs 2] [--records runs.jsonl]``
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from multiprocessing import Pool  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from data_tools.outlier_graphs import KINDS, SCENES, load_scene, make_graph  # noqa: E402
+from data_tools.outlier_graphs import GENERATED, KINDS, SCENES, ground_truth, make_graph  # noqa: E402
 from sghr_gtsam.evaluate import registration_recall  # noqa: E402
 from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
@@ -113,7 +115,7 @@ def run_graph(task: tuple[str, int, str, float, bool, list[str]]) -> list[Run]:
     """Every method in ``names`` on one generated graph."""
     scene, seed, kind, ratio, noisy_overlap, names = task
     methods = all_methods()
-    gt = load_scene(scene)
+    gt = ground_truth(scene, seed)
     graphs = {w: make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap, weight=w)
               for w in ["s*r", *(w for w, row in WEIGHT_ABLATIONS.items() if row in names)]}
     runs = []
@@ -174,7 +176,8 @@ def tables(runs: list[Run], names: list[str], kinds: list[str], ratios: list[flo
     return "\n".join(out)
 
 
-def identifiability(kinds: list[str], ratios: list[float], seeds: int, noisy_overlap: bool = False) -> str:
+def identifiability(scenes: list[str], kinds: list[str], ratios: list[float], seeds: int,
+                    noisy_overlap: bool = False) -> str:
     """Markdown: what the graphs themselves say, before any method runs. With every other scan at its GT
     pose, a scan is *outvoted* when a placement its edges propose, away from its GT pose, has more ``w⁰``
     support than the GT pose (``consensus.placement_support``: the consensus step's agreement test). A method that only sees the graph
@@ -185,11 +188,12 @@ def identifiability(kinds: list[str], ratios: list[float], seeds: int, noisy_ove
         cells = []
         for ratio in ratios:
             outvoted, bound = [], []
-            for scene in SCENES:
-                gt = load_scene(scene)
-                index = {f: k for k, f in enumerate(gt.ids)}
-                pairs = [(index[a], index[b]) for a, b in gt.gt_log if a in index and b in index and abs(a - b) > 1]
+            for scene in scenes:
                 for seed in range(seeds):
+                    gt = ground_truth(scene, seed)
+                    index = {f: k for k, f in enumerate(gt.ids)}
+                    pairs = [(index[a], index[b]) for a, b in gt.gt_log
+                             if a in index and b in index and abs(a - b) > 1]
                     graph, P, _ = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
                     tol = translation_tolerance(graph)
                     bad = np.zeros(graph.n, dtype=bool)
@@ -212,6 +216,9 @@ def main() -> None:
     parser.add_argument("--ratios", type=float, nargs="+", default=list(RATIOS), help="outlier ratios")
     parser.add_argument("--methods", nargs="+", help="row names (default: all); see --list")
     parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), metavar="SCENE",
+                        help="3DMatch test scenes (default: all 8) or generated buildings gen<N>, e.g. gen200 "
+                             "gen1000 (data_tools.building; one building per seed)")
     parser.add_argument("--quick", action="store_true", help="1 seed, ratios 0 and 0.5")
     parser.add_argument("--noisy-overlap", action="store_true",
                         help="top-k by overlap + N(0, 0.1) instead of the GT overlap (make_graph's variant)")
@@ -223,6 +230,9 @@ def main() -> None:
     parser.add_argument("--identifiability", action="store_true",
                         help="only the table of outvoted scans and the recall bound they imply (no method runs)")
     args = parser.parse_args()
+    unknown = [s for s in args.scenes if s not in SCENES and not GENERATED.fullmatch(s)]
+    if unknown:
+        parser.error(f"unknown scenes {unknown}: the 3DMatch test scenes or gen<N>")
     names = list(all_methods())
     if args.list:
         print("\n".join(names))
@@ -238,14 +248,14 @@ def main() -> None:
         print(tables([r for r in runs if r.ratio in ratios], names, args.kinds, ratios))
         return
     if args.identifiability:
-        print(f"outvoted scans / recall bound, {len(SCENES)} scenes × {seeds} seeds, top-k by "
+        print(f"outvoted scans / recall bound, {len(args.scenes)} scenes × {seeds} seeds, top-k by "
               f"{'noisy' if args.noisy_overlap else 'GT'} overlap")
-        print(identifiability(args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap))
+        print(identifiability(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap))
         return
 
     # Ratio 0 is the same graph for both kinds: run it once, under the first kind.
     tasks = [(scene, seed, kind, ratio, args.noisy_overlap, names) for kind in args.kinds for ratio in ratios
-             if ratio > 0 or kind == args.kinds[0] for scene in SCENES
+             if ratio > 0 or kind == args.kinds[0] for scene in args.scenes
              for seed in range(args.first_seed, args.first_seed + seeds)]
     start = time.perf_counter()
     runs: list[Run] = []
@@ -258,7 +268,7 @@ def main() -> None:
     if args.records:
         with atomic_write(args.records) as f:
             f.writelines(json.dumps(asdict(r)) + "\n" for r in runs)
-    print(f"{len(SCENES)} scenes × {seeds} seeds from {args.first_seed}, top-k by {'noisy' if args.noisy_overlap else 'GT'} overlap, "
+    print(f"{len(args.scenes)} scenes × {seeds} seeds from {args.first_seed}, top-k by {'noisy' if args.noisy_overlap else 'GT'} overlap, "
           f"{args.jobs} processes, {time.perf_counter() - start:.0f} s")
     print(tables(runs, names, args.kinds, ratios))
 
