@@ -5,8 +5,9 @@ robustness benchmark corrupts exactly as it corrupts the real 3DMatch scenes; on
 beyond the samples that measure overlap.
 
 - **Floor**: a grid of rooms 3.5–6 m a side, 2.5–3 m high, in blocks of two room rows with a corridor
-  (1.8–2.4 m wide, open along its length) between them; about one room per 25 scans (``SCANS_PER_ROOM``),
-  so 200 scans walk through ~8 rooms and 1,000 through ~40. Every room has a door (0.9–1.2 m) to the
+  (1.8–2.4 m wide, open along its length) between them; about one room per 25 scans (``SCANS_PER_ROOM``):
+  200 scans walk through 6 rooms and a corridor (3 × 3 cells, ~13 × 12 m), 1,000 through 32 rooms and two
+  corridors (8 × 6 cells, ~39 × 20 m). Every room has a door (0.9–1.2 m) to the
   corridor with probability 0.7 and to each neighbouring room with probability 0.25, plus the doors of a
   random spanning tree, so the floor is connected and has loops of several rooms.
 - **Walk**: from cell to cell through the doors, preferring cells visited least and not going straight back,
@@ -118,7 +119,8 @@ def _make_building(n: int, seed: int) -> SceneGT:
 
 
 def _information(p: np.ndarray) -> np.ndarray:
-    """3DMatch's gt.info of a pair from the overlapping points p (K, 3) of its first scan: Σ GᵀG, G = [I, −[p]×]."""
+    """3DMatch's gt.info of a pair from its overlapping points p (K, 3) in its first scan's frame: Σ GᵀG with
+    G = [I, −[p]×]."""
     G = np.zeros((len(p), 3, 6))
     G[:, :, :3] = np.eye(3)
     x, y, z = p.T
@@ -143,7 +145,7 @@ def _floor(rng: np.random.Generator, rooms: int) -> _Floor:
     # A random spanning tree (Kruskal on shuffled pairs) keeps every cell reachable.
     parent = {(r, c): (r, c) for r in range(R) for c in range(C)}
 
-    def root(cell):
+    def root(cell: tuple[int, int]) -> tuple[int, int]:
         while parent[cell] != cell:
             cell = parent[cell]
         return cell
@@ -157,12 +159,11 @@ def _floor(rng: np.random.Generator, rooms: int) -> _Floor:
     doors = {}
     for a, b in pairs:
         horizontal = a[0] == b[0]
-        both_corridor = corridor[a[0]] and corridor[b[0]]
         if horizontal and corridor[a[0]]:
             opening = (ys[a[0]], ys[a[0] + 1])  # a corridor is open along its length
         else:
             p = P_CORRIDOR_DOOR if corridor[a[0]] or corridor[b[0]] else P_ROOM_DOOR
-            if (a, b) not in tree and (both_corridor or rng.random() >= p):
+            if (a, b) not in tree and rng.random() >= p:
                 continue
             lo, hi = (ys[a[0]], ys[a[0] + 1]) if horizontal else (xs[a[1]], xs[a[1] + 1])
             width = rng.uniform(*DOOR_WIDTH)
@@ -286,8 +287,8 @@ def _scans(rng: np.random.Generator, caster: o3d.t.geometry.RaycastingScene, pos
         look = LOOK_KEEP * look + rng.normal(0.0, LOOK_STEP)
         height = HEIGHT_KEEP * height + rng.normal(0.0, HEIGHT_STEP)
         for _ in range(8):
-            T = _camera(positions[k], np.clip(np.mean(CAMERA_HEIGHT) + height, *CAMERA_HEIGHT), headings[k] + look, PITCH + rng.normal(0.0, PITCH_SD),
-                        rng.normal(0.0, ROLL_SD))
+            T = _camera(positions[k], np.clip(np.mean(CAMERA_HEIGHT) + height, *CAMERA_HEIGHT), headings[k] + look,
+                        PITCH + rng.normal(0.0, PITCH_SD), rng.normal(0.0, ROLL_SD))
             d = _rays(rng, POINTS)
             t = _cast(caster, np.tile(T[:3, 3], (POINTS, 1)), d @ T[:3, :3].T)
             p = d * t[:, None]
