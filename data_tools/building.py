@@ -7,9 +7,9 @@ beyond the samples that measure overlap.
 - **Floor**: a grid of rooms 3.5–6 m a side, 2.5–3 m high, in blocks of two room rows with a corridor
   (1.8–2.4 m wide, open along its length) between them; about one room per 25 scans (``SCANS_PER_ROOM``):
   200 scans walk through 6 rooms and a corridor (3 × 3 cells, ~13 × 12 m), 1,000 through 32 rooms and two
-  corridors (8 × 6 cells, ~39 × 20 m). Every room has a door (0.9–1.2 m) to the
-  corridor with probability 0.7 and to each neighbouring room with probability 0.25, plus the doors of a
-  random spanning tree, so the floor is connected and has loops of several rooms.
+  corridors (8 × 6 cells, ~39 × 20 m, seed 0). Every room has a door (0.9–1.2 m) to the corridor with
+  probability 0.7 and to each neighbouring room with probability 0.25, plus the doors of a random spanning
+  tree, so the floor is connected and has loops of several rooms.
 - **Walk**: from cell to cell through the doors, preferring cells visited least and not going straight back,
   via 0–2 random points inside each cell (0.7 m from its walls); a scan every 0.2–0.4 m along the path (the real
   scenes' median step is 0.25–0.32 m), with 5 cm of hand jitter. A cell is typically seen again after a long
