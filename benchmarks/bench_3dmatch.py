@@ -9,7 +9,8 @@ paper's protocol (gt.log pairs with |i − j| > 1, a pair with an unplaced fragm
 whole model: one rigid alignment of all placed scan positions to GT (as ``evo_ape --align``), then the scans
 within 5° / 0.2 m (bunny: 0.2° / 0.5 mm, aligned by whole poses: its sensor positions ring the object and
 leave a positions-only alignment's rotation loose), ATE rmse and rotation errors. ``doubted`` lists the placed scans
-outside the tolerance (fragment numbers), ``flagged`` those the run itself called unverified.
+outside the tolerance (fragment numbers), ``flagged`` those the run itself called unverified, contested or
+unregistered.
 ``--set`` overrides a ``Config`` field (parsed by the field's type, ``none`` for None) for ablations;
 ``--workers`` is passed to ``Config.workers`` when the installed Config has that field. Seconds per stage
 are the run's own timings; ``wall s`` is the whole child process, imports included.
@@ -116,12 +117,13 @@ def scene_gt(data: Path, scene: Scene) -> dict:
     return kw
 
 
-def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None) -> dict:
-    """One JSON-able row from a ``SceneScore`` and the run's timings."""
+def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None,
+              contested: list[str] = ()) -> dict:
+    """One JSON-able row from a ``SceneScore``, the run's timings and its contested scans."""
     w = score.whole
     return {
         "scene": name, "scans": score.scans, "placed": len(score.placed), "unregistered": score.unregistered,
-        "unverified": score.unverified, "recall": score.recall.recall if score.recall else None,
+        "unverified": score.unverified, "contested": list(contested), "recall": score.recall.recall if score.recall else None,
         "within": score.within, "tolerance": [score.max_deg, score.max_trans], "ate_rmse": w.ate_rmse,
         "median_rot": float(np.median(w.rotation_deg)), "worst_rot": float(w.rotation_deg.max()),
         "worst_trans": float(w.translation.max()), "seconds": seconds, "wall": wall, "peak_mb": peak_mb,
@@ -139,7 +141,7 @@ def print_table(rows: list[dict]) -> None:
     stages = list(dict.fromkeys(k for r in rows for k in r.get("seconds", {})))
     print("| scene | scans | placed | unregistered | unverified | RR (paper) | within tol | ATE rmse m | median rot ° "
           "| worst rot ° | " + " | ".join(f"{s} s" for s in stages) + " | wall s | peak MB | doubted (whole model) "
-          "| flagged by the run (unverified; unregistered) |")
+          "| flagged by the run (unverified; contested; unregistered) |")
     print("|---" * (15 + len(stages)) + "|")
     for r in rows:
         if "error" in r:
@@ -151,7 +153,7 @@ def print_table(rows: list[dict]) -> None:
               f"| {r['median_rot']:.3g} | {r['worst_rot']:.3g} | "
               + " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages)
               + f" | {r['wall']:.0f} | {r['peak_mb']:.0f} | {labels(r['doubted'])} "
-              f"| {labels(r['unverified'])}; {labels(r['unregistered'])} |")
+              f"| {labels(r['unverified'])}; {labels(r.get('contested', []))}; {labels(r['unregistered'])} |")
 
 
 def child(scene_dir: str, overrides_json: str, workers: str) -> None:
@@ -163,7 +165,8 @@ def child(scene_dir: str, overrides_json: str, workers: str) -> None:
     with tempfile.TemporaryDirectory() as out:
         res = run(scene_dir, out, config, log=lambda m: print(m, file=sys.stderr))
     print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
-                      "unverified": res.unverified, "timings": res.timings, "peak_mb": peak_memory_mb()}))
+                      "unverified": res.unverified, "contested": res.contested, "timings": res.timings,
+                      "peak_mb": peak_memory_mb()}))
 
 
 def run_scene(data: Path, name: str, overrides: dict, workers: int | None) -> dict:
@@ -180,7 +183,7 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None) -> di
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     score = score_run(r["names"], np.array(r["poses"]), unregistered=r["unregistered"], unverified=r["unverified"],
                       **scene_gt(data, scene))
-    return score_row(name, score, r["timings"], wall, r["peak_mb"])
+    return score_row(name, score, r["timings"], wall, r["peak_mb"], r.get("contested", []))
 
 
 def main() -> None:
