@@ -19,7 +19,7 @@ def run_notebook(path: Path) -> dict:
 
 def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     ns = run_notebook(NOTEBOOKS / "tour.ipynb")
-    assert ns["errors"].rotation_deg.max() < 1.0 and ns["result"].unverified == []
+    assert ns["errors"].rotation_deg.max() < 1.0 and ns["result"].unverified == ns["result"].contested == []
     np.testing.assert_array_equal(np.flatnonzero(ns["synced"].weights == 0), ns["wrong"])
     assert ns["rot"].max() < 3.0
-    assert "unregistered: [] | unverified: []" in capsys.readouterr().out
+    assert "unregistered: [] | unverified: [] | contested: []" in capsys.readouterr().out
