@@ -60,6 +60,7 @@ def test_outputs_parse_back_to_the_result(room_run):
     assert report["pairs_exhaustive"] == n * (n - 1) // 2
     assert report["pairs_registered"] == result.graph.num_edges
     assert report["unregistered"] == [] and report["unverified"] == result.unverified == []
+    assert report["contested"] == result.contested == []
     assert report["peak_memory_mb"] > 0
     assert {"features", "pairwise", "sync", "total"} <= set(report["seconds"])
     assert Config.from_json(out / "config.json") == Config(seed=0)
