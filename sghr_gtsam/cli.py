@@ -49,6 +49,15 @@ def _config(config_file: Optional[Path], **overrides) -> Config:
     return cfg.validate()
 
 
+def _start_workers(cfg: Config) -> None:
+    """Start the parallel stages' fork server before importing the pipeline (torch, gtsam, rerun: seconds), so
+    that both import at once on two cores."""
+    from .executor import start_server
+    from .registration import WORKER_MODULES
+
+    start_server(WORKER_MODULES, cfg.workers)
+
+
 @app.command()
 def run(
     scene_dir: Path = typer.Argument(..., help="Folder of scans (.ply .pcd .xyz .txt .npy .npz); order = sorted names."),
@@ -67,11 +76,12 @@ def run(
     config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options given here override it."),
 ) -> None:
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
-    from .pipeline import run as run_pipeline
-
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
                  workers=workers, record=record, global_feature=global_feature, features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
+    _start_workers(cfg)
+    from .pipeline import run as run_pipeline
+
     out = out or Path("results") / scene_dir.resolve().name
     result = _guard(run_pipeline, scene_dir, out, cfg, log=typer.echo)
     typer.echo(f"registered {len(result.registered)}/{len(result.names)} scans in "

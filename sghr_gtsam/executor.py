@@ -8,7 +8,8 @@ is the seam a cluster executor (Ray) replaces: the same call with ``shared`` put
 
 Workers start from a fork server, not by forking this process: kiss-matcher and open3d run TBB thread pools,
 and a child forked from a process whose pool is running deadlocks in its first parallel call (seen here).
-The server imports ``fn``'s module once, so each worker starts in milliseconds.
+The server imports ``fn``'s module once, so each worker starts in milliseconds. ``start_server`` starts it
+early, so that its imports (≈ 1.5 s) run on another core while the caller is still importing and loading.
 """
 
 from __future__ import annotations
@@ -30,6 +31,19 @@ _SHARED: Any = None  # the running stage's shared state, in each worker
 def default_workers() -> int:
     """Every core this process may run on."""
     return len(os.sched_getaffinity(0))
+
+
+def start_server(modules: Sequence[str], workers: int | None = None) -> None:
+    """Start the fork server now, importing ``modules`` (those of the tasks to come), unless the stages will run
+    in this process (one worker) or the server is running already. Without it the first ``parallel_map`` starts
+    the server and waits for its imports."""
+    workers = default_workers() if workers is None else workers
+    if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
+        return
+    from multiprocessing import forkserver
+
+    forkserver.set_forkserver_preload(list(modules))
+    forkserver.ensure_running()
 
 
 def _receive(shared: Any, started: Any) -> None:

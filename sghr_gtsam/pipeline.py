@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from .config import Config
+from .executor import start_server
 from .features.local import ScanFeatures, compute_features, default_voxel
 from .features.netvlad import (
     DEFAULT_HEAD,
@@ -26,6 +27,7 @@ from .io.features import read_features
 from .io.results import write_results
 from .io.scans import finite_points, list_scans, load_scan
 from .recording import Recorder
+from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
@@ -275,6 +277,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``."""
     config.validate()
     started = time.perf_counter()
+    start_server(WORKER_MODULES, config.workers)  # its imports overlap the loading
     timer = _Timer()
     with timer.stage("load"):
         scans, skipped = load_scene(scene_dir, config, log)
