@@ -164,3 +164,27 @@ def test_a_script_without_a_main_guard_runs_with_workers(tmp_path):
                          cwd=Path(__file__).resolve().parents[1], env={**__import__("os").environ, "PYTHONPATH": "."})
     assert out.returncode == 0, out.stderr[-500:]
     assert out.stdout.splitlines() == ["[2, 8, 18]"]  # once: the workers did not run the script
+
+
+def _has_module(name, _):
+    import sys
+
+    return name in sys.modules
+
+
+def test_a_started_server_preloads_the_task_modules(tmp_path):
+    """``start_server`` imports the given modules in the fork server once; workers inherit them."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "early.py"
+    script.write_text("from sghr_gtsam.executor import parallel_map, start_server\n"
+                      "from tests.test_front_end import _has_module\n"
+                      "start_server(['tests.test_front_end', 'xml.dom.minidom'], workers=2)\n"
+                      "print(parallel_map(_has_module, 'xml.dom.minidom', [1, 2], workers=2))\n"
+                      "print(parallel_map(_has_module, 'xml.dom.minidom', [1, 2], workers=1))\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[1], env={**__import__("os").environ, "PYTHONPATH": "."})
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.splitlines() == ["[True, True]", "[False, False]"]
