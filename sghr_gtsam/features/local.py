@@ -15,7 +15,6 @@ from scipy.spatial import cKDTree
 
 from sghr_gtsam.types import InputError, Keypoints
 
-NUM_THREADS = len(os.sched_getaffinity(0))
 # small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
 # one thread ran GICP 2.5x faster (wall) than two. scipy's k-d queries use plain threads.
 GICP_THREADS = 1
@@ -64,6 +63,12 @@ class ScanFeatures:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self.cloud, self.cloud_tree = _gicp_cloud(self.points)
+
+
+def query_threads() -> int:
+    """Threads for scipy's k-d queries: the cores this process may run on now (an executor's worker is pinned to
+    one; a count read at import would be the fork server's, and two threads on one core only take turns)."""
+    return len(os.sched_getaffinity(0))
 
 
 def _gicp_cloud(grid: np.ndarray) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:

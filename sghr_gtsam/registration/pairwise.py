@@ -13,7 +13,7 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
-from sghr_gtsam.features.local import GICP_THREADS, NUM_THREADS, ScanFeatures
+from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
 from sghr_gtsam.types import InputError
 
 from .estimators import sc2_estimate
@@ -71,8 +71,9 @@ class PairResult:
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:
     """Indices (a, b): ``target_i.keypoints[a]`` and ``source_j.keypoints[b]`` are mutual nearest
     neighbours in descriptor space."""
-    _, nn_in_i = target_i.descriptor_tree.query(source_j.descriptors, k=1, eps=MATCH_EPS, workers=NUM_THREADS)
-    _, nn_in_j = source_j.descriptor_tree.query(target_i.descriptors, k=1, eps=MATCH_EPS, workers=NUM_THREADS)
+    threads = query_threads()
+    _, nn_in_i = target_i.descriptor_tree.query(source_j.descriptors, k=1, eps=MATCH_EPS, workers=threads)
+    _, nn_in_j = source_j.descriptor_tree.query(target_i.descriptors, k=1, eps=MATCH_EPS, workers=threads)
     b = np.flatnonzero(nn_in_j[nn_in_i] == np.arange(len(nn_in_i)))
     return nn_in_i[b], b
 
