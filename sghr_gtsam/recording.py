@@ -108,7 +108,7 @@ class Recorder:
         self.rec.log("weights", rr.Scalars(w_rel))
 
     def log_final(self, poses: np.ndarray, unregistered: list[str], unverified: list[str],
-                  contested: list[str] = ()) -> None:
+                  contested: list[str]) -> None:
         self.rec.set_time(TIMELINE, sequence=self._step + 1)
         self.log_poses(poses)
         for label, names in (("unregistered", unregistered), ("unverified", unverified), ("contested", contested)):

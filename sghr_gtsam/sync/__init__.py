@@ -146,11 +146,21 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
             poses, kept = _readmit(graph, poses, kept, min_weight, solve)
     weights = np.where(kept, weights, 0.0)
     component = connected_components(graph.n, graph.i, graph.j, kept)
-    first = np.unique(component, return_index=True)[1]
-    poses = inv_T(poses[first[component]]) @ poses  # a part re-judged apart is anchored at its own first node
+    poses = _anchored(poses, component)  # a part re-judged apart is anchored at its own first node
     residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
     return SyncResult(poses=poses, weights=weights, residual_deg=np.degrees(residual), component=component,
                       history=history, loop_support=support)
+
+
+def _usable(graph: PoseGraph, min_weight: float) -> PoseGraph:
+    """``graph`` without its negligible edges (initial weight below ``min_weight`` times the largest: weight 0)."""
+    return replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+
+
+def _anchored(poses: np.ndarray, component: np.ndarray) -> np.ndarray:
+    """``poses`` with every part (``component`` label) moved so that its first node is the identity."""
+    first = np.unique(component, return_index=True)[1]
+    return inv_T(poses[first[component]]) @ poses
 
 
 def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, min_weight: float,
@@ -161,7 +171,7 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, min_weight: 
     on every edge) they leave edges out that the optimum over all of them fits within their noise. With
     the edges' own information (the only noise model an edge can be re-admitted by), every usable edge is
     tried from the current poses too; the larger consistent set wins, and that set is solved again."""
-    usable_graph = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+    usable_graph = _usable(graph, min_weight)
     usable = usable_graph.weight > 0
     for _ in range(REFIT_ROUNDS - 1):
         refit = kept_edges_at(usable_graph, poses)
@@ -194,7 +204,7 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     """
     from ..factor_graph import edge_information, polish as lm_polish
 
-    usable = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+    usable = _usable(graph, min_weight)
     support = triangle_support(usable)
     cred = credibility(usable)
     by_cred = replace(usable, weight=cred)
@@ -219,9 +229,7 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     _, P, kept = best
     kept = kept_edges_at(usable, P)
     # Every part is anchored at its own first node (the grown poses are anchored at the seed).
-    component = connected_components(graph.n, graph.i, graph.j, kept)
-    first = np.unique(component, return_index=True)[1]
-    return inv_T(P[first[component]]) @ P, kept, support
+    return _anchored(P, connected_components(graph.n, graph.i, graph.j, kept)), kept, support
 
 
 def _robust_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
@@ -237,7 +245,7 @@ def _robust_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     """
     from ..factor_graph import edge_information, gnc_tls_poses
 
-    usable = replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+    usable = _usable(graph, min_weight)
     steps = (("consensus", lambda P: consensus_placement(usable, P)),
              ("gnc", lambda P: gnc_tls_poses(usable, P, edge_information(usable, usable.weight), GNC_ITERS)[0]),
              ("consensus", lambda P: consensus_placement(usable, P)))

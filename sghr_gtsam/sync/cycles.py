@@ -35,6 +35,7 @@ import numpy as np
 
 from ..se3 import inv_T, rotation_angle
 from ..types import PoseGraph
+from .bridges import blocks as block_labels
 from .consensus import MAX_DEG, translation_tolerance, within_noise
 
 
@@ -177,7 +178,6 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
     correction with the most ``cred`` among the proposals agreeing with it (at least two), if that beats
     the correction it has now (identity). Round after round, all groups at once, until none moves.
     """
-    from .bridges import blocks as block_labels
     from .consensus import consistent_edges
 
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
