@@ -60,7 +60,8 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
         return 0
     guesses = _guesses(sync.poses, edges.ij[todo])
     results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel,
-                                               config.icp_distance, config.workers)
+                                               config.icp_distance, config.workers,
+                                               [edges.pairs[e].matches for e in todo])
     changed = 0
     for e, result, ok, guess in zip(todo, results, converged, guesses):
         edges.refined[e] = True
@@ -92,8 +93,9 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
     index = {(int(a), int(b)): e for e, (a, b) in enumerate(edges.ij)}
     ij = np.array([(b, a) if (b, a) in index else (a, b) for a, b in ij.tolist()], dtype=np.int64)  # as registered
     guesses = _guesses(sync.poses, ij)
+    known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
     results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config.icp_distance,
-                                               config.workers)
+                                               config.workers, known)
     closed = 0
     for (a, b), result, ok, guess in zip(ij, results, converged, guesses):
         if not confirms(result, ok, guess, voxel, config.min_inliers):

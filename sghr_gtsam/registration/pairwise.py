@@ -6,7 +6,7 @@ SGHR uses as the edge's confidence. ``T_ij`` maps points of scan j into the fram
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import kiss_matcher
 import numpy as np
@@ -57,6 +57,8 @@ class PairResult:
     a loop closure) with the point noise estimated from their residuals
     (``information.registration_information``); None with too few pairs. ``seconds``: wall time. ``coverage``: cells of ``COVERAGE_CELL`` voxels
     (a grid in scan i's frame) that hold at least one of the ``inliers``: how spread the agreement is.
+    ``matches``: the mutual descriptor matches (a, b) it was scored on; they depend on the two scans only, so
+    scoring the pair again at another ``T`` (refinement) reuses them.
     """
 
     T: np.ndarray
@@ -66,6 +68,7 @@ class PairResult:
     information: np.ndarray | None
     seconds: float
     coverage: int = 0
+    matches: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
 
 
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:
@@ -126,7 +129,7 @@ def register_pair(
     start = time.perf_counter()
     a, b = mutual_matches(target_i, source_j)
     if len(a) < 3:
-        return PairResult(np.eye(4), 0, 0.0, 0.0, None, time.perf_counter() - start)
+        return PairResult(np.eye(4), 0, 0.0, 0.0, None, time.perf_counter() - start, matches=(a, b))
     p_i, p_j = target_i.keypoints[a], source_j.keypoints[b]
     if matcher == "sc2":
         T = sc2_estimate(p_i, p_j, voxel).T
@@ -184,4 +187,5 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
                                                                                           max_distance),
         seconds=0.0,
         coverage=len(np.unique(cells, axis=0)),
+        matches=(a, b),
     )

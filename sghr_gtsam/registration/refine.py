@@ -114,16 +114,17 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
 
 
 def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyramid, pyramid_j: Pyramid,
-                T_init: np.ndarray, voxel: float, icp_distance: float) -> tuple[PairResult, bool]:
-    """Multi-scale ICP from ``T_init``, the pair scored at the result (``score_pair``) with the information of
-    the finest level's alignment (the matching grid's when that level has too few close pairs), and whether
-    the finest level converged."""
+                T_init: np.ndarray, voxel: float, icp_distance: float,
+                matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[PairResult, bool]:
+    """Multi-scale ICP from ``T_init``, the pair scored at the result (``score_pair``, on the pair's earlier
+    ``matches`` when given) with the information of the finest level's alignment (the matching grid's when that
+    level has too few close pairs), and whether the finest level converged."""
     start = time.perf_counter()
     T, converged = multiscale_icp(pyramid_i, pyramid_j, T_init)
     finest = _levels(pyramid_i, pyramid_j) - 1
     information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
                                            _distance(pyramid_i, finest))
-    result = score_pair(target_i, source_j, T, voxel, icp_distance, information=information)
+    result = score_pair(target_i, source_j, T, voxel, icp_distance, matches, information)
     result.seconds = time.perf_counter() - start
     return result, converged
 
@@ -137,19 +138,21 @@ def confirms(result: PairResult, converged: bool, guess: np.ndarray, voxel: floa
                 and np.linalg.norm(move[:3, 3]) <= MAX_MOVE_VOXELS * voxel)
 
 
-def _refine_task(shared: tuple, task: tuple[int, int, np.ndarray]) -> tuple[PairResult, bool]:
+def _refine_task(shared: tuple, task: tuple) -> tuple[PairResult, bool]:
     features, pyramids, voxel, icp_distance = shared
-    a, b, T_init = task
-    return refine_pair(features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance)
+    a, b, T_init, matches = task
+    return refine_pair(features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance, matches)
 
 
 def register_from_guesses(features: list[ScanFeatures], pyramids: list[Pyramid], ij: np.ndarray,
-                          guesses: np.ndarray, voxel: float, icp_distance: float,
-                          workers: int | None) -> tuple[list[PairResult], np.ndarray]:
+                          guesses: np.ndarray, voxel: float, icp_distance: float, workers: int | None,
+                          matches: list | None = None) -> tuple[list[PairResult], np.ndarray]:
     """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), over the executor's
-    processes: the results and whether each converged."""
+    processes, with each pair's earlier descriptor ``matches`` where known (None: found anew): the results and
+    whether each converged."""
     from ..executor import parallel_map
 
-    tasks = [(int(a), int(b), T) for (a, b), T in zip(ij, guesses)]
+    matches = matches or [None] * len(ij)
+    tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
     out = parallel_map(_refine_task, (features, pyramids, voxel, icp_distance), tasks, workers)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)
