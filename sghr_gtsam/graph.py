@@ -9,17 +9,15 @@ they choose exactly the same edges; near-equal scores are ranked as these float3
 
 from __future__ import annotations
 
-import warnings
 from typing import Callable
 
 import numpy as np
-import torch
 from scipy.linalg.blas import ssyrk
 
 FORMS = ("paper", "authors")
 _TILE = 128  # tile edge for mirroring the Gram matrix (fits L1/L2 while transposing)
 _PAD = 3  # candidates kept per row beyond the k best and the diagonal; more only when ties spill over
-_CHUNK = 512  # rows per block where a row needs the exact full-row selection
+_CHUNK = 512  # rows per block of the candidate selection and of the rows that need their full row
 
 
 def gram32(F: np.ndarray) -> np.ndarray:
@@ -82,18 +80,15 @@ def _rowwise_top_k(V: np.ndarray, k: int, key: Callable[[np.ndarray], np.ndarray
     """Each row's ``k`` best columns (the diagonal excluded) by ``key(V[i, j])``, ties to the lower column: the
     first ``k`` of a stable sort by descending key. Returns (rows, cols), ``k`` per row.
 
-    ``key`` must be monotone non-decreasing (float64 out). ``torch.topk`` takes the ``K = k + 1 + _PAD`` largest
-    raw values of each row; a row is settled from them when the key of their smallest is below the row's k-th
+    ``key`` must be monotone non-decreasing (float64 out). ``np.argpartition`` (by blocks of rows, which keeps
+    it in cache: 4x faster at N = 5000) takes the ``K = k + 1 + _PAD`` largest raw values of each row; a row is settled from them when the key of their smallest is below the row's k-th
     best key (then no other column can reach or tie it). Other rows (ties spilling past ``K``) are solved
     exactly on the full row.
     """
     n = len(V)
     K = min(k + 1 + _PAD, n)
-    with warnings.catch_warnings():  # read-only input: torch warns that writing would be undefined; we only read
-        warnings.simplefilter("ignore", UserWarning)
-        T = torch.from_numpy(V)
-    vals, cols = torch.topk(T, K, dim=1, largest=True, sorted=False)
-    vals, cols = vals.numpy(), cols.numpy()
+    cols = np.concatenate([np.argpartition(V[r:r + _CHUNK], n - K, axis=1)[:, n - K:] for r in range(0, n, _CHUNK)])
+    vals = np.take_along_axis(V, cols, 1)
     rows = np.arange(n)
     by_col = np.argsort(cols, axis=1)
     cols = np.take_along_axis(cols, by_col, 1)

@@ -5,7 +5,7 @@ its scans and β ∈ [1024, 5000] keypoints a scan (their descriptors), computes
 with the NetVLAD head, the scores ``s_ij = (F_iᵀF_j + 1)/2`` of all α(α−1)/2 pairs, and the L1 loss between
 them and the pairs' GT overlap ratios; Adam, learning rate 1e-3, ×0.7 every 50 epochs. An epoch is one step
 per training scene. The head starts from a k-means codebook of the training descriptors
-(``NetVLAD.from_codebook``), i.e. from the unsupervised feature, and learns from there.
+(``VladHead.from_codebook``), i.e. from the unsupervised feature, and learns from there.
 
 Losses (``loss=``): ``"l1"`` is the paper's (above). It cannot be met by scores of that form (α unit vectors
 have mean cosine ≥ −1/(α−1), so the mean score is ≥ ~0.5, while most GT overlaps are ~0) and spends itself
@@ -48,9 +48,11 @@ from typing import Callable
 
 import numpy as np
 import torch
+import torch.nn.functional as nnf
 import typer
+from torch import nn
 
-from sghr_gtsam.features.netvlad import NetVLAD, codebook_features, global_features, kmeans_codebook
+from sghr_gtsam.features.netvlad import VladHead, codebook_features, global_features, kmeans_codebook
 from sghr_gtsam.graph import overlap_scores
 from sghr_gtsam.io.atomic import atomic_write
 from sghr_gtsam.types import InputError
@@ -123,6 +125,40 @@ def split(scenes: list[CachedScene]) -> tuple[list[CachedScene], list[CachedScen
 # --- model, loss and one step --------------------------------------------------------------------------------
 
 
+class NetVLAD(nn.Module):
+    """The trainable form of a ``VladHead`` (the same layer and parameter names, batched)."""
+
+    def __init__(self, clusters: int = 64, dim: int = 32):
+        super().__init__()
+        self.centroids = nn.Parameter(torch.zeros(clusters, dim))
+        self.conv = nn.Conv2d(dim, clusters, kernel_size=1, bias=True)
+
+    def forward(self, desc: torch.Tensor) -> torch.Tensor:
+        """``desc``: (B, D, P) descriptors of B scans with P points each -> (B, clusters·D) unit vectors."""
+        x = nnf.normalize(desc, p=2, dim=1)
+        assign = torch.softmax(self.conv(x.unsqueeze(-1)).squeeze(-1), dim=1)  # (B, K, P)
+        vlad = torch.einsum("bkp,bdp->bkd", assign, x) - self.centroids[None] * assign.sum(-1, keepdim=True)
+        vlad = nnf.normalize(vlad, p=2, dim=2)
+        return nnf.normalize(vlad.flatten(1), p=2, dim=1)
+
+    @classmethod
+    def from_head(cls, head: VladHead) -> "NetVLAD":
+        model = cls(*head.centroids.shape)
+        with torch.no_grad():
+            model.centroids.copy_(torch.as_tensor(head.centroids))
+            model.conv.weight.copy_(torch.as_tensor(head.weight)[:, :, None, None])
+            model.conv.bias.copy_(torch.as_tensor(head.bias))
+        return model
+
+    def head(self) -> VladHead:
+        """The parameters as the pipeline's numpy ``VladHead``."""
+        def array(t: torch.Tensor) -> np.ndarray:
+            return t.detach().double().numpy().copy()
+
+        return VladHead(array(self.centroids), array(self.conv.weight).reshape(len(self.centroids), -1),
+                        array(self.conv.bias))
+
+
 def init_head(scenes: list[CachedScene], clusters: int = 64, seed: int = 0) -> NetVLAD:
     """NetVLAD initialised from a spherical k-means codebook of (a sample of) the training descriptors."""
     rng = np.random.default_rng([seed, 1])
@@ -130,7 +166,8 @@ def init_head(scenes: list[CachedScene], clusters: int = 64, seed: int = 0) -> N
     for s in scenes:
         for d in s.descriptors:
             sample.append(d[rng.choice(len(d), min(len(d), 200), replace=False)])
-    return NetVLAD.from_codebook(kmeans_codebook(sample, clusters=clusters, samples=50_000, seed=seed))
+    return NetVLAD.from_head(VladHead.from_codebook(kmeans_codebook(sample, clusters=clusters, samples=50_000,
+                                                                      seed=seed)))
 
 
 def pair_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor) -> torch.Tensor:
@@ -213,11 +250,11 @@ def _score(scenes: list[CachedScene], features: Callable[[list[np.ndarray]], np.
     return {"l1": float(np.mean(l1)) if l1 else float("nan"), "spearman": float(np.nanmean(rho)) if rho else float("nan")}
 
 
-def evaluate(model: NetVLAD, scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
-    """``_score`` of the head, features as the pipeline computes them (``global_features``, at most 5000
-    descriptors a scan)."""
-    model.eval()
-    return _score(scenes, lambda d: global_features(model, d, seed=seed))
+def evaluate(model: NetVLAD | VladHead, scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
+    """``_score`` of the head (in training or loaded), features as the pipeline computes them
+    (``global_features``, at most 5000 descriptors a scan)."""
+    head = model.head() if isinstance(model, NetVLAD) else model
+    return _score(scenes, lambda d: global_features(head, d, seed=seed))
 
 
 def evaluate_codebook(scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:

@@ -1,7 +1,7 @@
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from sghr_gtsam.features.netvlad import NetVLAD, global_features, kmeans_codebook, load_checkpoint
+from sghr_gtsam.features.netvlad import VladHead, global_features, kmeans_codebook, load_checkpoint
 from sghr_gtsam.graph import gram32, overlap_scores, scores_from_gram, top_k_edges, top_k_graph
 
 
@@ -13,6 +13,29 @@ def test_authors_checkpoint_reproduces_their_overlap_scores(data_dir):
     np.fill_diagonal(scores, 0.0)  # their file has zeros on the diagonal
     expected = np.loadtxt(ref / "multi_reg" / "overlap.txt")
     np.testing.assert_allclose(scores, expected, atol=1e-5)
+
+
+@settings(max_examples=30, deadline=None)
+@given(clusters=st.integers(1, 12), dim=st.integers(2, 40), points=st.integers(1, 300), alpha=st.floats(0.1, 200),
+       scale=st.floats(1e-3, 1e3), seed=st.integers(0, 10_000))
+def test_numpy_head_computes_what_the_trained_torch_layer_computes(clusters, dim, points, alpha, scale, seed):
+    """The pipeline's numpy NetVLAD (no torch on a run) and training's torch layer are one function, before
+    and after the torch parameters move away from the codebook initialisation."""
+    import torch
+
+    from sghr_gtsam.train import NetVLAD
+
+    rng = np.random.default_rng(seed)
+    head = VladHead.from_codebook(rng.normal(size=(clusters, dim)), alpha)
+    model = NetVLAD.from_head(head)
+    with torch.no_grad():
+        for p in model.parameters():
+            p.add_(0.1 * torch.as_tensor(rng.normal(size=tuple(p.shape)), dtype=torch.float32))
+    head = model.head()
+    desc = scale * rng.normal(size=(points, dim))
+    with torch.no_grad():
+        expected = model(torch.as_tensor(desc.T, dtype=torch.float32)[None])[0].double().numpy()
+    np.testing.assert_allclose(head(desc), expected, atol=2e-5)
 
 
 @settings(max_examples=50, deadline=None)
@@ -51,8 +74,8 @@ def test_netvlad_feature_is_unit_and_scores_like_scans_higher():
     base = [rng.normal(size=(800, 33)) + rng.normal(scale=3, size=(1, 33)) for _ in range(3)]
     # scan 3 resamples the points of scan 0: its feature must be closest to scan 0's
     descs = base + [base[0][rng.permutation(800)[:600]] + 0.01 * rng.normal(size=(600, 33))]
-    model = NetVLAD.from_codebook(kmeans_codebook(descs, clusters=16, seed=0))
-    F = global_features(model, descs)
+    head = VladHead.from_codebook(kmeans_codebook(descs, clusters=16, seed=0))
+    F = global_features(head, descs)
     np.testing.assert_allclose(np.linalg.norm(F, axis=1), 1.0, atol=1e-5)
     S = overlap_scores(F)
     assert np.argmax(np.where(np.eye(4, dtype=bool), -1, S)[3]) == 0

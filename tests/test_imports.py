@@ -30,3 +30,21 @@ def test_open3d_extras_are_deferred_until_used():
 def test_open3d_imported_first_is_left_alone():
     seen = _python("import open3d, sys\nimport sghr_gtsam.features.local\nprint('open3d._ml3d' in sys.modules)\n")
     assert seen == ["True"]
+
+
+def test_default_overlap_scoring_runs_without_torch():
+    """torch (seconds to import) is for a learned head's checkpoint and for training only."""
+    seen = _python(
+        "import sys\n"
+        "import numpy as np\n"
+        "import sghr_gtsam.cli, sghr_gtsam.pipeline\n"
+        "from sghr_gtsam.features.netvlad import codebook_features\n"
+        "from sghr_gtsam.graph import top_k_graph\n"
+        "rng = np.random.default_rng(0)\n"
+        "F, _ = codebook_features([rng.random((300, 33)) for _ in range(6)])\n"
+        "print(len(top_k_graph(F, 3)[0]) > 0, 'torch' in sys.modules)\n"
+        "from sghr_gtsam.features.netvlad import load_default_head\n"
+        "load_default_head()\n"
+        "print('torch' in sys.modules)\n"
+    )
+    assert seen == ["True", "False", "True"]

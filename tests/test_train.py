@@ -91,7 +91,7 @@ def test_saved_and_reloaded_head_gives_identical_scores(cache, tmp_path):
         model.conv.bias.add_(torch.linspace(-1, 1, 16))
     save_head(model, tmp_path / "head.pth", {"note": "test"})
     again = load_checkpoint(str(tmp_path / "head.pth"))
-    a = overlap_scores(global_features(model.eval(), scene.descriptors))
+    a = overlap_scores(global_features(model.head(), scene.descriptors))
     b = overlap_scores(global_features(again, scene.descriptors))
     np.testing.assert_array_equal(a, b)
 

@@ -1,68 +1,77 @@
-"""NetVLAD global feature (torch): local descriptors of one scan -> one unit vector ``F``.
+"""NetVLAD global feature: local descriptors of one scan -> one unit vector ``F``.
 
 The head follows the NetVLAD layer the SGHR authors use (parameter names ``centroids``,
 ``conv.weight``, ``conv.bias``): per-point L2-normalised descriptors, soft assignment to
 ``clusters`` centres by a 1x1 convolution + softmax, residual sums intra-normalised per
 cluster, flattened and L2-normalised. Without trained weights it is initialised from an
-unsupervised k-means codebook of the scene's own descriptors (``from_codebook``).
+unsupervised k-means codebook of the scene's own descriptors (``VladHead.from_codebook``).
+Inference is numpy: torch is imported only to read a checkpoint (and to train, ``sghr_gtsam.train``),
+which keeps it off the default run (seconds of import).
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-import torch
-import torch.nn.functional as nnf
-from torch import nn
 
 from sghr_gtsam.types import InputError
 
+_EPS = 1e-12  # torch.nn.functional.normalize's floor on a norm
 
-class NetVLAD(nn.Module):
-    def __init__(self, clusters: int = 64, dim: int = 32):
-        super().__init__()
-        self.centroids = nn.Parameter(torch.zeros(clusters, dim))
-        self.conv = nn.Conv2d(dim, clusters, kernel_size=1, bias=True)
 
-    def forward(self, desc: torch.Tensor) -> torch.Tensor:
-        """``desc``: (B, D, P) descriptors of B scans with P points each -> (B, clusters·D) unit vectors."""
-        x = nnf.normalize(desc, p=2, dim=1)
-        assign = torch.softmax(self.conv(x.unsqueeze(-1)).squeeze(-1), dim=1)  # (B, K, P)
-        # sum_p a_kp (x_p - c_k) = sum_p a_kp x_p - c_k sum_p a_kp
-        vlad = torch.einsum("bkp,bdp->bkd", assign, x) - self.centroids[None] * assign.sum(-1, keepdim=True)
-        vlad = nnf.normalize(vlad, p=2, dim=2)
-        return nnf.normalize(vlad.flatten(1), p=2, dim=1)
+def _unit(x: np.ndarray, axis: int) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=axis, keepdims=True), _EPS)
+
+
+@dataclass(frozen=True)
+class VladHead:
+    """A NetVLAD layer's parameters: cluster ``centroids`` (K, D) and the 1x1 convolution's ``weight`` (K, D)
+    and ``bias`` (K,) that soft-assign descriptors to them."""
+
+    centroids: np.ndarray
+    weight: np.ndarray
+    bias: np.ndarray
 
     @classmethod
-    def from_codebook(cls, centres: np.ndarray, alpha: float = 100.0) -> "NetVLAD":
+    def from_codebook(cls, centres: np.ndarray, alpha: float = 100.0) -> "VladHead":
         """The standard NetVLAD initialisation: soft assignment ~ nearest unit centre, sharpness ``alpha``."""
-        c = torch.as_tensor(centres, dtype=torch.float32)
-        c = nnf.normalize(c, p=2, dim=1)
-        model = cls(clusters=c.shape[0], dim=c.shape[1])
-        with torch.no_grad():
-            model.centroids.copy_(c)
-            model.conv.weight.copy_((2.0 * alpha * c)[:, :, None, None])
-            model.conv.bias.copy_(-alpha * (c * c).sum(1))
-        return model
+        c = _unit(np.asarray(centres, dtype=np.float64), 1)
+        return cls(c, 2.0 * alpha * c, -alpha * (c * c).sum(1))
+
+    def __call__(self, desc: np.ndarray) -> np.ndarray:
+        """``desc``: (P, D) descriptors of one scan -> its (K·D,) unit feature."""
+        x = _unit(np.asarray(desc, dtype=np.float64), 1)
+        logits = x @ self.weight.T + self.bias
+        assign = np.exp(logits - logits.max(axis=1, keepdims=True))
+        assign /= assign.sum(axis=1, keepdims=True)  # (P, K)
+        # sum_p a_pk (x_p - c_k) = sum_p a_pk x_p - c_k sum_p a_pk
+        vlad = assign.T @ x - self.centroids * assign.sum(0)[:, None]
+        return _unit(_unit(vlad, 1).ravel(), 0)
 
 
-def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> NetVLAD:
+def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
     """A NetVLAD head from a checkpoint of the authors' overlap network (``network_state_dict`` with
     keys ``vlador.pool.*``; saved on cuda, so mapped to the CPU) or from one of ours (the same keys).
     ``InputError`` when the file cannot be read or holds no such head."""
+    import torch  # the checkpoint format; only here
+
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
         state = state.get("network_state_dict", state)
-        state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
-        clusters, dim = state["centroids"].shape
-        model = NetVLAD(clusters, dim)
-        model.load_state_dict(state)
+        state = {k[len(prefix):]: v.detach().double().numpy() for k, v in state.items() if k.startswith(prefix)}
+        centroids, weight, bias = state["centroids"], state["conv.weight"], state["conv.bias"]
+        head = VladHead(centroids, weight.reshape(len(weight), -1), bias.ravel())
+        if head.weight.shape != centroids.shape or head.bias.shape != (len(centroids),):
+            raise ValueError(f"centroids {centroids.shape}, conv.weight {weight.shape}, conv.bias {bias.shape} "
+                             "do not make one head")
     except Exception as e:  # noqa: BLE001 - a missing, corrupt or foreign file is bad input
-        reason = f"no {prefix}centroids" if isinstance(e, KeyError) else " ".join(str(e).split()) or type(e).__name__
+        reason = (f"no {prefix}{e.args[0]}" if isinstance(e, KeyError)
+                  else " ".join(str(e).split()) or type(e).__name__)
         raise InputError(f"cannot read overlap head {path}: {reason}") from None
-    return model.eval()
+    return head
 
 
 def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: int = 20000,
@@ -86,33 +95,24 @@ def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: 
     return C
 
 
-def global_features(model: NetVLAD, descriptors: list[np.ndarray], max_points: int = 5000,
+def global_features(head: VladHead, descriptors: list[np.ndarray], max_points: int = 5000,
                     seed: int = 0) -> np.ndarray:
     """Unit global feature (N, K·D) of each scan's descriptors (P_i, D); at most ``max_points`` per scan
     (the paper samples 5000 keypoints), sampled with a fixed seed so reruns give identical scores."""
     rng = np.random.default_rng(seed)
     out = []
-    threads = torch.get_num_threads()
-    # One scan is a few thousand points: torch's thread pool costs more than it gives (2.7 ms a scan on
-    # one thread, 62 ms on two under load, measured), and a caller may run scans in parallel.
-    torch.set_num_threads(1)
-    try:
-        with torch.no_grad():
-            for d in descriptors:
-                if len(d) > max_points:
-                    d = d[rng.choice(len(d), max_points, replace=False)]
-                x = torch.as_tensor(np.ascontiguousarray(d.T), dtype=torch.float32)[None]
-                out.append(model(x)[0].numpy())
-    finally:
-        torch.set_num_threads(threads)
-    return np.stack(out).astype(np.float64)
+    for d in descriptors:
+        if len(d) > max_points:
+            d = d[rng.choice(len(d), max_points, replace=False)]
+        out.append(head(d))
+    return np.stack(out)
 
 
 def codebook_features(descriptors: list[np.ndarray], seed: int = 0) -> tuple[np.ndarray, int]:
     """The unsupervised global feature: a NetVLAD initialised from a k-means codebook of these scans' own
     descriptors (``kmeans_codebook``, ``from_codebook``); the (N, K·D) unit features and the cluster count."""
     codebook = kmeans_codebook(descriptors, seed=seed)
-    return global_features(NetVLAD.from_codebook(codebook), descriptors, seed=seed), len(codebook)
+    return global_features(VladHead.from_codebook(codebook), descriptors, seed=seed), len(codebook)
 
 
 DEFAULT_HEAD = Path(__file__).resolve().parents[1] / "weights" / "netvlad_fpfh.pth"
@@ -120,6 +120,6 @@ DEFAULT_HEAD = Path(__file__).resolve().parents[1] / "weights" / "netvlad_fpfh.p
 of simulated scans only (``sghr_gtsam/weights/README.md`` says how)."""
 
 
-def load_default_head(path: str | Path | None = None) -> NetVLAD:
+def load_default_head(path: str | Path | None = None) -> VladHead:
     """The shipped overlap head (``DEFAULT_HEAD``, for 33-d FPFH), or the head at ``path``."""
     return load_checkpoint(str(path or DEFAULT_HEAD))
