@@ -49,11 +49,14 @@ class Scan:
 
 
 class _Timer:
-    def __init__(self) -> None:
+    def __init__(self, on_stage: Callable[[str], None] | None = None) -> None:
         self.seconds: dict[str, float] = {}
+        self._on_stage = on_stage  # told each stage's name as it starts (the recording's steps)
 
     @contextmanager
     def stage(self, name: str):
+        if self._on_stage:
+            self._on_stage(name)
         t0 = time.perf_counter()
         yield
         self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
@@ -156,7 +159,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         raise InputError("the scans' descriptors differ in dimension")
     if recorder:
         log = _also_recorded(log, recorder)
-    timer = _Timer()
+    timer = _Timer(recorder.begin_stage if recorder else None)
     names = [s.name for s in scans]
     voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
     if not np.isfinite(voxel) or voxel <= 0:
@@ -253,15 +256,18 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
             run.covariances = np.full((n, 6, 6), np.nan)
             log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
     if recorder:
-        recorder.log_final(poses, unregistered, weak, disputed)
+        recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed})
         recorder.log_covariances(poses, run.covariances)
     return run
 
 
 def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None) -> SyncResult:
-    return synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
-                       polish=config.polish, min_weight=config.min_weight,
-                       on_iteration=recorder.on_iteration if recorder else None)
+    result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
+                         polish=config.polish, min_weight=config.min_weight,
+                         on_iteration=recorder.on_iteration if recorder else None)
+    if recorder:
+        recorder.log_sync(result)
+    return result
 
 
 def merged_cloud(result: RunResult) -> np.ndarray:
@@ -284,7 +290,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     partial = out / "recording.rrd.partial"
-    recorder = Recorder(partial) if config.record else None
+    recorder = Recorder(partial, min_weight=config.min_weight) if config.record else None
     try:
         result = register(scans, config, recorder, log, skipped)
     except BaseException:

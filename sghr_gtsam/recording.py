@@ -1,15 +1,25 @@
 """Everything rerun: a recording of a run for review in the Rerun viewer. It only observes.
 
-Layout of the recording (timeline ``iteration``: IRLS iterations 1..M, then one step per robust-polish
-stage (consensus, GNC, consensus) and per LM iteration):
-- ``world/scans/<name>``: the voxelised scan in its own frame (static) under a ``Transform3D``
-  that follows its pose at every iteration;
-- ``world/edges``: one line per pose-graph edge between scan centres, coloured by weight
-  (red = down-weighted to nothing, green = full weight), labelled ``i-j``;
-- ``residuals``: one series per edge (named ``i-j``), its rotation residual in degrees; ``weights``: its
-  weight relative to the largest (one entity each, not one per edge: logging 2·E entities every iteration
-  cost 5 s of CPU a synchronization at 390 edges); ``metrics/*``: median residual, kept edges, LM cost;
-  ``log``: stage messages with their seconds;
+The recording opens on its own layout (``blueprint``): the 3D scene, the pose graph, the stages, the residual,
+weight and metric series in tabs, and the text log. Layout of the data:
+
+- timeline ``step``: one step per pipeline stage (``begin_stage``: features, pairwise, refine, ...), per
+  synchronization record (IRLS iteration, polish stage, LM iteration) and per synchronization result
+  (``log_sync``); ``stage`` names each step (a ``StateChange``: ``sync 2 · irls``, ``refine``, ...), so the
+  stage timeline view reads as a Gantt chart of the run and a message lands on the step of its stage;
+- ``world/scans/<name>``: the voxelised scan in its own frame (static), in its colour from a fixed
+  categorical palette (``scan_colours``), with its frame's axes, under a ``Transform3D`` that follows its pose;
+  ``world/scans/<name>/flag`` (last step): a box around a flagged scan, coloured and labelled by its flags
+  (``log_final``: unregistered, unverified, contested, ...);
+- ``world/edges``: one line per pose-graph edge between scan centres: kept edges in ``KEPT``, their width
+  growing with the log of weight ÷ the largest (weights span orders of magnitude), rejected ones thin in
+  ``REJECTED``; labelled ``a.ply–b.ply``;
+- ``pose_graph``: the scans as nodes (labels carry the flags) and the registered edges (after ``log_graph``),
+  then the kept ones (after each ``log_sync``), for the graph view;
+- ``residuals``: one series per edge named ``a.ply–b.ply``, its rotation residual in degrees; ``weights``: log10
+  of its weight ÷ the largest, rejected edges at ``WEIGHT_FLOOR`` (one entity each, not one per edge: logging
+  2·E entities every iteration cost 5 s of CPU a synchronization at 390 edges); ``metrics/*``: median
+  residual, kept edges, LM cost; ``log``: stage messages with their seconds; ``overlap_scores``: the matrix;
 - ``world/uncertainty/<name>`` (last step): the 3σ ellipsoid of each scan's position from its pose covariance,
   magnified ``ELLIPSOID_GAIN``× so that millimetres show at room scale, and ``uncertainty/<name>/*``: the
   σ of its rotation (degrees) and translation (scene units) along their longest axes.
@@ -21,22 +31,85 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 
-from .types import IterationRecord, PoseGraph
+from .sync.irls import kept_edges
+from .types import IterationRecord, PoseGraph, SyncResult
 
-TIMELINE = "iteration"
+TIMELINE = "step"
 ELLIPSOID_GAIN = 10.0
 """Ellipsoids are drawn this many times their 3σ size (a well-registered scan's is sub-millimetre)."""
+KEPT = (60, 200, 255)
+"""Colour of the edges a synchronization keeps (light blue) ..."""
+REJECTED = (255, 70, 40)
+"""... and of those it rejects (red-orange): apart for red-green colour blindness too."""
+WEIGHT_FLOOR = -6.0
+"""log10 of weight ÷ the largest at which the ``weights`` series shows a rejected (zero-weight) edge."""
+FLAG_COLOURS = {"unregistered": (255, 40, 40), "unverified": (255, 170, 0), "contested": (230, 60, 230)}
+"""Box colour of a flagged scan, by its first flag in ``log_final``'s order; other flags get ``FLAG_OTHER``."""
+FLAG_OTHER = (255, 255, 255)
+_EDGE_POINTS = (0.75, 3.5)  # line radius in UI points of a rejected edge / the heaviest kept edge
+_SEP = "–"  # between the two scan names of an edge
 
 
-def _weight_colours(w: np.ndarray) -> np.ndarray:
-    """Relative weights in [0, 1] -> RGB from red (0) through yellow to green (1)."""
-    w = np.clip(w, 0.0, 1.0)[:, None]
-    red = np.array([220, 40, 40])
-    yellow = np.array([230, 200, 40])
-    green = np.array([40, 180, 70])
-    c = np.where(w < 0.5, red + (yellow - red) * (w * 2), yellow + (green - yellow) * (w * 2 - 1))
-    return c.astype(np.uint8)
+def scan_colours(n: int) -> np.ndarray:
+    """(n, 3) uint8 colours of ``n`` scans: a fixed categorical palette, never random.
+
+    Ten hues evenly spaced on the OKLCH circle with alternating lightness (so that neighbours differ in
+    lightness as well as hue); each further ten shift the hues by half a step and take another lightness,
+    so the first 40 colours are all distinct; then the palette repeats. The levels maximise the smallest
+    OKLab distance between two colours: 0.14 among the first 10, 0.065 among the first 40.
+    """
+    k = np.arange(n)
+    hue_step = 2 * np.pi / 10
+    cycle = (k // 10) % 4
+    hue = (k % 10) * hue_step + np.where(cycle % 2, hue_step / 2, 0.0)
+    lightness = np.array([0.71, 0.63, 0.55, 0.79])[cycle] + np.where(k % 2, -0.07, 0.07)
+    chroma = 0.13
+    lab = np.stack([lightness, chroma * np.cos(hue), chroma * np.sin(hue)], axis=1)
+    return _oklab_to_srgb(lab)
+
+
+def _oklab_to_srgb(lab: np.ndarray) -> np.ndarray:
+    """OKLab (Ottosson 2020) -> 8-bit sRGB, clipped to the gamut."""
+    lms = lab @ np.array([[1.0, 1.0, 1.0],
+                          [0.3963377774, -0.1055613458, -0.0894841775],
+                          [0.2158037573, -0.0638541728, -1.2914855480]])
+    linear = (lms ** 3) @ np.array([[4.0767416621, -1.2684380046, -0.0041960863],
+                                    [-3.3077115913, 2.6097574011, -0.7034186147],
+                                    [0.2309699292, -0.3413193965, 1.7076147010]])
+    linear = np.clip(linear, 0.0, 1.0)
+    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    return np.round(srgb * 255).astype(np.uint8)
+
+
+def edge_radii(w: np.ndarray, kept: np.ndarray, min_weight: float) -> np.ndarray:
+    """Line radius (UI points) of each edge: kept edges from ``_EDGE_POINTS[0]`` at ``min_weight`` times the
+    largest weight to ``_EDGE_POINTS[1]`` at the largest, on a log scale; rejected ones at the minimum."""
+    rel = w / max(float(w.max(initial=0.0)), 1e-300)
+    span = -np.log10(min_weight)
+    t = np.clip(1.0 + np.log10(np.maximum(rel, min_weight)) / span, 0.0, 1.0)
+    lo, hi = _EDGE_POINTS
+    return np.where(kept, lo + (hi - lo) * t, lo).astype(np.float32)
+
+
+def blueprint() -> rrb.Blueprint:
+    """The layout the recording opens on."""
+    series = rrb.Tabs(
+        rrb.TimeSeriesView(origin="/residuals", name="rotation residual (deg)"),
+        rrb.TimeSeriesView(origin="/weights", name="log10 weight ÷ largest"),
+        rrb.TimeSeriesView(origin="/metrics", name="metrics"),
+        rrb.TimeSeriesView(origin="/uncertainty", name="pose σ"),
+        rrb.TensorView(origin="/overlap_scores", name="overlap scores"),
+    )
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(rrb.Spatial3DView(origin="/world", name="scans and edges"),
+                         rrb.StateTimelineView(origin="/stage", name="stages"), row_shares=[6, 1]),
+            rrb.Vertical(rrb.GraphView(origin="/pose_graph", name="pose graph"), series,
+                         rrb.TextLogView(origin="/log", name="log"), row_shares=[3, 3, 2]),
+            column_shares=[3, 2]),
+        collapse_panels=True)
 
 
 def _quaternion(R: np.ndarray) -> np.ndarray:
@@ -46,81 +119,144 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
 
 
 class Recorder:
-    """Streams one run to ``path`` (an .rrd file). Call ``close`` to flush it."""
+    """Streams one run to ``path`` (an .rrd file, with its ``blueprint``). Call ``close`` to flush it.
 
-    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam"):
+    ``min_weight``: as ``Config.min_weight``, so that an IRLS edge counts as kept where synchronization
+    keeps it."""
+
+    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3):
         self.rec = rr.RecordingStream(application_id)
-        self.rec.save(str(path))
+        self.rec.save(str(path), default_blueprint=blueprint())
+        self.min_weight = min_weight
         self._names: list[str] = []
+        self._paths: list[str] = []
         self._centres = np.zeros((0, 3))
+        self._boxes: list[tuple[np.ndarray, np.ndarray]] = []  # per scan: its bounding box in its own frame
+        self._colours = np.zeros((0, 3), dtype=np.uint8)
         self._graph: PoseGraph | None = None
         self._labels: list[str] = []
-        self._step = 0
+        self._step = -1
+        self._stage = ""
+        self._syncs = 0  # synchronizations finished (log_sync)
+        self.begin_stage("start")
+
+    def begin_stage(self, name: str) -> None:
+        """A step of its own for a pipeline stage: what is logged next lands on it."""
+        self._next_step(name)
+
+    def _next_step(self, stage: str) -> None:
+        self._step += 1
+        self.rec.set_time(TIMELINE, sequence=self._step)
+        if stage != self._stage:
+            self._stage = stage
+            self.rec.log("stage", rr.StateChange(state=stage))
 
     def log_message(self, text: str) -> None:
-        self.rec.log("log", rr.TextLog(text), static=False)
+        self.rec.log("log", rr.TextLog(text))
 
     def log_scans(self, names: list[str], points: list[np.ndarray]) -> None:
-        """The (voxelised) scans, each in its own frame; poses come with every iteration."""
+        """The (voxelised) scans, each in its own frame with its axes; poses come with every iteration."""
         self._names = list(names)
+        self._paths = [f"world/scans/{rr.escape_entity_path_part(name)}" for name in names]
         self._centres = np.array([p.mean(0) if len(p) else np.zeros(3) for p in points])
-        rng = np.random.default_rng(0)
-        for k, (name, P) in enumerate(zip(names, points)):
-            colour = rng.integers(60, 255, 3).astype(np.uint8)
-            self.rec.log(f"world/scans/{rr.escape_entity_path_part(name)}",
-                         rr.Points3D(P.astype(np.float32), colors=colour, radii=rr.Radius.ui_points(1.5)),
-                         static=True)
+        self._boxes = [(p.min(0), p.max(0)) if len(p) else (np.zeros(3), np.zeros(3)) for p in points]
+        self._colours = scan_colours(len(names))
+        sizes = [np.linalg.norm(hi - lo) for lo, hi in self._boxes]
+        axes = rr.TransformAxes3D(0.1 * float(np.median(sizes)) or 1.0)
+        for path, P, colour in zip(self._paths, points, self._colours):
+            self.rec.log(path, rr.Points3D(P.astype(np.float32), colors=colour, radii=rr.Radius.ui_points(1.5)),
+                         axes, static=True)
+        self._log_nodes({})
+
+    def _log_nodes(self, marks: dict[str, str]) -> None:
+        """The scans as graph nodes; a scan in ``marks`` gets its mark in the label and a larger node."""
+        self.rec.log("pose_graph", rr.GraphNodes(
+            self._names, labels=[f"{n} ({marks[n]})" if n in marks else n for n in self._names],
+            colors=self._colours, radii=[8.0 if n in marks else 5.0 for n in self._names]))
 
     def log_graph(self, graph: PoseGraph, scores: np.ndarray) -> None:
-        """The sparse pose graph chosen from the overlap scores (static)."""
+        """The pose graph of registered pairs before a synchronization (its edges only grow)."""
         self._graph = graph
-        self.rec.log("graph/overlap_scores", rr.Tensor(scores.astype(np.float32)), static=True)
-        self._labels = [f"{a}-{b}" for a, b in zip(graph.i, graph.j)]
+        self.rec.log("overlap_scores", rr.Tensor(scores.astype(np.float32)), static=True)
+        self._labels = [f"{self._names[a]}{_SEP}{self._names[b]}" for a, b in zip(graph.i, graph.j)]
         for entity in ("residuals", "weights"):
             self.rec.log(entity, rr.SeriesLines(names=self._labels), static=True)
+        self._log_graph_edges(np.ones(graph.num_edges, dtype=bool))
+
+    def _log_graph_edges(self, mask: np.ndarray) -> None:
+        g = self._graph
+        self.rec.log("pose_graph", rr.GraphEdges([(self._names[a], self._names[b])
+                                                  for a, b in zip(g.i[mask], g.j[mask])]))
 
     def on_iteration(self, record: IterationRecord) -> None:
-        # IRLS iterations at their own numbers; every later record (robust polish stages, LM) one step on.
-        step = record.iteration if record.stage == "irls" else self._step + 1
-        self._step = step
-        self.rec.set_time(TIMELINE, sequence=step)
-        self.log_poses(record.poses)
-        if self._graph is not None and len(record.weights):
-            self._log_edges(record)
-        self.rec.log("metrics/median_residual_deg", rr.Scalars(float(np.median(record.residual_deg))))
+        """One synchronization record (IRLS iteration, polish stage or LM iteration) on a step of its own."""
+        self._next_step(f"sync {self._syncs + 1} · {record.stage}")
+        self._log_state(record.poses, record.weights, record.residual_deg)
+        if len(record.residual_deg):
+            self.rec.log("metrics/median_residual_deg", rr.Scalars(float(np.median(record.residual_deg))))
         if np.isfinite(record.cost):
             self.rec.log("metrics/cost", rr.Scalars(float(record.cost)))
 
-    def log_poses(self, poses: np.ndarray) -> None:
-        for name, T in zip(self._names, poses):
-            self.rec.log(f"world/scans/{rr.escape_entity_path_part(name)}",
-                         rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+    def log_sync(self, result: SyncResult) -> None:
+        """A synchronization's outcome on a step of its own: its poses and the edges it kept and rejected."""
+        self._syncs += 1
+        self._next_step(f"sync {self._syncs} · result")
+        self._log_state(result.poses, result.weights, result.residual_deg)
+        if self._graph is not None:
+            self._log_graph_edges(result.weights > 0)
 
-    def _log_edges(self, record: IterationRecord) -> None:
-        g = self._graph
-        w_rel = record.weights / max(float(record.weights.max()), 1e-300)
-        centres = np.einsum("nij,nj->ni", record.poses[:, :3, :3], self._centres) + record.poses[:, :3, 3]
-        strips = np.stack([centres[g.i], centres[g.j]], axis=1)
-        self.rec.log("world/edges", rr.LineStrips3D(strips.astype(np.float32), colors=_weight_colours(w_rel),
-                                                    labels=self._labels, radii=rr.Radius.ui_points(2.0)))
-        self.rec.log("metrics/kept_edges", rr.Scalars(float((w_rel > 1e-3).sum())))
-        self.rec.log("residuals", rr.Scalars(np.asarray(record.residual_deg, dtype=float)))
-        self.rec.log("weights", rr.Scalars(w_rel))
-
-    def log_final(self, poses: np.ndarray, unregistered: list[str], unverified: list[str],
-                  contested: list[str]) -> None:
-        self.rec.set_time(TIMELINE, sequence=self._step + 1)
+    def _log_state(self, poses: np.ndarray, weights: np.ndarray, residual_deg: np.ndarray) -> None:
         self.log_poses(poses)
-        for label, names in (("unregistered", unregistered), ("unverified", unverified), ("contested", contested)):
+        if self._graph is not None and len(weights) == self._graph.num_edges:
+            self._log_edges(poses, weights, residual_deg)
+
+    def log_poses(self, poses: np.ndarray) -> None:
+        for path, T in zip(self._paths, poses):
+            self.rec.log(path, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+
+    def _log_edges(self, poses: np.ndarray, weights: np.ndarray, residual_deg: np.ndarray) -> None:
+        g = self._graph
+        kept = kept_edges(weights, self.min_weight)
+        centres = np.einsum("nij,nj->ni", poses[:, :3, :3], self._centres) + poses[:, :3, 3]
+        strips = np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32)
+        colours = np.where(kept[:, None], np.array(KEPT, dtype=np.uint8), np.array(REJECTED, dtype=np.uint8))
+        self.rec.log("world/edges", rr.LineStrips3D(
+            strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept, self.min_weight)),
+            labels=self._labels, show_labels=False))
+        self.rec.log("metrics/kept_edges", rr.Scalars(float(kept.sum())))
+        self.rec.log("residuals", rr.Scalars(np.asarray(residual_deg, dtype=float)))
+        rel = weights / max(float(weights.max(initial=0.0)), 1e-300)
+        with np.errstate(divide="ignore"):
+            self.rec.log("weights", rr.Scalars(np.maximum(np.log10(rel), WEIGHT_FLOOR)))
+
+    def log_final(self, poses: np.ndarray, flags: dict[str, list[str]]) -> None:
+        """The final poses on a step of their own, and the flagged scans: ``flags`` maps a flag (e.g.
+        ``"unverified"``) to the names of the scans it marks. Each flagged scan gets a box in its frame, in
+        the colour of its first flag (``FLAG_COLOURS``) and labelled with all of them; its graph node too."""
+        self._next_step("final")
+        self.log_poses(poses)
+        by_scan: dict[str, list[str]] = {}
+        for label, names in flags.items():
+            for name in names:
+                by_scan.setdefault(name, []).append(label)
             if names:
                 self.rec.log("log", rr.TextLog(f"{label}: " + ", ".join(names), level=rr.TextLogLevel.WARN))
+        for k, name in enumerate(self._names):
+            if name not in by_scan:
+                continue
+            lo, hi = self._boxes[k]
+            labels = by_scan[name]
+            self.rec.log(f"{self._paths[k]}/flag", rr.Boxes3D(
+                centers=[(lo + hi) / 2], half_sizes=[np.maximum((hi - lo) / 2, 1e-6)],
+                colors=[FLAG_COLOURS.get(labels[0], FLAG_OTHER)], labels=[f"{name}: {', '.join(labels)}"],
+                show_labels=True, radii=rr.Radius.ui_points(2.0)))
+        self._log_nodes({name: ", ".join(labels) for name, labels in by_scan.items()})
 
     def log_covariances(self, poses: np.ndarray, covariances: np.ndarray) -> None:
         """Per scan with a finite covariance (gtsam order, at the pose): its position ellipsoid in the world and
-        its σ scalars (module doc), at the last step."""
+        its σ scalars (module doc), at the current step."""
         from .gtsam_api import sigmas
 
-        self.rec.set_time(TIMELINE, sequence=self._step + 1)
         rot, trans = sigmas(covariances)
         for name, T, C, r, t in zip(self._names, poses, covariances, rot, trans):
             if not np.isfinite(C).all():

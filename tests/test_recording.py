@@ -1,0 +1,225 @@
+"""The Rerun recording read back from its .rrd file: the layout it opens on, the entities a reviewer looks at
+(scans in a categorical palette with their axes, kept and rejected edges apart, flagged scans marked, series
+named by scan files) and the named steps of the timeline. Generated data only."""
+
+from collections import defaultdict
+
+import numpy as np
+import pytest
+import rerun as rr
+from scipy.spatial.transform import Rotation
+
+from sghr_gtsam.config import Config
+from sghr_gtsam.pipeline import run
+from sghr_gtsam.recording import FLAG_COLOURS, KEPT, REJECTED, TIMELINE, Recorder, edge_radii, scan_colours
+from sghr_gtsam.se3 import inv_T, make_T
+from sghr_gtsam.sync import contested, synchronize, unverified
+from sghr_gtsam.synthetic import make_scene, write_scene
+from sghr_gtsam.types import PoseGraph
+
+
+def _rows(path) -> dict[str, list[dict]]:
+    """Every logged row of the recording by entity path: its components and, if temporal, its step."""
+    rows: dict[str, list[dict]] = defaultdict(list)
+    for chunk in rr.chunk.RrdReader(path).stream().to_chunks():
+        columns = chunk.to_record_batch().to_pydict()
+        for k in range(chunk.num_rows):
+            rows[chunk.entity_path].append({name: values[k] for name, values in columns.items()})
+    for entity in rows.values():
+        entity.sort(key=lambda row: row.get(TIMELINE, -1))
+    return rows
+
+
+def _latest(rows: dict[str, list[dict]], entity: str, component: str, step: int | None = None):
+    """The value of ``component`` on ``entity`` at ``step`` (default: the last), as the viewer shows it."""
+    found = [r[component] for r in rows[entity]
+             if r.get(component) is not None and (step is None or r.get(TIMELINE, -1) <= step)]
+    assert found, f"{entity} has no {component}"
+    return found[-1]
+
+
+def _rgb(packed: int) -> tuple[int, int, int]:
+    return packed >> 24 & 255, packed >> 16 & 255, packed >> 8 & 255
+
+
+def _stages(rows) -> dict[int, str]:
+    """Step -> the stage name in force there."""
+    changes = [(r[TIMELINE], r["StateChange:state"][0]) for r in rows["/stage"]]
+    last = max(r[TIMELINE] for entity in rows.values() for r in entity if TIMELINE in r)
+    named, current = {}, None
+    for step in range(last + 1):
+        current = next((s for t, s in changes if t == step), current)
+        named[step] = current
+    return named
+
+
+# --- a synchronization with rejected edges and every kind of flagged scan --------------------------------
+
+
+@pytest.fixture(scope="module")
+def flagged(tmp_path_factory):
+    """Nine scans: a 6-clique with two wrong edges; scan 6 hangs on one edge (unverified); scan 7 on an edge
+    too weak to use (unregistered); scan 8 on three weak right edges against one strong wrong one (contested)."""
+    rng = np.random.default_rng(1)
+    n = 9
+    poses = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-3, 3, (n, 3)))
+    pairs = [(a, b) for a in range(6) for b in range(a + 1, 6)] + [(5, 6), (0, 7), (0, 8), (1, 8), (2, 8), (3, 8)]
+    i, j = np.array(pairs).T
+    T = inv_T(poses[i]) @ poses[j]
+    weight = rng.uniform(20, 100, len(i))
+    wrong = [pairs.index(p) for p in ((0, 3), (1, 4), (3, 8))]
+    T[wrong] = make_T(Rotation.random(3, random_state=rng).as_matrix(), rng.uniform(-3, 3, (3, 3)))
+    weight[pairs.index((0, 7))] = 1e-5
+    weight[[pairs.index(p) for p in ((0, 8), (1, 8), (2, 8))]] = 5.0
+    weight[pairs.index((3, 8))] = 60.0
+    graph = PoseGraph(n=n, i=i, j=j, T=T, weight=weight)
+    names = [f"s{k}.ply" for k in range(n)]
+    points = [rng.uniform(-1, 1, (200, 3)) * (1 + k % 3) for k in range(n)]
+
+    path = tmp_path_factory.mktemp("rec") / "flagged.rrd"
+    recorder = Recorder(path)
+    recorder.log_scans(names, points)
+    recorder.log_graph(graph, np.eye(n))
+    result = synchronize(graph, on_iteration=recorder.on_iteration)
+    recorder.log_sync(result)
+    flags = {"unregistered": [names[k] for k in np.flatnonzero(result.component != 0)],
+             "unverified": [names[k] for k in np.flatnonzero(unverified(graph, result))],
+             "contested": [names[k] for k in np.flatnonzero(contested(graph, result))]}
+    recorder.log_final(result.poses, flags)
+    recorder.close()
+    return graph, result, names, points, flags, _rows(path), path
+
+
+def test_the_recording_opens_on_its_layout(flagged):
+    path = flagged[-1]
+    reader = rr.chunk.RrdReader(path)
+    (store,) = reader.blueprints()
+    views = {}
+    for chunk in reader.stream(store=store).to_chunks():
+        columns = chunk.to_record_batch().to_pydict()
+        if "ViewBlueprint:class_identifier" in columns:
+            views[columns["ViewBlueprint:space_origin"][0][0]] = columns["ViewBlueprint:class_identifier"][0][0]
+    assert views["/world"] == "3D" and views["/pose_graph"] == "Graph" and views["/log"] == "TextLog"
+    assert views["/residuals"] == views["/weights"] == "TimeSeries"
+    assert views["/stage"] == "StateTimeline"
+
+
+def test_kept_and_rejected_edges_differ_in_colour_and_width(flagged):
+    graph, result, names, *_, rows, _ = flagged
+    kept = result.weights > 0
+    assert kept.any() and (~kept).any()
+    colours = np.array([_rgb(c) for c in _latest(rows, "/world/edges", "LineStrips3D:colors")])
+    np.testing.assert_array_equal(colours[kept], np.tile(KEPT, (kept.sum(), 1)))
+    np.testing.assert_array_equal(colours[~kept], np.tile(REJECTED, ((~kept).sum(), 1)))
+    assert np.linalg.norm(np.subtract(KEPT, REJECTED)) > 150
+    # Width grows with the log of the weight: the final weights span 5 to 100 here, and an IRLS weight 1e-3 of
+    # the largest is still visibly thicker than a rejected edge.
+    radii = -np.array(_latest(rows, "/world/edges", "LineStrips3D:radii"))  # negative: UI points
+    w = result.weights
+    order = np.argsort(w[kept])
+    assert np.all(np.diff(radii[kept][order]) >= 0) and radii[kept].max() > 2 * radii[~kept].max()
+    r = edge_radii(np.array([1.0, 1e-2, 1e-3, 1e-9, 0.0]), np.array([True, True, True, False, False]), 1e-3)
+    assert r[0] > r[1] > r[2] and r[3] == r[4] == r[2]
+    labels = _latest(rows, "/world/edges", "LineStrips3D:labels")
+    assert labels == [f"{names[a]}–{names[b]}" for a, b in zip(graph.i, graph.j)]
+
+
+def test_series_are_named_by_scan_files(flagged):
+    graph, result, names, *_, rows, _ = flagged
+    expected = [f"{names[a]}–{names[b]}" for a, b in zip(graph.i, graph.j)]
+    for entity in ("/residuals", "/weights"):
+        assert _latest(rows, entity, "SeriesLines:names") == expected
+    np.testing.assert_allclose(_latest(rows, "/residuals", "Scalars:scalars"), result.residual_deg, atol=1e-9)
+    weights = np.array(_latest(rows, "/weights", "Scalars:scalars"))
+    kept = result.weights > 0
+    np.testing.assert_allclose(10 ** weights[kept], result.weights[kept] / result.weights.max(), rtol=1e-9)
+    assert np.all(weights[~kept] == weights.min())
+
+
+def test_flagged_scans_are_marked_in_3d_and_in_the_graph(flagged):
+    graph, result, names, points, flags, rows, _ = flagged
+    assert all(flags.values()), flags  # the graph makes one scan of each kind
+    marked = set()
+    for label, flagged_names in flags.items():
+        for name in flagged_names:
+            box = f"/world/scans/{name}/flag"
+            assert label in _latest(rows, box, "Boxes3D:labels")[0]
+            assert _rgb(_latest(rows, box, "Boxes3D:colors")[0]) == FLAG_COLOURS[label]
+            # the box holds the scan (in its own frame, under its transform)
+            centre = np.array(_latest(rows, box, "Boxes3D:centers")[0])
+            half = np.array(_latest(rows, box, "Boxes3D:half_sizes")[0])
+            P = points[names.index(name)]
+            assert np.all(np.abs(P - centre) <= half + 1e-5)
+            marked.add(name)
+    unmarked = [n for n in names if n not in marked]
+    assert unmarked and not any(f"/world/scans/{n}/flag" in rows for n in unmarked)
+    assert len({FLAG_COLOURS[label] for label in flags}) == len(flags)
+    labels = _latest(rows, "/pose_graph", "GraphNodes:labels")
+    for name, label in zip(names, labels):
+        assert (name in marked) == (label != name) and label.startswith(name)
+    kept = result.weights > 0
+    edges = _latest(rows, "/pose_graph", "GraphEdges:edges")
+    assert {(e["first"], e["second"]) for e in edges} == {(names[a], names[b])
+                                                         for a, b in zip(graph.i[kept], graph.j[kept])}
+
+
+def test_steps_of_a_synchronization_carry_their_stage(flagged):
+    *_, rows, _ = flagged
+    named = _stages(rows)
+    stages = list(dict.fromkeys(named.values()))
+    assert stages[:3] == ["start", "sync 1 · irls", "sync 1 · loops/irls"]
+    assert stages[-3:] == ["sync 1 · lm", "sync 1 · result", "final"]
+    assert sum(s == "sync 1 · irls" for s in named.values()) == Config().iters
+    # per synchronization record: a transform per scan and a handful of entities, never one per edge
+    irls_step = next(step for step, s in named.items() if s == "sync 1 · irls")
+    at_step = {entity for entity, entity_rows in rows.items() for r in entity_rows if r.get(TIMELINE) == irls_step}
+    assert len(at_step) <= len(flagged[2]) + 6, sorted(at_step)
+
+
+def test_scan_colours_are_a_fixed_categorical_palette():
+    c = scan_colours(45).astype(float)
+    np.testing.assert_array_equal(scan_colours(45), c)  # no randomness
+    d = np.linalg.norm(c[:, None] - c[None], axis=2)
+    first40 = d[:40, :40][np.triu_indices(40, 1)]
+    assert d[:10, :10][np.triu_indices(10, 1)].min() > 50 and first40.min() > 15
+    np.testing.assert_array_equal(c[40:], c[:5])  # then it repeats
+
+
+# --- a run: the pipeline's stages on the timeline ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def object_run(tmp_path_factory):
+    scene = make_scene(kind="object", n_scans=4, seed=3)
+    folder = tmp_path_factory.mktemp("object")
+    write_scene(scene, folder / "scene")
+    messages = []
+    result = run(folder / "scene", folder / "out", Config(voxel=scene.voxel, workers=1), log=messages.append)
+    return result, _rows(folder / "out" / "recording.rrd")
+
+
+def test_a_run_names_its_stages_and_messages_land_on_them(object_run):
+    result, rows = object_run
+    named = _stages(rows)
+    stages = set(named.values())
+    assert {"start", "features", "pairwise", "sync 1 · irls", "sync 1 · lm", "sync 1 · result", "final"} <= stages
+    if result.densify["rounds"]:
+        assert {"refine", "sync 2 · result"} <= stages
+    messages = {r["TextLog:text"][0]: r[TIMELINE] for r in rows["/log"]}
+    (sync_step,) = [step for text, step in messages.items() if text.startswith("sync (")]
+    assert named[sync_step] == "sync 1 · result"
+    assert named[next(step for text, step in messages.items() if text.startswith("pairwise:"))] == "pairwise"
+    assert named[next(step for text, step in messages.items() if text.startswith("features:"))] == "global_graph"
+
+
+def test_a_run_draws_every_scan_with_its_axes_and_colour(object_run):
+    result, rows = object_run
+    colours = scan_colours(len(result.names))
+    for name, colour in zip(result.names, colours):
+        entity = f"/world/scans/{name}"
+        assert _latest(rows, entity, "TransformAxes3D:axis_length")[0] > 0
+        assert _rgb(_latest(rows, entity, "Points3D:colors")[0]) == tuple(colour)
+        T = np.eye(4)
+        T[:3, :3] = np.array(_latest(rows, entity, "Transform3D:mat3x3")[0]).reshape(3, 3).T  # column-major
+        T[:3, 3] = _latest(rows, entity, "Transform3D:translation")[0]
+        np.testing.assert_allclose(T, result.poses[result.names.index(name)], atol=1e-5)
