@@ -109,7 +109,8 @@ def blueprint() -> rrb.Blueprint:
             rrb.Vertical(rrb.GraphView(origin="/pose_graph", name="pose graph"), series,
                          rrb.TextLogView(origin="/log", name="log"), row_shares=[3, 3, 2]),
             column_shares=[3, 2]),
-        collapse_panels=True)
+        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline=TIMELINE, state="expanded"))
 
 
 def _quaternion(R: np.ndarray) -> np.ndarray:

@@ -94,11 +94,13 @@ def test_the_recording_opens_on_its_layout(flagged):
     path = flagged[-1]
     reader = rr.chunk.RrdReader(path)
     (store,) = reader.blueprints()
-    views = {}
+    views, timeline = {}, None
     for chunk in reader.stream(store=store).to_chunks():
         columns = chunk.to_record_batch().to_pydict()
         if "ViewBlueprint:class_identifier" in columns:
             views[columns["ViewBlueprint:space_origin"][0][0]] = columns["ViewBlueprint:class_identifier"][0][0]
+        timeline = columns.get("TimePanelBlueprint:timeline", [[timeline]])[0][0]
+    assert timeline == TIMELINE  # the viewer opens on the run's steps, not on log_time
     assert views["/world"] == "3D" and views["/pose_graph"] == "Graph" and views["/log"] == "TextLog"
     assert views["/residuals"] == views["/weights"] == "TimeSeries"
     assert views["/stage"] == "StateTimeline"
