@@ -182,6 +182,8 @@ class Recorder:
         self._labels = [f"{self._names[a]}{_SEP}{self._names[b]}" for a, b in zip(graph.i, graph.j)]
         for entity in ("residuals", "weights"):
             self.rec.log(entity, rr.SeriesLines(names=self._labels), static=True)
+        # Labels once, not with every step's lines: the edges only grow, so earlier steps keep theirs.
+        self.rec.log("world/edges", rr.LineStrips3D.from_fields(labels=self._labels, show_labels=False), static=True)
         self._log_graph_edges(np.ones(graph.num_edges, dtype=bool))
 
     def _log_graph_edges(self, mask: np.ndarray) -> None:
@@ -222,8 +224,7 @@ class Recorder:
         strips = np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32)
         colours = np.where(kept[:, None], np.array(KEPT, dtype=np.uint8), np.array(REJECTED, dtype=np.uint8))
         self.rec.log("world/edges", rr.LineStrips3D(
-            strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept, self.min_weight)),
-            labels=self._labels, show_labels=False))
+            strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept, self.min_weight))))
         self.rec.log("metrics/kept_edges", rr.Scalars(float(kept.sum())))
         self.rec.log("residuals", rr.Scalars(np.asarray(residual_deg, dtype=float)))
         rel = weights / max(float(weights.max(initial=0.0)), 1e-300)
