@@ -7,6 +7,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 import rerun as rr
+from hypothesis import given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
@@ -176,6 +177,19 @@ def test_steps_of_a_synchronization_carry_their_stage(flagged):
     irls_step = next(step for step, s in named.items() if s == "sync 1 · irls")
     at_step = {entity for entity, entity_rows in rows.items() for r in entity_rows if r.get(TIMELINE) == irls_step}
     assert len(at_step) <= len(flagged[2]) + 6, sorted(at_step)
+
+
+@settings(max_examples=50, deadline=None)
+@given(log_w=st.lists(st.floats(-12, 6), min_size=2, max_size=30), min_weight=st.floats(1e-6, 0.1))
+def test_edge_width_grows_with_log_weight_within_bounds(log_w, min_weight):
+    w = 10.0 ** np.array(log_w)
+    kept = w >= min_weight * w.max()
+    r = edge_radii(w, kept, min_weight)
+    order = np.argsort(w[kept])
+    assert np.all(np.diff(r[kept][order]) >= -1e-6)
+    assert r[np.argmax(w)] == pytest.approx(3.5) and np.all(r >= 0.75 - 1e-6) and np.all(r[~kept] == r.min())
+    # scale-free: only weight ÷ the largest matters
+    np.testing.assert_allclose(edge_radii(w * 1e3, kept, min_weight), r, atol=1e-5)
 
 
 def test_scan_colours_are_a_fixed_categorical_palette():
