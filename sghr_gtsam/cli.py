@@ -3,20 +3,42 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import typer
 
 from .config import Config
 from .types import InputError
 
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.table import Table
+
+    from .progress import Progress
+    from .result import RunResult
+
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multiview point-cloud registration: SGHR with a GTSAM back end.")
 
 _DEFAULT = Config()
+# Spelled out here so that `--help` imports nothing heavy; tests/test_cli.py checks them against the modules.
 _METHOD_NAMES = ("history", "constant", "current", "spectral", "lm")
+_POLISH_NAMES = ("loops", "robust", "lm", "none")
+_KERNEL_NAMES = ("none", "huber", "cauchy", "tls")
+_NOISE_NAMES = ("information", "isotropic")
+def _default(value: object) -> str:
+    """A help text's default for an option whose real default is None (so that a --config file's value holds),
+    escaped: unescaped, rich takes '[default: …]' for markup and prints nothing."""
+    from rich.markup import escape
+
+    return " " + escape(f"[default: {value}]")
+
+
 _BASELINE_NAMES = ("eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d", "open3d_all_uncertain")
+_METHOD_HELP = ("Synchronization method: history (SGHR's history reweighting), constant or current (its "
+                "ablations), spectral (one spectral solve) or lm (spectral, then LM).")
 _POLISH_HELP = ("After IRLS: loops (scans placed by counted loop evidence, then LM on the consistent edges), "
                 "robust (consensus re-placement, gtsam GNC, consensus, LM), lm (LM on the edges IRLS kept) or none.")
 
@@ -58,22 +80,108 @@ def _start_workers(cfg: Config) -> None:
     start_server(WORKER_MODULES, cfg.workers)
 
 
+def _observed(run_pipeline, quiet: bool, *args) -> "RunResult":
+    """``run_pipeline(*args)`` under ``_guard`` with the terminal's progress: bars with their ETA and the stage
+    messages above them on a terminal; the messages alone when the output is no terminal; nothing with
+    ``--quiet``."""
+    from .progress import QUIET
+
+    progress: Progress = QUIET
+    log = typer.echo
+    if quiet:
+        log = _silent
+    elif sys.stdout.isatty() and sys.stderr.isatty():
+        from .progress import TerminalProgress
+
+        progress = TerminalProgress(_console())
+        log = progress.log
+    try:
+        return _guard(run_pipeline, *args, log=log, progress=progress)
+    finally:
+        progress.close()
+
+
+def _silent(message: str) -> None:
+    return None
+
+
+def _console() -> "Console":
+    from rich.console import Console
+
+    return Console(highlight=False)
+
+
+def _names(names: list[str], shown: int = 4) -> str:
+    return ", ".join(names[:shown]) + (f" (+{len(names) - shown} more)" if len(names) > shown else "")
+
+
+def summary_table(result: "RunResult", out: Path) -> "Table":
+    """The closing summary of a run: scans placed and flagged, the worst residual among the edges the result
+    rests on, and the seconds of each stage."""
+    import numpy as np
+    from rich.table import Table
+
+    n = len(result.names)
+    table = Table(title=f"{out}", title_justify="left", show_header=False, box=None, padding=(0, 2, 0, 0))
+    table.add_column(style="bold")
+    table.add_column()
+    table.add_row("scans placed", f"{len(result.registered)}/{n}")
+    for label, names in (("unregistered", result.unregistered), ("unverified", result.unverified),
+                         ("contested", result.contested), ("skipped files", list(result.skipped))):
+        table.add_row(label, f"{len(names)}" + (f": {_names(names)}" if names else ""))
+    g, s = result.graph, result.sync
+    kept = np.flatnonzero(s.weights > 0)
+    table.add_row("edges kept", f"{len(kept)} of {g.num_edges} registered pairs")
+    if len(kept):
+        e = kept[np.argmax(s.residual_deg[kept])]
+        table.add_row("worst residual", f"{s.residual_deg[e]:.2f}° ({result.names[g.i[e]]} – {result.names[g.j[e]]}, "
+                      "rotation, among kept edges)")
+    stages = [f"{name} {seconds:.1f}" for name, seconds in result.timings.items() if name != "total"]
+    table.add_row("seconds", f"{result.timings.get('total', 0.0):.1f} total: " + " · ".join(stages))
+    return table
+
+
+def _close(result: "RunResult", out: Path, recorded: bool) -> None:
+    """Print the summary table, the warnings (stderr) and how to open the recording."""
+    console = _console()
+    console.print(summary_table(result, out))
+    if result.unregistered:
+        typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
+    if result.unverified:
+        typer.echo(f"unverified (pose rests on one unchecked registration): {', '.join(result.unverified)}", err=True)
+    if result.contested:
+        typer.echo(f"contested (dropped registrations outweigh the kept ones): {', '.join(result.contested)}", err=True)
+    typer.echo(f"summary picture: {out / 'summary.png'}")
+    if recorded:
+        typer.echo(f"review the run: rerun {out / 'recording.rrd'}")
+
+
 @app.command()
 def run(
-    scene_dir: Path = typer.Argument(..., help="Folder of scans (.ply .pcd .xyz .txt .npy .npz); order = sorted names."),
-    out: Optional[Path] = typer.Option(None, "--out", help="Results folder [default: results/<scene name>]."),
-    voxel: Optional[float] = typer.Option(None, help="Voxel size in scene units [default: 1/100 of the median scan's bounding-box diagonal]."),
-    k: Optional[int] = typer.Option(None, help=f"Top-k partners per scan (10 indoor, 6 outdoor) [default: {_DEFAULT.k}]."),
-    iters: Optional[int] = typer.Option(None, help=f"IRLS iterations M (history reweighting) [default: {_DEFAULT.iters}]."),
-    method: Optional[str] = typer.Option(None, help=f"Synchronization method [default: {_DEFAULT.method}]."),
-    polish: Optional[str] = typer.Option(None, help=f"{_POLISH_HELP} [default: {_DEFAULT.polish}]"),
-    global_feature: Optional[str] = typer.Option(None, help=f"Overlap scores: vlad (scene codebook) or learned (shipped head) [default: {_DEFAULT.global_feature}]."),
+    scene_dir: Path = typer.Argument(..., help="Folder of scans (.ply .pcd .xyz .txt .npy .npz .las .laz .e57); "
+                                     "order = natural order of the names."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Results folder." + _default("results/<scene name>")),
+    voxel: Optional[float] = typer.Option(None, help="Voxel size in scene units."
+                                          + _default("1/100 of the median scan's bounding-box diagonal")),
+    k: Optional[int] = typer.Option(None, help="Top-k partners per scan (10 indoor, 6 outdoor)."
+                                    + _default(_DEFAULT.k)),
+    iters: Optional[int] = typer.Option(None, help="IRLS iterations M (history reweighting)."
+                                        + _default(_DEFAULT.iters)),
+    method: Optional[str] = typer.Option(None, help=_METHOD_HELP + _default(_DEFAULT.method)),
+    polish: Optional[str] = typer.Option(None, help=_POLISH_HELP + _default(_DEFAULT.polish)),
+    global_feature: Optional[str] = typer.Option(None, help="Overlap scores: vlad (scene codebook) or learned "
+                                                 "(shipped head)." + _default(_DEFAULT.global_feature)),
     features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
-    seed: Optional[int] = typer.Option(None, help=f"Seed of every random choice [default: {_DEFAULT.seed}]."),
-    workers: Optional[int] = typer.Option(None, help="Processes for pairwise registration, refinement and loop closure [default: every core]."),
-    record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun viewer [default: record]."),
-    config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options given here override it."),
+    seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
+    workers: Optional[int] = typer.Option(None, help="Processes for pairwise registration, refinement and loop "
+                                          "closure." + _default("every core")),
+    record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun "
+                                          "viewer." + _default("--record")),
+    config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options "
+                                               "given here override it."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars and no stage messages: only the "
+                               "closing summary and warnings (bars are also off when the output is no terminal)."),
 ) -> None:
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
@@ -83,15 +191,8 @@ def run(
     from .pipeline import run as run_pipeline
 
     out = out or Path("results") / scene_dir.resolve().name
-    result = _guard(run_pipeline, scene_dir, out, cfg, log=typer.echo)
-    typer.echo(f"registered {len(result.registered)}/{len(result.names)} scans in "
-               f"{result.timings['total']:.1f} s -> {out}")
-    if result.unregistered:
-        typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
-    if result.unverified:
-        typer.echo(f"unverified (pose rests on one unchecked registration): {', '.join(result.unverified)}", err=True)
-    if result.contested:
-        typer.echo(f"contested (dropped registrations outweigh the kept ones): {', '.join(result.contested)}", err=True)
+    result = _observed(run_pipeline, quiet, scene_dir, out, cfg)
+    _close(result, out, cfg.record)
 
 
 @app.command()
@@ -99,7 +200,8 @@ def demo(
     out: Path = typer.Option(Path("results/demo"), "--out", help="Where the generated scene and the results go."),
     scans: int = typer.Option(8, help="Number of generated scans."),
     seed: int = typer.Option(0, help="Seed of the generated scene and of the run."),
-    workers: Optional[int] = typer.Option(None, help="Processes for the parallel stages [default: every core]."),
+    workers: Optional[int] = typer.Option(None, help="Processes for the parallel stages." + _default("every core")),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars and no stage messages."),
 ) -> None:
     """Generate a small room scanned from several stations (known poses), register it, print the errors."""
     from .evaluate import scan_errors
@@ -111,7 +213,7 @@ def demo(
     scene_dir = out / "scene"
     write_scene(scene, scene_dir)
     cfg = _guard(_config, None, seed=seed, workers=workers)
-    result = _guard(run_pipeline, scene_dir, out / "results", cfg, log=typer.echo)
+    result = _observed(run_pipeline, quiet, scene_dir, out / "results", cfg)
     gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
     gt = gt[[gt_names.index(n) for n in result.names]]
     err = scan_errors(result.names, result.poses, gt)
@@ -121,23 +223,21 @@ def demo(
                 else "  (unverified)" if name in result.unverified
                 else "  (contested)" if name in result.contested else "")
         typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
-    typer.echo(f"{len(result.registered)}/{len(result.names)} scans registered in "
-               f"{result.timings['total']:.1f} s; results in {out / 'results'}")
+    _close(result, out / "results", cfg.record)
 
 
 @app.command()
 def sync(
     graph_file: Path = typer.Argument(..., help="A 3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."),
     out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
-    method: str = typer.Option(_DEFAULT.method, help="Synchronization method: " + ", ".join(_METHOD_NAMES)
-                               + "; or a baseline: " + ", ".join(_BASELINE_NAMES) + " [default: the robust one "
-                               "run uses]."),
-    iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods)."),
-    polish: str = typer.Option(_DEFAULT.polish, help=_POLISH_HELP + " Method lm always ends with LM."),
+    method: str = typer.Option(_DEFAULT.method, help=_METHOD_HELP + " Or a baseline: " + ", ".join(_BASELINE_NAMES)
+                               + ".", show_default=True),
+    iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods).", show_default=True),
+    polish: str = typer.Option(_DEFAULT.polish, help=_POLISH_HELP + " Method lm always ends with LM.", show_default=True),
     noise: str = typer.Option(_DEFAULT.noise_model, help="information: each edge's own 6x6 information; "
-                              "isotropic: SE-Sync's precisions (2κ rotation, τ translation)."),
+                              "isotropic: SE-Sync's precisions (2κ rotation, τ translation).", show_default=True),
     kernel: str = typer.Option(_DEFAULT.kernel, help="Robust kernel of a final gtsam pass over the kept edges: "
-                               "none (no pass), huber, cauchy or tls (GNC)."),
+                               "none (no pass), huber, cauchy or tls (GNC).", show_default=True),
 ) -> None:
     """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
     import numpy as np

@@ -26,6 +26,7 @@ from .gtsam_api import pose_covariances
 from .io.features import read_features
 from .io.results import write_results
 from .io.scans import finite_points, list_scans, load_scan
+from .progress import QUIET, Progress
 from .recording import Recorder
 from .registration import WORKER_MODULES
 from .registration.batch import register_edges
@@ -36,7 +37,7 @@ from .registration.retry import weak_scans
 from .result import RunResult
 from .se3 import inv_T, transform_points
 from .sync import contested, synchronize, unverified
-from .types import InputError, Keypoints, PoseGraph, SyncResult
+from .types import InputError, IterationRecord, Keypoints, PoseGraph, SyncResult
 
 Log = Callable[[str], None]
 
@@ -143,8 +144,8 @@ def _also_recorded(log: Log, recorder: Recorder) -> Log:
 
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
              log: Log = print, skipped: dict[str, str] | None = None,
-             scores: np.ndarray | None = None) -> RunResult:
-    """Register ``scans`` (at least two) into one frame. The recorder, if any, only observes.
+             scores: np.ndarray | None = None, progress: Progress = QUIET) -> RunResult:
+    """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe.
 
     ``scores``: an (N, N) symmetric matrix of overlap scores to choose the top-k graph from instead of the
     global features (e.g. ground-truth overlaps or another method's), with their values as ``s`` in ``w⁰``.
@@ -166,8 +167,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         raise InputError(f"voxel size must be a positive number, got {voxel}")
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
 
-    with timer.stage("features"):
-        features = [_features(s, voxel, config) for s in scans]
+    with timer.stage("features"), progress.stage("features", len(scans)) as tick:
+        features = []
+        for s in scans:
+            features.append(_features(s, voxel, config))
+            tick()
     if recorder:
         recorder.log_scans(names, [f.points for f in features])
 
@@ -185,8 +189,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")
 
     edges = EdgeSet()
-    with timer.stage("pairwise"):
-        edges.add(top_k, register_edges(features, top_k, voxel, config), "top-k")
+    with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
+        edges.add(top_k, register_edges(features, top_k, voxel, config, on_result=tick), "top-k")
     graph = edges.pose_graph(n, scores, config.min_inliers, config.initial_weight)
     log(f"pairwise: {graph.num_edges} pairs in {timer.seconds['pairwise']:.2f} s")
     if recorder:
@@ -194,7 +198,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     if not np.any(graph.weight > 0):
         raise InputError("no pair of scans could be registered (do the scans overlap?)")
     with timer.stage("sync"):
-        result = _synchronize(graph, config, recorder)
+        result = _synchronize(graph, config, recorder, progress, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
 
     # Steps 2-4 of the front end, then synchronize again, while they change the graph (at most config.rounds).
@@ -208,14 +212,14 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
                 pyramids = [build_pyramid(s.points, voxel) for s in scans]
         if config.refine:
             with timer.stage("refine"):
-                changed += refine_edges(features, pyramids, edges, result, voxel, config, densify)
+                changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress)
         if config.loops:
             with timer.stage("loops"):
-                changed += close_loops(features, pyramids, edges, result, voxel, config, densify)
+                changed += close_loops(features, pyramids, edges, result, voxel, config, densify, progress)
         if config.retry:
             with timer.stage("retry"):
                 changed += retry_weak(features, scores, edges, result, unverified(graph, result), voxel, config,
-                                      densify)
+                                      densify, progress)
         if not changed:
             break
         densify.rounds += 1
@@ -225,7 +229,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         if recorder:
             recorder.log_graph(graph, scores)
         with timer.stage("sync"):
-            result = _synchronize(graph, config, recorder)
+            result = _synchronize(graph, config, recorder, progress, f"synchronization (round {densify.rounds})")
 
     # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
     main = np.flatnonzero(result.component == 0)
@@ -261,10 +265,16 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     return run
 
 
-def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None) -> SyncResult:
-    result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
-                         polish=config.polish, min_weight=config.min_weight,
-                         on_iteration=recorder.on_iteration if recorder else None)
+def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None, progress: Progress = QUIET,
+                 label: str = "synchronization") -> SyncResult:
+    with progress.stage(label, config.iters) as tick:
+        def observe(record: IterationRecord) -> None:
+            if recorder:
+                recorder.on_iteration(record)
+            tick(record)
+
+        result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
+                             polish=config.polish, min_weight=config.min_weight, on_iteration=observe)
     if recorder:
         recorder.log_sync(result)
     return result
@@ -279,8 +289,10 @@ def merged_cloud(result: RunResult) -> np.ndarray:
     return np.asarray(pcd.voxel_down_sample(result.voxel).points)
 
 
-def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print) -> RunResult:
-    """Load ``scene_dir``, register its scans and write every output into ``out_dir``."""
+def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
+        progress: Progress = QUIET) -> RunResult:
+    """Load ``scene_dir``, register its scans and write every output into ``out_dir``; ``progress`` observes
+    the long stages (``progress.TerminalProgress`` draws bars)."""
     config.validate()
     started = time.perf_counter()
     start_server(WORKER_MODULES, config.workers)  # its imports overlap the loading
@@ -292,7 +304,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     partial = out / "recording.rrd.partial"
     recorder = Recorder(partial, min_weight=config.min_weight) if config.record else None
     try:
-        result = register(scans, config, recorder, log, skipped)
+        result = register(scans, config, recorder, log, skipped, progress=progress)
     except BaseException:
         if recorder:
             recorder.close()

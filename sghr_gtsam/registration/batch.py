@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..config import Config
@@ -17,6 +19,9 @@ def _register(shared: tuple[list[ScanFeatures], float, Config], pair: tuple[int,
                          icp_distance=config.icp_distance, seed=config.seed)
 
 
-def register_edges(features: list[ScanFeatures], edges: np.ndarray, voxel: float, config: Config) -> list[PairResult]:
-    """``register_pair`` on every (i, j) row of ``edges``, over ``config.workers`` processes."""
-    return parallel_map(_register, (features, voxel, config), [(int(a), int(b)) for a, b in edges], config.workers)
+def register_edges(features: list[ScanFeatures], edges: np.ndarray, voxel: float, config: Config,
+                   on_result: Callable[[int, PairResult], None] | None = None) -> list[PairResult]:
+    """``register_pair`` on every (i, j) row of ``edges``, over ``config.workers`` processes; ``on_result`` as
+    in ``parallel_map`` (progress)."""
+    return parallel_map(_register, (features, voxel, config), [(int(a), int(b)) for a, b in edges], config.workers,
+                        on_result)

@@ -10,6 +10,7 @@ import numpy as np
 
 from ..config import Config
 from ..features.local import ScanFeatures
+from ..progress import QUIET, Progress
 from ..se3 import inv_T
 from ..types import SyncResult
 from .batch import register_edges
@@ -51,7 +52,7 @@ def _guesses(poses: np.ndarray, ij: np.ndarray) -> np.ndarray:
 
 
 def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
-                 voxel: float, config: Config, report: DensifyReport) -> int:
+                 voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET) -> int:
     """Re-register every kept edge of the largest part not refined yet by multi-scale ICP from the
     synchronized ``T_i⁻¹ T_j``; an edge takes the result when it ``confirms`` the guess. Returns the count."""
     main = sync.component == 0
@@ -59,9 +60,10 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
     if not len(todo):
         return 0
     guesses = _guesses(sync.poses, edges.ij[todo])
-    results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel,
-                                               config.icp_distance, config.workers,
-                                               [edges.pairs[e].matches for e in todo])
+    with progress.stage("refinement", len(todo)) as tick:
+        results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel,
+                                                   config.icp_distance, config.workers,
+                                                   [edges.pairs[e].matches for e in todo], tick)
     changed = 0
     for e, result, ok, guess in zip(todo, results, converged, guesses):
         edges.refined[e] = True
@@ -74,7 +76,7 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
 
 
 def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
-                voxel: float, config: Config, report: DensifyReport) -> int:
+                voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET) -> int:
     """Register the pairs of the largest part that overlap under the synchronized poses but have no kept edge,
     by multi-scale ICP from the synchronized guess: pairs never tried, and pairs whose global registration
     synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
@@ -94,8 +96,9 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
     ij = np.array([(b, a) if (b, a) in index else (a, b) for a, b in ij.tolist()], dtype=np.int64)  # as registered
     guesses = _guesses(sync.poses, ij)
     known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
-    results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config.icp_distance,
-                                               config.workers, known)
+    with progress.stage("loop closure", len(ij)) as tick:
+        results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config.icp_distance,
+                                                   config.workers, known, tick)
     closed = 0
     for (a, b), result, ok, guess in zip(ij, results, converged, guesses):
         if not confirms(result, ok, guess, voxel, config.min_inliers):
@@ -113,7 +116,8 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
 
 
 def retry_weak(features: list[ScanFeatures], scores: np.ndarray, edges: EdgeSet, sync: SyncResult,
-               unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport) -> int:
+               unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport,
+               progress: Progress = QUIET) -> int:
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
     by overlap score; the pairs that register enter as retry edges. Returns how many registered."""
     n = len(features)
@@ -125,7 +129,8 @@ def retry_weak(features: list[ScanFeatures], scores: np.ndarray, edges: EdgeSet,
     if not len(ij):
         return 0
     report._tried.update(map(tuple, ij.tolist()))
-    results = register_edges(features, ij, voxel, config)
+    with progress.stage("retry", len(ij)) as tick:
+        results = register_edges(features, ij, voxel, config, tick)
     good = [k for k, p in enumerate(results) if p.inliers >= config.min_inliers]
     edges.add(ij[good], [results[k] for k in good], "retry")
     report.retry_tried += len(ij)

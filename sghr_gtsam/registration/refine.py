@@ -12,6 +12,7 @@ gets σ 2-3× what its error spread is (docs/BENCHMARKS.md, calibrated covarianc
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -146,13 +147,14 @@ def _refine_task(shared: tuple, task: tuple) -> tuple[PairResult, bool]:
 
 def register_from_guesses(features: list[ScanFeatures], pyramids: list[Pyramid], ij: np.ndarray,
                           guesses: np.ndarray, voxel: float, icp_distance: float, workers: int | None,
-                          matches: list | None = None) -> tuple[list[PairResult], np.ndarray]:
+                          matches: list | None = None, on_result: Callable[[int, object], None] | None = None,
+                          ) -> tuple[list[PairResult], np.ndarray]:
     """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), over the executor's
     processes, with each pair's earlier descriptor ``matches`` where known (None: found anew): the results and
-    whether each converged."""
+    whether each converged. ``on_result`` as in ``parallel_map`` (progress)."""
     from ..executor import parallel_map
 
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
-    out = parallel_map(_refine_task, (features, pyramids, voxel, icp_distance), tasks, workers)
+    out = parallel_map(_refine_task, (features, pyramids, voxel, icp_distance), tasks, workers, on_result)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)
