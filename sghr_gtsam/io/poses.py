@@ -1,4 +1,4 @@
-"""Pose files: our ``gt_poses.txt`` / ``poses.txt`` form, KITTI, and the 3DMatch ground truth
+"""Pose files: our ``gt_poses.txt`` / ``poses.txt`` form, KITTI, TUM, and the 3DMatch ground truth
 (``gt.log``, ``gt.info``, ``gt_overlap.log``). All writers are atomic; every reader raises a one-line
 ``InputError`` on a malformed file.
 
@@ -7,6 +7,8 @@ Text formats (blank lines and lines starting with ``#`` are ignored everywhere):
 - poses (``gt_poses.txt``): per scan a line with its name (the scan's file name), then 4 rows of
   the 4x4 ``T_i`` with ``p_world = T_i @ p_scan``.
 - KITTI: one line per pose, the 12 numbers of ``T_i[:3, :]`` row by row.
+- TUM: one line per pose, ``timestamp tx ty tz qx qy qz qw`` (the unit quaternion of ``T_i[:3, :3]``, scalar last,
+  written with qw >= 0); scans have no time, so the timestamp is the scan's index.
 - gt.log (Redwood / 3DMatch): per pair a header ``i j n_fragments``, then 4 rows of ``T_ij``, which
   maps points of fragment j into the frame of fragment i (``T_ij = inv(T_i) @ T_j``).
 - gt.info: per pair a header ``i j n_fragments``, then a 6x6 information matrix in the 3DMatch
@@ -123,6 +125,40 @@ def read_kitti(path: str | Path) -> np.ndarray:
     poses = np.tile(np.eye(4), (len(lines), 1, 1))
     poses[:, :3, :] = _matrix(path, "KITTI poses", lines, 12).reshape(-1, 3, 4)
     return poses
+
+
+def write_tum(path: str | Path, poses: np.ndarray, stamps: Sequence[float]) -> None:
+    """Write poses (N, 4, 4) in the TUM form with their timestamps (N,), which must increase."""
+    from scipy.spatial.transform import Rotation
+
+    poses = _check_poses(poses)
+    stamps = np.asarray(stamps, dtype=np.float64)
+    if stamps.shape != (len(poses),) or np.any(np.diff(stamps) <= 0):
+        raise ValueError(f"need {len(poses)} increasing timestamps, got {stamps.tolist()[:10]}")
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
+    q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
+    with atomic_write(path) as f:
+        f.write("".join(" ".join(repr(float(x)) for x in (t, *T[:3, 3], *qk)) + "\n"
+                        for t, T, qk in zip(stamps, poses, q)))
+
+
+def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Timestamps (N,) and poses (N, 4, 4) from a TUM file; a quaternion must be of unit length (±1e-6)."""
+    from scipy.spatial.transform import Rotation
+
+    path = Path(path)
+    lines = _content_lines(path, "TUM poses")
+    if not lines:
+        raise InputError(f"cannot read TUM poses {path}: no entries")
+    rows = _matrix(path, "TUM poses", lines, 8)
+    norms = np.linalg.norm(rows[:, 4:], axis=1)
+    if np.any(np.abs(norms - 1.0) > 1e-6):
+        bad = int(np.argmax(np.abs(norms - 1.0)))
+        raise InputError(f"cannot read TUM poses {path}: line {lines[bad][0]}: quaternion of length {norms[bad]:.6g}")
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(rows[:, 4:]).as_matrix()
+    poses[:, :3, 3] = rows[:, 1:4]
+    return rows[:, 0], poses
 
 
 def read_gt_log(path: str | Path) -> dict[tuple[int, int], np.ndarray]:

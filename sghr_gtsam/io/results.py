@@ -1,6 +1,6 @@
 """The results folder of a run. File names are fixed because other tools read them:
-poses.txt, poses_kitti.txt, graph.g2o, graph_rejected.g2o, edges.csv, merged.ply, report.json, config.json,
-recording.rrd.
+poses.txt, poses_kitti.txt, poses_tum.txt, graph.g2o, graph_rejected.g2o, edges.csv, merged.ply, summary.png,
+report.json, config.json, recording.rrd.
 
 graph.g2o is what a SLAM stack loads as it is: one vertex per registered scan (id = the scan's index in
 ``report.json["scans"]``, mapped to its name in ``report.json["g2o_vertices"]``) at its final pose, and the
@@ -20,11 +20,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
+from ..plots import write_summary
 from ..result import peak_memory_mb
 from ..types import PoseGraph
 from .atomic import atomic_write
 from .g2o import write_g2o
-from .poses import write_kitti, write_poses
+from .poses import write_kitti, write_poses, write_tum
 from .scans import write_ply
 
 if TYPE_CHECKING:
@@ -99,6 +100,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
     header = ("unregistered (no pose): " + ", ".join(result.unregistered)) if result.unregistered else None
     write_poses(out / "poses.txt", names, result.poses[keep], comment=header)
     write_kitti(out / "poses_kitti.txt", result.poses[keep])
+    write_tum(out / "poses_tum.txt", result.poses[keep], keep)  # timestamp = scan index
     if result.covariances is None:
         result.covariances = pose_covariances(result)
     status = edge_status(result)
@@ -106,6 +108,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
     write_graphs(out, result, status)
     write_edges_csv(out / "edges.csv", result, status)
     write_ply(out / "merged.ply", merged)
+    write_summary(out / "summary.png", result, status)
     with atomic_write(out / "config.json") as f:
         f.write(config.to_json())
     result.timings["write"] = time.perf_counter() - t0

@@ -19,7 +19,7 @@ import open3d as o3d
 from sghr_gtsam.io.atomic import atomic_path, atomic_write
 from sghr_gtsam.types import InputError
 
-SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz")
+SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
 NON_SCAN_PATTERNS = ("*pose*.txt", "*traj*.txt", "*overlap*.txt", "readme*", "license*")
 """``.txt`` is also a scan format, so files matching these (lower-cased) names are not listed as
@@ -209,11 +209,42 @@ def _read_npz(path: Path) -> np.ndarray:
         return _as_points(archive["points" if "points" in archive.files else archive.files[0]])
 
 
+def _reason(error: Exception) -> str:
+    """A library's error on one line, without libE57's debug trail (after '****')."""
+    return " ".join(str(error).split("****")[0].split()) or type(error).__name__
+
+
+def _read_las(path: Path) -> np.ndarray:
+    """LAS, and LAZ through laspy's lazrs back end: the scaled and offset x, y, z of every point record."""
+    import laspy
+
+    try:
+        return np.asarray(laspy.read(path).xyz, dtype=np.float64)
+    except Exception as e:  # noqa: BLE001 - laspy, lazrs and numpy each raise their own kinds
+        raise InputError(f"not a readable {path.suffix[1:].upper()} file ({_reason(e)})") from None
+
+
+def _read_e57(path: Path) -> np.ndarray:
+    """Every point set of an E57 file (one file is one scan), each moved by its own pose into the file's frame;
+    spherical coordinates are converted and points flagged invalid dropped (pye57)."""
+    import pye57
+
+    try:
+        with pye57.E57(str(path)) as e57:
+            parts = [e57.read_scan(k, transform=True, ignore_missing_fields=True) for k in range(e57.scan_count)]
+    except Exception as e:  # noqa: BLE001 - libE57 raises its own kinds
+        raise InputError(f"not a readable E57 file ({_reason(e)})") from None
+    if not parts:
+        raise InputError("E57 file holds no point set")
+    return np.concatenate([np.stack([p["cartesianX"], p["cartesianY"], p["cartesianZ"]], axis=1) for p in parts])
+
+
 def load_scan(path: str | Path) -> np.ndarray:
     """Points of one scan as a C-contiguous (N, 3) float64 array, N >= 1.
 
     .ply / .pcd via open3d; .xyz / .txt: x y z per line (whitespace or commas, ``#`` comments, extra
-    columns ignored); .npy: an (N, >=3) numeric array; .npz: the array ``points``, else the first one.
+    columns ignored); .npy: an (N, >=3) numeric array; .npz: the array ``points``, else the first one;
+    .las / .laz: the point records' coordinates (laspy, lazrs); .e57: all its point sets in the file's frame (pye57).
     Non-finite rows are kept (see ``finite_points``). Raises ``InputError`` when the file cannot be
     read, is corrupt or truncated, has the wrong shape, or holds no points.
     """
@@ -234,6 +265,10 @@ def load_scan(path: str | Path) -> np.ndarray:
             points = _read_text(path)
         elif suffix == ".npy":
             points = _read_npy(path)
+        elif suffix in (".las", ".laz"):
+            points = _read_las(path)
+        elif suffix == ".e57":
+            points = _read_e57(path)
         else:
             points = _read_npz(path)
     except InputError as e:

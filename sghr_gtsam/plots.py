@@ -1,0 +1,172 @@
+"""Pictures of a run with matplotlib (imported when a picture is drawn, never at import time): the summary
+written to ``OUT/summary.png`` and the weight history the notebook shows.
+
+``summary_figure``: left, the registered scans seen along their common axis of least extent (a floor plan for a
+room: the axis of least extent is the vertical one) coloured by scan with a categorical palette, the pose graph
+over them (scan centres; kept edges solid, as wide as their weight; rejected edges dashed red; unverified and
+contested scans ringed); right, the histogram of the edges' rotation residuals, kept and rejected apart.
+Figures are built on ``matplotlib.figure.Figure`` with the Agg canvas, so drawing them never opens a window
+and never touches pyplot's global state.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .io.atomic import atomic_path
+from .se3 import transform_points
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
+    from .result import RunResult
+    from .types import SyncResult
+
+POINTS_DRAWN = 60_000
+"""At most this many points in the top view (spread evenly over the scans): enough to read the layout, and the
+figure draws in well under a second."""
+
+KEPT_COLOUR = "#1a1a1a"
+REJECTED_COLOUR = "#d62728"
+UNVERIFIED_COLOUR = "#ff7f0e"
+CONTESTED_COLOUR = "#9467bd"
+
+
+def scan_colours(n: int) -> np.ndarray:
+    """(n, 3) RGB in [0, 1], one categorical colour per scan: Tableau's 10 (20 beyond 10 scans) distinct hues,
+    and beyond 20 scans hues a golden angle apart at three lightness levels, so neighbours in scan order never
+    look alike."""
+    from matplotlib import colormaps
+
+    if n <= 10:
+        return np.asarray(colormaps["tab10"].colors)[:n]
+    if n <= 20:
+        tab20 = np.asarray(colormaps["tab20"].colors)
+        return np.concatenate([tab20[0::2], tab20[1::2]])[:n]  # the ten dark hues first, then their light pairs
+    from matplotlib.colors import hsv_to_rgb
+
+    k = np.arange(n)
+    hue = (k * 0.381966) % 1.0  # the golden angle as a fraction of the circle
+    value = np.array([0.85, 0.65, 0.95])[k % 3]
+    saturation = np.array([0.75, 0.9, 0.5])[k % 3]
+    return hsv_to_rgb(np.stack([hue, saturation, value], axis=1))
+
+
+def _view_axes(points: np.ndarray) -> np.ndarray:
+    """(3, 2): the two principal axes of largest extent, the top view's x and y."""
+    centred = points - points.mean(0)
+    _, _, vt = np.linalg.svd(centred[:: max(1, len(centred) // 20_000)], full_matrices=False)
+    return vt[:2].T
+
+
+def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Figure":
+    """The run at a glance (module doc). ``status``: each edge's ``io.results.EDGE_STATUS`` key (computed when
+    not given)."""
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    if status is None:
+        from .io.results import edge_status
+
+        status = edge_status(result)
+    placed = result.registered
+    n = len(result.names)
+    colours = scan_colours(n)
+    rng = np.random.default_rng(0)
+    per_scan = max(1, POINTS_DRAWN // max(1, len(placed)))
+    clouds, labels = [], []
+    for k in placed:
+        P = result.features[k].points
+        P = P[rng.choice(len(P), per_scan, replace=False)] if len(P) > per_scan else P
+        clouds.append(transform_points(result.poses[k], P))
+        labels.append(np.full(len(P), k))
+    cloud, label = np.concatenate(clouds), np.concatenate(labels)
+    order = rng.permutation(len(cloud))  # no scan hides all the others by being drawn last
+    axes = _view_axes(cloud)
+    xy = cloud[order] @ axes
+    centres = np.zeros((n, 2))
+    for k in placed:
+        centres[k] = transform_points(result.poses[k], result.features[k].points.mean(0, keepdims=True))[0] @ axes
+
+    fig = Figure(figsize=(11, 5), dpi=90, layout="constrained")
+    top, hist = fig.subplots(1, 2, width_ratios=[1.6, 1])
+    top.scatter(xy[:, 0], xy[:, 1], s=0.6, c=colours[label[order]], linewidths=0, rasterized=True)
+    g, weights = result.graph, result.sync.weights
+    kept = [e for e in range(g.num_edges) if status[e] == "kept"]
+    rejected = [e for e in range(g.num_edges) if status[e] == "rejected"]
+    w_max = max((weights[e] for e in kept), default=1.0)
+    for e in rejected:
+        a, b = centres[g.i[e]], centres[g.j[e]]
+        top.plot([a[0], b[0]], [a[1], b[1]], color=REJECTED_COLOUR, lw=0.8, ls=(0, (3, 2)), alpha=0.8)
+    for e in kept:
+        a, b = centres[g.i[e]], centres[g.j[e]]
+        top.plot([a[0], b[0]], [a[1], b[1]], color=KEPT_COLOUR, lw=0.6 + 2.4 * weights[e] / w_max, alpha=0.85)
+    ring = {**{result.names.index(s): UNVERIFIED_COLOUR for s in result.unverified},
+            **{result.names.index(s): CONTESTED_COLOUR for s in result.contested}}
+    top.scatter(centres[placed, 0], centres[placed, 1], s=36, c=colours[placed], zorder=3,
+                edgecolors=[ring.get(k, "black") for k in placed], linewidths=[2.5 if k in ring else 0.8 for k in placed])
+    if n <= 40:
+        for k in placed:
+            top.annotate(str(k), centres[k], xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=4)
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_xticks([])
+    top.set_yticks([])
+    top.set_title(f"{len(placed)}/{n} scans placed · {len(result.unregistered)} unregistered · "
+                  f"{len(result.unverified)} unverified · {len(result.contested)} contested", fontsize=10)
+    legend = [Line2D([], [], color=KEPT_COLOUR, lw=2, label=f"kept edge ({len(kept)}; width = weight)"),
+              Line2D([], [], color=REJECTED_COLOUR, lw=1, ls=(0, (3, 2)), label=f"rejected edge ({len(rejected)})")]
+    legend += [Line2D([], [], marker="o", ls="", mfc="white", mec=c, mew=2.5, label=name)
+               for name, c, flagged in (("unverified", UNVERIFIED_COLOUR, result.unverified),
+                                        ("contested", CONTESTED_COLOUR, result.contested)) if flagged]
+    top.legend(handles=legend, loc="upper right", fontsize=8, framealpha=0.8)
+
+    residual = result.sync.residual_deg
+    groups = [(kept, KEPT_COLOUR, "kept"), (rejected, REJECTED_COLOUR, "rejected")]
+    values = np.maximum(residual[kept + rejected], 1e-3) if kept + rejected else np.array([1e-3])
+    bins = np.geomspace(values.min() / 1.5, max(values.max() * 1.5, 1.0), 30)
+    for edges, colour, name in groups:
+        if edges:
+            hist.hist(np.maximum(residual[edges], 1e-3), bins=bins, color=colour, alpha=0.7,
+                      label=f"{name} ({len(edges)})")
+    hist.set_xscale("log")
+    hist.set_xlabel("rotation residual at the final poses [deg]")
+    hist.set_ylabel("edges")
+    hist.set_title("edge residuals", fontsize=10)
+    hist.legend(fontsize=8)
+    return fig
+
+
+def write_summary(path: str | Path, result: "RunResult", status: list[str] | None = None) -> None:
+    """``summary_figure`` as a PNG at ``path``, written atomically."""
+    fig = summary_figure(result, status)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+
+
+def weight_history_figure(sync: "SyncResult", highlight: list[int] | None = None) -> "Figure":
+    """Each edge's weight (relative to the largest) over the IRLS iterations of ``sync.history``: history
+    reweighting driving the inconsistent edges to zero. ``highlight``: edges drawn in red (e.g. known outliers)."""
+    from matplotlib.figure import Figure
+
+    irls = [r for r in sync.history if r.stage == "irls"]
+    if not irls:
+        raise ValueError("the synchronization recorded no IRLS iteration")
+    steps = np.array([r.iteration for r in irls])
+    w = np.stack([r.weights / max(float(r.weights.max()), 1e-300) for r in irls])
+    marked = set(highlight or [])
+    fig = Figure(figsize=(7, 3.2), dpi=90, layout="constrained")
+    ax = fig.subplots()
+    for e in range(w.shape[1]):
+        if e not in marked:
+            ax.plot(steps, w[:, e], color="0.55", lw=0.8)
+    for e in sorted(marked):
+        ax.plot(steps, w[:, e], color=REJECTED_COLOUR, lw=1.8, label=f"edge {e}")
+    ax.set_xlabel("IRLS iteration")
+    ax.set_ylabel("weight / largest")
+    ax.set_yscale("symlog", linthresh=1e-3)
+    if marked:
+        ax.legend(fontsize=8)
+    return fig
