@@ -25,9 +25,10 @@ if TYPE_CHECKING:
     from .result import RunResult
     from .types import SyncResult
 
-POINTS_DRAWN = 60_000
-"""At most this many points in the top view (spread evenly over the scans): enough to read the layout, and the
-figure draws in well under a second."""
+RASTER_WIDTH = 640
+"""The top view is drawn as an image this many pixels wide, each point a 2×2 pixel block in its scan's colour
+(in a random order, so no scan hides all the others): every point of the voxelised scans at the cost of one
+image, where a scatter of 60,000 points took 0.8 s to draw."""
 
 KEPT_COLOUR = "#1a1a1a"
 REJECTED_COLOUR = "#d62728"
@@ -62,9 +63,26 @@ def _view_axes(points: np.ndarray) -> np.ndarray:
     return vt[:2].T
 
 
+def _raster(xy: np.ndarray, rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, list[float]]:
+    """(H, W, 4) RGBA image of the points ``xy`` coloured ``rgb`` (transparent where there is none) and its
+    extent [x0, x1, y0, y1]."""
+    lo, hi = xy.min(0), xy.max(0)
+    span = np.maximum(hi - lo, 1e-12)
+    pixel = span[0] / RASTER_WIDTH
+    shape = (int(np.ceil(span[1] / pixel)) + 2, RASTER_WIDTH + 2)
+    ij = ((xy - lo) / pixel).astype(int)
+    image = np.zeros((*shape, 4))
+    order = rng.permutation(len(xy))
+    for di in (0, 1):
+        for dj in (0, 1):
+            image[ij[order, 1] + di, ij[order, 0] + dj] = np.c_[rgb[order], np.ones(len(order))]
+    return image, [lo[0], lo[0] + shape[1] * pixel, lo[1], lo[1] + shape[0] * pixel]
+
+
 def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Figure":
     """The run at a glance (module doc). ``status``: each edge's ``io.results.EDGE_STATUS`` key (computed when
     not given)."""
+    from matplotlib.collections import LineCollection
     from matplotlib.figure import Figure
     from matplotlib.lines import Line2D
 
@@ -75,35 +93,28 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     placed = result.registered
     n = len(result.names)
     colours = scan_colours(n)
-    rng = np.random.default_rng(0)
-    per_scan = max(1, POINTS_DRAWN // max(1, len(placed)))
-    clouds, labels = [], []
-    for k in placed:
-        P = result.features[k].points
-        P = P[rng.choice(len(P), per_scan, replace=False)] if len(P) > per_scan else P
-        clouds.append(transform_points(result.poses[k], P))
-        labels.append(np.full(len(P), k))
-    cloud, label = np.concatenate(clouds), np.concatenate(labels)
-    order = rng.permutation(len(cloud))  # no scan hides all the others by being drawn last
+    cloud = np.concatenate([transform_points(result.poses[k], result.features[k].points) for k in placed])
+    label = np.concatenate([np.full(len(result.features[k].points), k) for k in placed])
     axes = _view_axes(cloud)
-    xy = cloud[order] @ axes
+    xy = cloud @ axes
     centres = np.zeros((n, 2))
     for k in placed:
         centres[k] = transform_points(result.poses[k], result.features[k].points.mean(0, keepdims=True))[0] @ axes
+    image, extent = _raster(xy, colours[label], np.random.default_rng(0))
 
-    fig = Figure(figsize=(11, 5), dpi=90, layout="constrained")
+    fig = Figure(figsize=(11, 5), dpi=90)
+    fig.subplots_adjust(left=0.01, right=0.98, bottom=0.11, top=0.93, wspace=0.12)
     top, hist = fig.subplots(1, 2, width_ratios=[1.6, 1])
-    top.scatter(xy[:, 0], xy[:, 1], s=0.6, c=colours[label[order]], linewidths=0, rasterized=True)
+    top.imshow(image, extent=extent, origin="lower", interpolation="nearest")
     g, weights = result.graph, result.sync.weights
     kept = [e for e in range(g.num_edges) if status[e] == "kept"]
     rejected = [e for e in range(g.num_edges) if status[e] == "rejected"]
     w_max = max((weights[e] for e in kept), default=1.0)
-    for e in rejected:
-        a, b = centres[g.i[e]], centres[g.j[e]]
-        top.plot([a[0], b[0]], [a[1], b[1]], color=REJECTED_COLOUR, lw=0.8, ls=(0, (3, 2)), alpha=0.8)
-    for e in kept:
-        a, b = centres[g.i[e]], centres[g.j[e]]
-        top.plot([a[0], b[0]], [a[1], b[1]], color=KEPT_COLOUR, lw=0.6 + 2.4 * weights[e] / w_max, alpha=0.85)
+    segments = np.stack([centres[g.i], centres[g.j]], axis=1)
+    top.add_collection(LineCollection(segments[rejected], colors=REJECTED_COLOUR, linewidths=0.8,
+                                      linestyles=(0, (3, 2)), alpha=0.8, label="rejected"))
+    top.add_collection(LineCollection(segments[kept], colors=KEPT_COLOUR, alpha=0.85, label="kept",
+                                      linewidths=0.6 + 2.4 * weights[kept] / w_max))
     ring = {**{result.names.index(s): UNVERIFIED_COLOUR for s in result.unverified},
             **{result.names.index(s): CONTESTED_COLOUR for s in result.contested}}
     top.scatter(centres[placed, 0], centres[placed, 1], s=36, c=colours[placed], zorder=3,
@@ -157,7 +168,7 @@ def weight_history_figure(sync: "SyncResult", highlight: list[int] | None = None
     steps = np.array([r.iteration for r in irls])
     w = np.stack([r.weights / max(float(r.weights.max()), 1e-300) for r in irls])
     marked = set(highlight or [])
-    fig = Figure(figsize=(7, 3.2), dpi=90, layout="constrained")
+    fig = Figure(figsize=(7, 3.2), dpi=90, layout="constrained")  # drawn once, in the notebook
     ax = fig.subplots()
     for e in range(w.shape[1]):
         if e not in marked:
