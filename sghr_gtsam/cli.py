@@ -144,7 +144,12 @@ def summary_table(result: "RunResult", out: Path) -> "Table":
 def _close(result: "RunResult", out: Path, recorded: bool) -> None:
     """Print the summary table, the warnings (stderr) and how to open the recording."""
     console = _console()
-    console.print(summary_table(result, out))
+    if console.is_terminal:
+        console.print(summary_table(result, out))
+    else:  # a log file gets the table without the padding rich puts at the end of its lines
+        with console.capture() as table:
+            console.print(summary_table(result, out))
+        typer.echo("\n".join(line.rstrip() for line in table.get().splitlines()))
     if result.unregistered:
         typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
     if result.unverified:

@@ -1,0 +1,181 @@
+"""Reviewing a run at a glance (issue 13): progress bars on a terminal (captured here), the command line's help,
+closing summary and quiet mode, summary.png and its palette, TUM poses beside KITTI."""
+
+import io
+import re
+
+import numpy as np
+import pytest
+from rich.console import Console
+from scipy.spatial.distance import pdist
+from typer.testing import CliRunner
+
+from sghr_gtsam.cli import app
+from sghr_gtsam.config import Config
+from sghr_gtsam.io.poses import read_kitti, read_tum
+from sghr_gtsam.pipeline import run
+from sghr_gtsam.plots import scan_colours, summary_figure
+from sghr_gtsam.progress import TerminalProgress
+from sghr_gtsam.synthetic import make_scene, write_scene
+
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+
+
+@pytest.fixture(scope="module")
+def watched_run(tmp_path_factory):
+    """A 4-scan room registered with the terminal's progress drawn on a captured 'terminal'."""
+    tmp = tmp_path_factory.mktemp("review")
+    write_scene(make_scene(kind="room", n_scans=4, seed=0), tmp / "scene")
+    screen = io.StringIO()
+    progress = TerminalProgress(Console(file=screen, force_terminal=True, width=140))
+    try:
+        result = run(tmp / "scene", tmp / "out", Config(workers=1, record=False), log=progress.log, progress=progress)
+    finally:
+        progress.close()
+    return result, tmp / "out", ANSI.sub("", screen.getvalue()).replace("\r", "\n")
+
+
+def _final_line(text, label):
+    """The last drawn state of the bar ``label`` (rich redraws every bar on each refresh)."""
+    lines = [line for line in text.splitlines() if line.startswith(label + " ")]
+    assert lines, f"no bar {label!r} in:\n{text[-2000:]}"
+    return lines[-1]
+
+
+def test_progress_bars_count_every_task_of_each_stage(watched_run):
+    result, _, text = watched_run
+    top_k = result.edge_origin.count("top-k")
+    refined = result.densify["refine_tried"]
+    assert re.search(r"\b4/4\b", _final_line(text, "features"))
+    assert re.search(rf"\b{top_k}/{top_k}\b", _final_line(text, "pairwise registration"))
+    assert re.search(rf"\b{refined}/{refined}\b", _final_line(text, "refinement"))
+    assert re.search(r"\b50/50\b", _final_line(text, "synchronization"))  # the IRLS iterations (Config.iters)
+    assert "ETA" in _final_line(text, "pairwise registration")
+
+
+def test_stage_messages_print_above_the_bars(watched_run):
+    _, _, text = watched_run
+    assert re.search(r"^pairwise: \d+ pairs in [\d.]+ s$", text, re.MULTILINE)
+    assert re.search(r"^4 scans, voxel ", text, re.MULTILINE)
+
+
+def test_progress_only_observes(watched_run, tmp_path):
+    result, out, _ = watched_run
+    unwatched = run(out.parent / "scene", tmp_path, Config(workers=1, record=False), log=lambda m: None)
+    np.testing.assert_array_equal(unwatched.poses, result.poses)
+
+
+def test_tum_poses_are_written_beside_kitti(watched_run):
+    result, out, _ = watched_run
+    stamps, tum = read_tum(out / "poses_tum.txt")
+    assert stamps.tolist() == result.registered  # timestamp = scan index
+    np.testing.assert_allclose(tum, result.poses[result.registered], atol=1e-12)
+    np.testing.assert_allclose(read_kitti(out / "poses_kitti.txt"), tum, atol=1e-12)
+
+
+def test_summary_png_is_written(watched_run):
+    _, out, _ = watched_run
+    data = (out / "summary.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+    assert (width, height) == (990, 450)
+
+
+def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
+    """One kept edge marked rejected: one dashed red segment between its scans' centres, the rest solid, the
+    heaviest kept edge widest; the top view holds exactly the scans' palette colours."""
+    from matplotlib.collections import LineCollection
+
+    result, _, _ = watched_run
+    from sghr_gtsam.io.results import edge_status
+
+    status = edge_status(result)
+    kept = [e for e, s in enumerate(status) if s == "kept"]
+    assert len(kept) >= 3
+    status[kept[0]] = "rejected"
+    fig = summary_figure(result, status)
+    top = fig.axes[0]
+    rejected, solid = (c for c in top.collections if isinstance(c, LineCollection))
+    assert len(rejected.get_segments()) == 1 and len(solid.get_segments()) == len(kept) - 1
+    assert rejected.get_linestyle()[0][1] is not None  # dashed
+    np.testing.assert_allclose(rejected.get_edgecolor()[0][:3], [0xD6 / 255, 0x27 / 255, 0x28 / 255], atol=1e-6)
+    widths = solid.get_linewidths()
+    heaviest = int(np.argmax(result.sync.weights[kept[1:]]))
+    assert widths[heaviest] == pytest.approx(3.0) and min(widths) >= 0.6
+    image = top.images[0].get_array()
+    drawn = np.unique(image[image[..., 3] > 0][:, :3], axis=0)
+    np.testing.assert_allclose(np.sort(drawn, axis=0), np.sort(scan_colours(4), axis=0))
+
+
+@pytest.mark.parametrize("n", [8, 30, 60])
+def test_scan_colours_are_categorical(n):
+    """The issue's case: random colours put two beiges 24 RGB units apart at 8 scans, 13 near pairs at 30."""
+    c = scan_colours(n) * 255
+    assert c.shape == (n, 3) and pdist(c).min() > 55
+
+
+# --- the command line ------------------------------------------------------------------------------------------
+
+runner = CliRunner()
+
+
+def _help(command):
+    """The help text of ``command`` as one line of words (rich wraps it inside a box)."""
+    r = runner.invoke(app, [command, "--help"], env={"COLUMNS": "250"})
+    assert r.exit_code == 0, r.output
+    return " ".join(r.output.replace("│", " ").split())
+
+
+def test_run_help_shows_defaults_and_choices():
+    text = _help("run")
+    for default in ("[default: results/<scene name>]", "[default: 1/100 of the median scan's bounding-box diagonal]",
+                    "[default: 10]", "[default: 50]", "[default: history]", "[default: loops]", "[default: vlad]",
+                    "[default: 0]", "[default: every core]", "[default: --record]"):
+        assert default in text, default
+    for choice in ("history", "constant", "current", "spectral", "lm", "loops", "robust", "none", "learned"):
+        assert re.search(rf"\b{choice}\b", text), choice
+    assert "--quiet" in text and "Synchronization method ." not in text
+    text = _help("sync")
+    for default in ("[default: history]", "[default: 50]", "[default: loops]", "[default: information]",
+                    "[default: none]"):
+        assert default in text, default
+    assert "huber, cauchy or tls" in text and "shonan" in text
+
+
+def test_help_choices_are_the_modules_choices():
+    from sghr_gtsam import cli
+    from sghr_gtsam.gtsam_api import KERNELS, NOISE_MODELS
+    from sghr_gtsam.sync import METHODS, POLISHES
+    from sghr_gtsam.sync.baselines import BASELINES
+
+    assert cli._METHOD_NAMES == tuple(METHODS) and cli._POLISH_NAMES == tuple(POLISHES)
+    assert cli._KERNEL_NAMES == KERNELS and cli._NOISE_NAMES == NOISE_MODELS
+    assert set(cli._BASELINE_NAMES) == set(BASELINES)
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory):
+    d = tmp_path_factory.mktemp("cli") / "scene"
+    write_scene(make_scene(kind="room", n_scans=3, seed=1), d)
+    return d
+
+
+def test_run_off_a_terminal_prints_messages_and_summary_but_no_bars(small_scene, tmp_path):
+    r = runner.invoke(app, ["run", str(small_scene), "--out", str(tmp_path / "out"), "--no-record", "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    assert "━" not in r.output and "ETA" not in r.output
+    assert re.search(r"^pairwise: \d+ pairs", r.output, re.MULTILINE)
+    assert re.search(r"^scans placed\s+3/3$", r.output, re.MULTILINE)
+    assert re.search(r"^worst residual\s+\d+\.\d+° \(", r.output, re.MULTILINE)
+    assert re.search(r"^seconds\s+[\d.]+ total: load [\d.]+ · features", r.output, re.MULTILINE)
+    assert "rerun" not in r.output  # nothing recorded
+
+
+def test_quiet_run_prints_the_summary_and_how_to_open_the_recording(small_scene, tmp_path):
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["run", str(small_scene), "--out", str(out), "--quiet", "--workers", "1"])
+    assert r.exit_code == 0, r.output
+    assert "pairwise:" not in r.output and "voxel" not in r.output
+    assert re.search(r"^scans placed\s+3/3$", r.output, re.MULTILINE)
+    assert r.output.rstrip().splitlines()[-1] == f"review the run: rerun {out / 'recording.rrd'}"
+    assert (out / "recording.rrd").is_file() and (out / "summary.png").is_file()
