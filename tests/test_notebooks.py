@@ -23,3 +23,14 @@ def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     np.testing.assert_array_equal(np.flatnonzero(ns["synced"].weights == 0), ns["wrong"])
     assert ns["rot"].max() < 3.0
     assert "unregistered: [] | unverified: [] | contested: []" in capsys.readouterr().out
+    assert not ns["work"].exists()  # the notebook removes its temporary folder
+
+
+def test_tour_is_stored_executed_with_its_figures():
+    """Stored as a kernel ran it (data_tools/screenshots.py): every code cell executed in order, no errors, and
+    the two figures inline."""
+    cells = [c for c in json.loads((NOTEBOOKS / "tour.ipynb").read_text())["cells"] if c["cell_type"] == "code"]
+    assert [c["execution_count"] for c in cells] == list(range(1, len(cells) + 1))
+    assert not [o for c in cells for o in c["outputs"] if o["output_type"] == "error"]
+    figures = [c["id"] for c in cells for o in c["outputs"] if "image/png" in o.get("data", {})]
+    assert figures == ["summary-figure", "weights-figure"]
