@@ -95,10 +95,14 @@ def _observed(run_pipeline, quiet: bool, *args) -> "RunResult":
 
         progress = TerminalProgress(_console())
         log = progress.log
-    try:
-        return _guard(run_pipeline, *args, log=log, progress=progress)
-    finally:
-        progress.close()
+
+    def work() -> "RunResult":
+        try:
+            return run_pipeline(*args, log=log, progress=progress)
+        finally:
+            progress.close()  # before an error is printed, so that it lands below the bars, on stderr
+
+    return _guard(work)
 
 
 def _silent(message: str) -> None:
