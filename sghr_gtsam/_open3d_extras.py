@@ -55,14 +55,14 @@ class _Loader(importlib.abc.Loader):
             found = _deferred(name, module.__path__)
             if found is not None:
                 lazy[sub] = sys.modules[name] = found
+                # open3d's __init__ reads open3d.visualization in a Jupyter kernel (its web visualizer)
+                setattr(module, sub, found)
         try:
             self._real.exec_module(module)
         except BaseException:
             for sub in lazy:
                 sys.modules.pop(f"{module.__name__}.{sub}", None)
             raise
-        for sub, found in lazy.items():
-            setattr(module, sub, found)
         module.__loader__ = module.__spec__.loader = self._real  # from here on an ordinary package
 
 
