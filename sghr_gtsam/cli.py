@@ -23,24 +23,22 @@ app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Multiview point-cloud registration: SGHR with a GTSAM back end.")
 
 _DEFAULT = Config()
-# Spelled out here so that `--help` imports nothing heavy; tests/test_cli.py checks them against the modules.
+# Choices spelled out here so that `--help` imports nothing heavy; tests/test_review.py checks them against the
+# modules.
 _METHOD_NAMES = ("history", "constant", "current", "spectral", "lm")
-_POLISH_NAMES = ("loops", "robust", "lm", "none")
-_KERNEL_NAMES = ("none", "huber", "cauchy", "tls")
-_NOISE_NAMES = ("information", "isotropic")
+_BASELINE_NAMES = ("eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d", "open3d_all_uncertain")
+_METHOD_HELP = ("Synchronization method: history (SGHR's history reweighting), constant or current (its "
+                "ablations), spectral (one spectral solve) or lm (spectral, then LM).")
+_POLISH_HELP = ("After IRLS: loops (scans placed by counted loop evidence, then LM on the consistent edges), "
+                "robust (consensus re-placement, gtsam GNC, consensus, LM), lm (LM on the edges IRLS kept) or none.")
+
+
 def _default(value: object) -> str:
     """A help text's default for an option whose real default is None (so that a --config file's value holds),
     escaped: unescaped, rich takes '[default: …]' for markup and prints nothing."""
     from rich.markup import escape
 
     return " " + escape(f"[default: {value}]")
-
-
-_BASELINE_NAMES = ("eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d", "open3d_all_uncertain")
-_METHOD_HELP = ("Synchronization method: history (SGHR's history reweighting), constant or current (its "
-                "ablations), spectral (one spectral solve) or lm (spectral, then LM).")
-_POLISH_HELP = ("After IRLS: loops (scans placed by counted loop evidence, then LM on the consistent edges), "
-                "robust (consensus re-placement, gtsam GNC, consensus, LM), lm (LM on the edges IRLS kept) or none.")
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -119,7 +117,7 @@ def _names(names: list[str], shown: int = 4) -> str:
     return ", ".join(names[:shown]) + (f" (+{len(names) - shown} more)" if len(names) > shown else "")
 
 
-def summary_table(result: "RunResult", out: Path) -> "Table":
+def _summary_table(result: "RunResult", out: Path) -> "Table":
     """The closing summary of a run: scans placed and flagged, the worst residual among the edges the result
     rests on, and the seconds of each stage."""
     import numpy as np
@@ -149,10 +147,10 @@ def _close(result: "RunResult", out: Path, recorded: bool) -> None:
     """Print the summary table, the warnings (stderr) and how to open the recording."""
     console = _console()
     if console.is_terminal:
-        console.print(summary_table(result, out))
+        console.print(_summary_table(result, out))
     else:  # a log file gets the table without the padding rich puts at the end of its lines
         with console.capture() as table:
-            console.print(summary_table(result, out))
+            console.print(_summary_table(result, out))
         typer.echo("\n".join(line.rstrip() for line in table.get().splitlines()))
     if result.unregistered:
         typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
