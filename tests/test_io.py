@@ -266,7 +266,7 @@ BAD_SCANS = {
     "npy garbage": (_write("g.npy", b"\x93NUMPY garbage"), "cannot read scan"),
     "npz labelled npy": (_npz_labelled_npy, ".npz archive"),
     "corrupt npz": (_write("c.npz", b"PK\x03\x04 not really a zip"), "cannot read scan"),
-    "unknown suffix": (_write("scan.las", b"whatever"), "unknown scan format"),
+    "unknown suffix": (_write("scan.dxf", b"whatever"), "unknown scan format"),
 }
 
 
