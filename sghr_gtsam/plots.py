@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .io.atomic import atomic_path
+from .palette import FLAG_COLOURS, REJECTED, scan_colours
 from .se3 import transform_points
 
 if TYPE_CHECKING:
@@ -33,9 +34,15 @@ RASTER_WIDTH = 400
 at the cost of one image, where a scatter of 60,000 points took 0.8 s to draw."""
 
 KEPT_COLOUR = "#1a1a1a"
-REJECTED_COLOUR = "#d62728"
-UNVERIFIED_COLOUR = "#ff7f0e"
-CONTESTED_COLOUR = "#9467bd"
+
+
+def _hex(rgb: tuple[int, int, int]) -> str:
+    return "#" + "".join(f"{c:02x}" for c in rgb)
+
+
+REJECTED_COLOUR = _hex(REJECTED)
+UNVERIFIED_COLOUR = _hex(FLAG_COLOURS["unverified"])
+CONTESTED_COLOUR = _hex(FLAG_COLOURS["contested"])
 
 
 @cache
@@ -49,28 +56,6 @@ def _figure_class() -> type:
             return buffer.getvalue()
 
     return InlineFigure
-
-
-def scan_colours(n: int) -> np.ndarray:
-    """(n, 3) RGB in [0, 1], one categorical colour per scan: Tableau's 10 distinct hues first, then each next
-    colour the one farthest (in RGB) from all chosen so far among a grid of saturated, mid-light colours. So
-    neighbours in scan order never look alike: the smallest distance between two colours (0-255 units) is 67 up
-    to 30 scans, 59 at 60, 43 at 100; past the grid's 576 colours they repeat."""
-    from matplotlib import colormaps
-    from matplotlib.colors import hsv_to_rgb
-
-    chosen = np.asarray(colormaps["tab10"].colors)[: min(n, 10)]
-    if n <= 10:
-        return chosen
-    h, s, v = np.meshgrid(np.linspace(0, 1, 48, endpoint=False), [0.35, 0.6, 0.85, 1.0], [0.45, 0.7, 0.95])
-    grid = hsv_to_rgb(np.stack([h.ravel(), s.ravel(), v.ravel()], axis=1))
-    nearest = np.min(np.linalg.norm(grid[:, None] - chosen[None], axis=2), axis=1)
-    colours = list(chosen)
-    for _ in range(min(n - 10, len(grid))):
-        best = int(np.argmax(nearest))  # ties: the first, so the palette is the same on every run
-        colours.append(grid[best])
-        nearest = np.minimum(nearest, np.linalg.norm(grid - grid[best], axis=1))
-    return np.resize(np.array(colours), (n, 3))  # cycles past the grid
 
 
 def _view_axes(points: np.ndarray) -> np.ndarray:
@@ -111,7 +96,7 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
         status = edge_status(result)
     placed = result.registered
     n = len(result.names)
-    colours = scan_colours(n)
+    colours = scan_colours(n) / 255.0
     cloud = np.concatenate([transform_points(result.poses[k], result.features[k].points) for k in placed])
     label = np.concatenate([np.full(len(result.features[k].points), k) for k in placed])
     axes = _view_axes(cloud)

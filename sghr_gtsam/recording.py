@@ -33,6 +33,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from .palette import FLAG_COLOURS, REJECTED, scan_colours
 from .sync.irls import kept_edges
 from .types import IterationRecord, PoseGraph, SyncResult
 
@@ -40,47 +41,13 @@ TIMELINE = "step"
 ELLIPSOID_GAIN = 10.0
 """Ellipsoids are drawn this many times their 3σ size (a well-registered scan's is sub-millimetre)."""
 KEPT = (60, 200, 255)
-"""Colour of the edges a synchronization keeps (light blue) ..."""
-REJECTED = (255, 70, 40)
-"""... and of those it rejects (red-orange): apart for red-green colour blindness too."""
+"""Colour of the edges a synchronization keeps (light blue; the rejected ones: ``palette.REJECTED``)."""
 WEIGHT_FLOOR = -6.0
 """log10 of weight ÷ the largest at which the ``weights`` series shows a rejected (zero-weight) edge."""
-FLAG_COLOURS = {"unregistered": (255, 40, 40), "unverified": (255, 170, 0), "contested": (230, 60, 230)}
-"""Box colour of a flagged scan, by its first flag in ``log_final``'s order; other flags get ``FLAG_OTHER``."""
 FLAG_OTHER = (255, 255, 255)
+"""Box colour of a flag without one in ``palette.FLAG_COLOURS`` (a box takes its first flag's colour)."""
 _EDGE_POINTS = (0.75, 3.5)  # line radius in UI points of a rejected edge / the heaviest kept edge
 _SEP = "–"  # between the two scan names of an edge
-
-
-def scan_colours(n: int) -> np.ndarray:
-    """(n, 3) uint8 colours of ``n`` scans: a fixed categorical palette, never random.
-
-    Ten hues evenly spaced on the OKLCH circle with alternating lightness (so that neighbours differ in
-    lightness as well as hue); each further ten shift the hues by half a step and take another lightness,
-    so the first 40 colours are all distinct; then the palette repeats. The levels maximise the smallest
-    OKLab distance between two colours: 0.14 among the first 10, 0.065 among the first 40.
-    """
-    k = np.arange(n)
-    hue_step = 2 * np.pi / 10
-    cycle = (k // 10) % 4
-    hue = (k % 10) * hue_step + np.where(cycle % 2, hue_step / 2, 0.0)
-    lightness = np.array([0.71, 0.63, 0.55, 0.79])[cycle] + np.where(k % 2, -0.07, 0.07)
-    chroma = 0.13
-    lab = np.stack([lightness, chroma * np.cos(hue), chroma * np.sin(hue)], axis=1)
-    return _oklab_to_srgb(lab)
-
-
-def _oklab_to_srgb(lab: np.ndarray) -> np.ndarray:
-    """OKLab (Ottosson 2020) -> 8-bit sRGB, clipped to the gamut."""
-    lms = lab @ np.array([[1.0, 1.0, 1.0],
-                          [0.3963377774, -0.1055613458, -0.0894841775],
-                          [0.2158037573, -0.0638541728, -1.2914855480]])
-    linear = (lms ** 3) @ np.array([[4.0767416621, -1.2684380046, -0.0041960863],
-                                    [-3.3077115913, 2.6097574011, -0.7034186147],
-                                    [0.2309699292, -0.3413193965, 1.7076147010]])
-    linear = np.clip(linear, 0.0, 1.0)
-    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
-    return np.round(srgb * 255).astype(np.uint8)
 
 
 def edge_radii(w: np.ndarray, kept: np.ndarray, min_weight: float) -> np.ndarray:

@@ -12,7 +12,8 @@ from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
 from sghr_gtsam.pipeline import run
-from sghr_gtsam.recording import FLAG_COLOURS, KEPT, REJECTED, TIMELINE, Recorder, edge_radii, scan_colours
+from sghr_gtsam.palette import FLAG_COLOURS, REJECTED, scan_colours
+from sghr_gtsam.recording import KEPT, TIMELINE, Recorder, edge_radii
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.sync import contested, synchronize, unverified
 from sghr_gtsam.synthetic import make_scene, write_scene
@@ -190,15 +191,6 @@ def test_edge_width_grows_with_log_weight_within_bounds(log_w, min_weight):
     assert r[np.argmax(w)] == pytest.approx(3.5) and np.all(r >= 0.75 - 1e-6) and np.all(r[~kept] == r.min())
     # scale-free: only weight ÷ the largest matters
     np.testing.assert_allclose(edge_radii(w * 1e3, kept, min_weight), r, atol=1e-5)
-
-
-def test_scan_colours_are_a_fixed_categorical_palette():
-    c = scan_colours(45).astype(float)
-    np.testing.assert_array_equal(scan_colours(45), c)  # no randomness
-    d = np.linalg.norm(c[:, None] - c[None], axis=2)
-    first40 = d[:40, :40][np.triu_indices(40, 1)]
-    assert d[:10, :10][np.triu_indices(10, 1)].min() > 50 and first40.min() > 15
-    np.testing.assert_array_equal(c[40:], c[:5])  # then it repeats
 
 
 # --- a run: the pipeline's stages on the timeline ------------------------------------------------------

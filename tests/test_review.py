@@ -14,7 +14,8 @@ from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.poses import read_kitti, read_tum
 from sghr_gtsam.pipeline import run
-from sghr_gtsam.plots import scan_colours, summary_figure
+from sghr_gtsam.palette import REJECTED, scan_colours
+from sghr_gtsam.plots import summary_figure
 from sghr_gtsam.progress import TerminalProgress
 from sghr_gtsam.synthetic import make_scene, write_scene
 
@@ -98,20 +99,23 @@ def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
     rejected, solid = (c for c in top.collections if isinstance(c, LineCollection))
     assert len(rejected.get_segments()) == 1 and len(solid.get_segments()) == len(kept) - 1
     assert rejected.get_linestyle()[0][1] is not None  # dashed
-    np.testing.assert_allclose(rejected.get_edgecolor()[0][:3], [0xD6 / 255, 0x27 / 255, 0x28 / 255], atol=1e-6)
+    np.testing.assert_allclose(rejected.get_edgecolor()[0][:3], np.divide(REJECTED, 255), atol=1e-6)
     widths = solid.get_linewidths()
     heaviest = int(np.argmax(result.sync.weights[kept[1:]]))
     assert widths[heaviest] == pytest.approx(3.0) and min(widths) >= 0.6
     image = top.images[0].get_array()
     drawn = np.unique(image[image[..., 3] > 0][:, :3], axis=0)
-    np.testing.assert_allclose(np.sort(drawn, axis=0), np.sort(scan_colours(4), axis=0))
+    np.testing.assert_allclose(np.sort(drawn, axis=0), np.sort(scan_colours(4) / 255.0, axis=0))
 
 
 @pytest.mark.parametrize("n", [8, 30, 60])
 def test_scan_colours_are_categorical(n):
-    """The issue's case: random colours put two beiges 24 RGB units apart at 8 scans, 13 near pairs at 30."""
-    c = scan_colours(n) * 255
+    """The issue's case: random colours put two beiges 24 RGB units apart at 8 scans, 13 near pairs at 30.
+    The recording and the picture share the palette, and it is the same on every run."""
+    c = scan_colours(n).astype(float)
     assert c.shape == (n, 3) and pdist(c).min() > 55
+    np.testing.assert_array_equal(scan_colours(n), c)
+    np.testing.assert_array_equal(scan_colours(n + 700)[:n], c)  # a scan keeps its colour as scans are added
 
 
 # --- the command line ------------------------------------------------------------------------------------------
