@@ -22,10 +22,13 @@ from typing import Protocol
 import numpy as np
 import small_gicp
 
-from ..features.local import GICP_THREADS
+from ..features.local import COV_NEIGHBORS, GICP_THREADS
 
 MIN_PAIRS = 7
 """Fewer close pairs than this leave σ̂² without a degree of freedom: no information."""
+MIN_CELLS = 12
+"""The sandwich's middle ``M`` sums one outer product per cell: with fewer cells than twice the pose's
+dimension it is too poorly estimated to invert (cluster-robust covariances need many clusters)."""
 
 
 class Grid(Protocol):
@@ -38,12 +41,39 @@ class Grid(Protocol):
     cloud_tree: small_gicp.KdTree
 
 
-def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray) -> np.ndarray:
-    """``Σ JᵀJ / σ̂²`` (module doc) from points ``q`` (m, 3) of scan j, the matched normals ``normals`` (m, 3)
-    expressed in scan j's frame, and the point-to-plane residuals (m,)."""
+def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray,
+                      cell: float | None = None) -> np.ndarray:
+    """Information (6, 6) of the point-to-plane alignment from points ``q`` (m, 3) of scan j, the matched
+    normals ``normals`` (m, 3) expressed in scan j's frame, and the point-to-plane residuals (m,).
+
+    ``cell`` None: independent residuals, ``Σ JᵀJ / σ̂²`` (module doc). ``cell`` a length: residuals correlated
+    within cells of that side (``q``'s frame), the cluster-robust (sandwich) covariance ``H⁻¹ M H⁻¹`` with
+    ``H = Σ JᵀJ`` and ``M = c Σ_cells s sᵀ``, ``s = Σ_{cell} J r``, ``c = G/(G−1) · (m−1)/(m−6)`` over ``G`` cells;
+    the information is its inverse ``H M⁻¹ H``. With fewer than ``MIN_CELLS`` cells the independent model."""
     J = np.hstack([np.cross(q, normals), normals])
+    H = J.T @ J
+    if cell is not None:
+        _, cells = np.unique(np.floor(q / cell).astype(np.int64), axis=0, return_inverse=True)
+        G = int(cells.max()) + 1
+        if G >= MIN_CELLS:
+            s = np.zeros((G, 6))
+            np.add.at(s, cells.ravel(), J * residuals[:, None])
+            M = s.T @ s * (G / (G - 1) * (len(q) - 1) / (len(q) - 6))
+            try:
+                info = H @ np.linalg.solve(M, H)
+                return (info + info.T) / 2
+            except np.linalg.LinAlgError:  # every cell's score in a subspace: fall back to independence
+                pass
     sigma2 = float(residuals @ residuals) / (len(q) - 6)
-    return J.T @ J / max(sigma2, np.finfo(float).tiny)
+    return H / max(sigma2, np.finfo(float).tiny)
+
+
+def correlation_length(grid: Grid, points: np.ndarray) -> float:
+    """Diameter of the neighbourhood a normal of ``grid`` is fitted on: twice the median distance from
+    ``points`` (grid points) to their ``COV_NEIGHBORS``-th neighbour. Two residuals closer than this share
+    neighbours of their normals, so their errors are correlated; farther apart they share none."""
+    _, sq = grid.cloud_tree.batch_knn_search(points, COV_NEIGHBORS, GICP_THREADS)
+    return 2.0 * float(np.sqrt(np.median(np.asarray(sq)[:, -1])))
 
 
 def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
@@ -61,4 +91,5 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
     nearest = np.asarray(nearest)[close]
     n = target_i.normals[nearest]
     residuals = np.einsum("mk,mk->m", moved[close] - target_i.points[nearest], n)
-    return plane_information(q[close], n @ R, residuals)
+    cell = correlation_length(target_i, target_i.points[nearest])
+    return plane_information(q[close], n @ R, residuals, cell)
