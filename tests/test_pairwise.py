@@ -67,7 +67,7 @@ def test_known_transform_is_recovered(boxes, matcher):
 def test_information_is_the_calibrated_point_to_plane_one(boxes):
     _, voxel, fi, fj = boxes
     result = register_pair(fi, fj, voxel)
-    np.testing.assert_allclose(result.information, registration_information(fi, fj, result.T, 1.5 * voxel))
+    np.testing.assert_allclose(result.information, registration_information(fi, fj, result.T, 1.5 * voxel).matrix)
     assert np.all(np.linalg.eigvalsh(result.information) > 0)
 
 

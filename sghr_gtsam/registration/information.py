@@ -17,10 +17,13 @@ the point-to-point one (with its σ̂ from the full 3-d residuals) is 3-15× ove
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Protocol
 
+import gtsam
 import numpy as np
 import small_gicp
+from scipy.linalg import eigh
 
 from ..features.local import COV_NEIGHBORS, GICP_THREADS
 
@@ -76,11 +79,83 @@ def correlation_length(grid: Grid, points: np.ndarray) -> float:
     return 2.0 * float(np.sqrt(np.median(np.asarray(sq)[:, -1])))
 
 
+def displacement_metric(points: np.ndarray) -> np.ndarray:
+    """(6, 6) ``A`` with ``ξᵀ A ξ`` the mean squared displacement of ``points`` (m, 3) when their pose ``T``
+    becomes ``T exp(ξ)`` (``ξ = [ω, v]``; point ``q`` moves by ``ω × q + v``): the metric in which pose
+    uncertainties of different units (radians, metres) compare, as movements of the scan's own points."""
+    c = points.mean(axis=0)
+    S = (points - c).T @ (points - c) / len(points)
+    qx = np.array([[0.0, -c[2], c[1]], [c[2], 0.0, -c[0]], [-c[1], c[0], 0.0]])
+    # mean of [−[q]×, I]ᵀ[−[q]×, I] with q = c + d (Σ d = 0): the rotation block is tr(S) I − S + [c]×ᵀ[c]×.
+    A = np.zeros((6, 6))
+    A[:3, :3] = np.trace(S) * np.eye(3) - S + qx.T @ qx
+    A[:3, 3:] = qx
+    A[3:, :3] = qx.T
+    A[3:, 3:] = np.eye(3)
+    return A
+
+
+def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
+    """Mean squared point-to-plane residual of ``q`` under ``T``, each point against its nearest target point."""
+    moved = q @ T[:3, :3].T + T[:3, 3]
+    nearest, _ = target_i.cloud_tree.batch_nearest_neighbor_search(moved, GICP_THREADS)
+    nearest = np.asarray(nearest)
+    r = np.einsum("mk,mk->m", moved - target_i.points[nearest], target_i.normals[nearest])
+    return float(r @ r) / len(r)
+
+
+def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray,
+                    step: float) -> tuple[np.ndarray, int]:
+    """The information with the directions of ``T exp(ξ)`` the pair's geometry does not fix (a plane's three,
+    a corridor's one, a cylinder's two) set to the overlap's own extent, and their number.
+
+    A direction does not fix the pose when moving scan j's close points ``q`` by ``step`` (RMS) along it,
+    with every point re-associated to its nearest target point, raises their mean squared point-to-plane
+    residual by less than the residual itself: the data cannot tell the pose from one moved that far. The
+    linearized information cannot say so: noisy normals tilt off a flat wall and give sliding along it a
+    spurious stiffness. Directions are tried from the least informative (generalized eigenvectors of the
+    information in ``displacement_metric``) until one is fixed; a free one gets the information of a
+    displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap)."""
+    A = displacement_metric(q)
+    values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
+    base = _mean_square(target_i, q, T)
+    free = 0
+    for k in range(6):
+        xi = step * vectors[:, k]
+        moved = [_mean_square(target_i, q, T @ _exp(sign * xi)) for sign in (1.0, -1.0)]
+        if (moved[0] + moved[1]) / 2 - base >= base:
+            break
+        free += 1
+    if free == 0:
+        return information, 0
+    radius2 = float(np.sum(np.var(q, axis=0)))
+    values = values.copy()
+    values[:free] = 1.0 / radius2
+    AV = A @ vectors
+    info = AV @ np.diag(values) @ AV.T
+    return (info + info.T) / 2, free
+
+
+def _exp(xi: np.ndarray) -> np.ndarray:
+    """SE(3) exponential of ``[ω, v]`` (gtsam's Pose3.Expmap) as a 4×4 matrix."""
+    return gtsam.Pose3.Expmap(xi).matrix()
+
+
+@dataclass
+class Information:
+    """An edge's information (6, 6) and the number of directions its geometry leaves free
+    (``free_directions``); ``matrix`` carries them with the overlap's extent as their only bound."""
+
+    matrix: np.ndarray
+    free: int
+
+
 def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
-                             max_distance: float) -> np.ndarray | None:
-    """Information (6, 6) of ``T`` (``T_ij``: scan j into scan i's frame) for ``T exp(ξ)``, from the grid
-    points of scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``.
-    Both grids must be those ``T`` was aligned on: its residuals there are what σ̂ and the sum measure."""
+                             max_distance: float) -> Information | None:
+    """Information of ``T`` (``T_ij``: scan j into scan i's frame) for ``T exp(ξ)``, from the grid points of
+    scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``. Both grids
+    must be those ``T`` was aligned on: its residuals there are what σ̂ and the sum measure. The directions
+    free under a move of ``max_distance`` (``free_directions``) are counted and bounded only by the overlap."""
     q = source_j.points
     R, t = T[:3, :3], T[:3, 3]
     moved = q @ R.T + t
@@ -92,4 +167,5 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
     n = target_i.normals[nearest]
     residuals = np.einsum("mk,mk->m", moved[close] - target_i.points[nearest], n)
     cell = correlation_length(target_i, target_i.points[nearest])
-    return plane_information(q[close], n @ R, residuals, cell)
+    information = plane_information(q[close], n @ R, residuals, cell)
+    return Information(*free_directions(target_i, q[close], T, information, max_distance))

@@ -17,7 +17,7 @@ from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
 from sghr_gtsam.types import InputError
 
 from .estimators import sc2_estimate
-from .information import registration_information
+from .information import Information, registration_information
 
 MATCHERS = ("sc2", "kiss", "ransac")
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
@@ -69,6 +69,9 @@ class PairResult:
     seconds: float
     coverage: int = 0
     matches: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    free: int = 0
+    """Directions of ``T`` the pair's geometry does not fix (a plane, a corridor, a cylinder: ``information.
+    free_directions``); ``information`` bounds them only by the overlap's extent."""
 
 
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:
@@ -163,7 +166,7 @@ def register_pair(
 
 def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
                matches: tuple[np.ndarray, np.ndarray] | None = None,
-               information: np.ndarray | None = None) -> PairResult:
+               information: Information | None = None) -> PairResult:
     """The ``PairResult`` of ``T`` (however it was found): its mutual descriptor ``matches`` (computed when not
     given) within ``INLIER_DISTANCE`` voxels (``r_ij``) and the cells they cover, fitness, rmse, and
     ``information`` when given (from the grid ``T`` was aligned on), else the matching grid's; ``seconds`` 0."""
@@ -178,14 +181,16 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     sq_dist = np.asarray(sq_dist)
     close = sq_dist < max_distance**2
     n = int(np.count_nonzero(close))
+    if information is None:
+        information = registration_information(target_i, source_j, T, max_distance)
     return PairResult(
         T=T,
         inliers=int(np.count_nonzero(agree)),
         fitness=n / len(q),
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
-        information=information if information is not None else registration_information(target_i, source_j, T,
-                                                                                          max_distance),
+        information=None if information is None else information.matrix,
         seconds=0.0,
         coverage=len(np.unique(cells, axis=0)),
         matches=(a, b),
+        free=0 if information is None else information.free,
     )
