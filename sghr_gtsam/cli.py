@@ -158,6 +158,9 @@ def _close(result: "RunResult", out: Path, recorded: bool) -> None:
         typer.echo(f"unverified (pose rests on one unchecked registration): {', '.join(result.unverified)}", err=True)
     if result.contested:
         typer.echo(f"contested (dropped registrations outweigh the kept ones): {', '.join(result.contested)}", err=True)
+    if result.underdetermined:
+        typer.echo(f"underdetermined (not fixed to a voxel in some direction): {', '.join(result.underdetermined)}",
+                   err=True)
     typer.echo(f"summary picture: {out / 'summary.png'}")
     if recorded:
         typer.echo(f"review the run: rerun {out / 'recording.rrd'}")

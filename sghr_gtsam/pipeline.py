@@ -32,6 +32,7 @@ from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
+from .registration.information import underdetermined
 from .registration.refine import build_pyramid
 from .registration.retry import weak_scans
 from .result import RunResult
@@ -259,6 +260,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
             run.covariances = np.full((n, 6, 6), np.nan)
             log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
+    free = underdetermined(run.covariances, [f.points for f in features], voxel, [k for k in run.registered
+                                                                                  if k != main[0]])
+    run.underdetermined = [names[k] for k in np.flatnonzero(free)]
+    for name in run.underdetermined:
+        log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
     if recorder:
         recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed})
         recorder.log_covariances(poses, run.covariances)

@@ -18,7 +18,7 @@ class RunResult:
     first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
     ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``); scans in
     ``contested`` have one against which the graph holds more registration evidence than for it
-    (``sync.contested``)."""
+    (``sync.contested``); scans in ``underdetermined`` have one their edges leave free in some direction."""
 
     names: list[str]
     poses: np.ndarray
@@ -39,6 +39,9 @@ class RunResult:
     densify: dict = field(default_factory=dict)
     """What refinement, loop closure and retries did (``registration.densify.DensifyReport``), and the
     scans they rescued (weak after the first synchronization, placed and verified at the end)."""
+    underdetermined: list[str] = field(default_factory=list)
+    """Scans whose pose the kept edges do not fix to within a voxel in some direction (a scan seen as a plane,
+    a corridor, a cylinder; ``registration.information.underdetermined``): placed, but not certain there."""
     covariances: np.ndarray | None = None
     """(N, 6, 6) covariance of each scan's pose relative to the world scan, gtsam order [rotation, translation]
     at the pose (``gtsam_api.pose_covariances``); NaN for unregistered scans. None: not computed yet."""

@@ -169,3 +169,26 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
     cell = correlation_length(target_i, target_i.points[nearest])
     information = plane_information(q[close], n @ R, residuals, cell)
     return Information(*free_directions(target_i, q[close], T, information, max_distance))
+
+
+def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
+    """σ of the displacement of a scan's ``points`` (m, 3, its own frame) along the least determined direction
+    of its pose covariance (6, 6, gtsam order at the pose): the root of the largest eigenvalue of ``C A``
+    (``A`` the ``displacement_metric``). In the scene's units, whatever mix of rotation and translation that
+    direction is; inf when the covariance is not finite."""
+    if not np.isfinite(covariance).all():
+        return float("inf")
+    L = np.linalg.cholesky(displacement_metric(points))
+    return float(np.sqrt(max(np.linalg.eigvalsh(L.T @ covariance @ L)[-1], 0.0)))
+
+
+def underdetermined(covariances: np.ndarray, points: list[np.ndarray], voxel: float,
+                    registered: list[int]) -> np.ndarray:
+    """(N,) bool: registered scans whose pose is not fixed to within ``voxel`` in some direction, i.e. whose
+    ``pose_spread`` exceeds the voxel (the resolution the run registers at: descriptors, inlier distance and
+    grids all work at it), or whose covariance the graph leaves indeterminate. A scan held only by edges
+    that leave a direction free (``free_directions``) gets a spread of the overlap's size there."""
+    flagged = np.zeros(len(covariances), dtype=bool)
+    for k in registered:
+        flagged[k] = pose_spread(covariances[k], points[k]) > voxel
+    return flagged
