@@ -32,7 +32,7 @@ from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
-from .registration.information import underdetermined
+from .registration.information import STIFFEN, underdetermined
 from .registration.refine import build_pyramid
 from .registration.retry import weak_scans
 from .result import RunResult
@@ -260,15 +260,30 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
             run.covariances = np.full((n, 6, 6), np.nan)
             log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
-    free = underdetermined(run.covariances, [f.points for f in features], voxel, [k for k in run.registered
-                                                                                  if k != main[0]])
-    run.underdetermined = [names[k] for k in np.flatnonzero(free)]
+    run.underdetermined = _underdetermined(run, main[0])
     for name in run.underdetermined:
         log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
     if recorder:
         recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed})
         recorder.log_covariances(poses, run.covariances)
     return run
+
+
+def _underdetermined(run: RunResult, anchor: int) -> list[str]:
+    """The registered scans (but the world one) whose pose is not fixed in some direction
+    (``information.underdetermined``; the stiffened covariances only when a kept edge leaves a direction free)."""
+    others = [k for k in run.registered if k != anchor]
+    kept = [p for p, w in zip(run.pairs, run.sync.weights) if w > 0]
+    stiffened = None
+    if run.graph.information is not None and any(p.free for p in kept):
+        loose = np.stack([np.zeros((6, 6)) if p.loose is None else p.loose for p in run.pairs])
+        graph = replace(run.graph, information=run.graph.information + (STIFFEN - 1.0) * loose)
+        try:
+            stiffened = pose_covariances(replace(run, graph=graph))
+        except RuntimeError:  # indeterminate (see above): the spreads alone decide
+            pass
+    flagged = underdetermined(run.covariances, [f.points for f in run.features], run.voxel, others, stiffened)
+    return [run.names[k] for k in np.flatnonzero(flagged)]
 
 
 def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None, progress: Progress = QUIET,

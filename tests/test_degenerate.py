@@ -16,8 +16,8 @@ from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.gtsam_api import marginal_covariances, to_gtsam
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.registration import batch
-from sghr_gtsam.registration.information import (displacement_metric, pose_spread, registration_information,
-                                                  underdetermined)
+from sghr_gtsam.registration.information import (STIFFEN, displacement_metric, pose_spread,
+                                                  registration_information, underdetermined)
 from sghr_gtsam.registration.pairwise import score_pair
 from sghr_gtsam.registration.refine import Pyramid
 from sghr_gtsam.se3 import inv_T, make_T
@@ -70,23 +70,22 @@ def test_free_directions_of_planes_cylinders_corridors_and_a_corner(kind, free):
         target, source, T = _scan_pair(kind, seed)
         info = registration_information(target, source, T, 1.5 * VOXEL)
         assert info.free == free, (kind, seed)
-        values = np.linalg.eigvalsh(info.matrix)
-        assert np.all(values > 0)  # bounded: a factor gtsam can use
+        assert np.all(np.linalg.eigvalsh(info.matrix) > 0)  # bounded: a factor gtsam can use
+        assert np.linalg.matrix_rank(info.loose, tol=1e-9 * np.abs(info.loose).max(initial=1.0)) == free
 
 
 @settings(max_examples=8, deadline=None)
 @given(st.integers(0, 2**16))
 def test_a_corridor_is_free_along_its_axis_and_fixed_across_it(seed):
-    """Placed anywhere, a corridor pair's information lets the scan's points spread along one direction by more
-    than a voxel (σ of its overlap's size), a slide along the corridor, and pins every other direction to a
-    tenth of one."""
+    """Placed anywhere, a corridor pair's information lets the scan's points spread along one direction, a slide
+    along the corridor, 100× more than along any other, and pins every other direction to a tenth of a voxel."""
     target, source, T = _scan_pair("corridor", seed)
     info = registration_information(target, source, T, 1.5 * VOXEL)
     assert info.free == 1
     values, vectors = eigh(info.matrix, displacement_metric(source.points))  # unit RMS displacement per unit
     spread = 1.0 / np.sqrt(values)
     axis = T[:3, :3].T @ np.array([1.0, 0.0, 0.0])  # the corridor's x axis in scan j's frame
-    assert spread[0] > VOXEL > 10 * spread[1]
+    assert spread[0] > 100 * spread[1] and spread[1] < VOXEL / 10
     assert abs(vectors[3:, 0] @ axis) > 0.99 * np.linalg.norm(vectors[3:, 0])
     assert np.linalg.norm(vectors[:3, 0]) * np.linalg.norm(source.points, axis=1).max() < 0.05 * np.linalg.norm(
         vectors[3:, 0])
@@ -100,9 +99,10 @@ def test_displacement_metric_is_the_mean_squared_motion_of_the_points():
     assert np.mean(np.sum((moved - q) ** 2, axis=1)) == pytest.approx(xi @ displacement_metric(q) @ xi, rel=1e-4)
 
 
-def _graph(kinds: list[tuple[int, int, str]], n: int, seed: int):
+def _graph(kinds: list[tuple[int, int, str]], n: int, seed: int, stiffen: float = 1.0):
     """A pose graph over ``n`` scans with random poses; edge (a, b) measured exactly, its information that of
-    a registration of ``kind`` geometry (``registration_information`` on generated scans)."""
+    a registration of ``kind`` geometry (``registration_information`` on generated scans), with the bounds of
+    its free directions ``stiffen`` times stiffer."""
     rng = np.random.default_rng(seed)
     poses = np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.normal(size=3))
                       for k in range(n)])
@@ -110,30 +110,33 @@ def _graph(kinds: list[tuple[int, int, str]], n: int, seed: int):
     for e, (a, b, kind) in enumerate(kinds):
         target, source, T_ab = _scan_pair(kind, seed + 10 * e)
         i.append(a), j.append(b), T.append(inv_T(poses[a]) @ poses[b])
-        info.append(registration_information(target, source, T_ab, 1.5 * VOXEL).matrix)
+        edge = registration_information(target, source, T_ab, 1.5 * VOXEL)
+        info.append(edge.matrix + (stiffen - 1.0) * edge.loose)
     graph = PoseGraph(n=n, i=np.array(i), j=np.array(j), T=np.stack(T), weight=np.ones(len(i)),
                       information=np.stack(info))
     return graph, poses, source.points
 
 
-def _covariances(graph: PoseGraph, poses: np.ndarray) -> np.ndarray:
+def _covariances(kinds: list[tuple[int, int, str]], stiffen: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    graph, poses, points = _graph(kinds, 3, seed=5, stiffen=stiffen)
     factors, values = to_gtsam(graph, poses, keys=lambda k: k)
-    factors.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(poses[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-9)))
-    return marginal_covariances(factors, values, list(range(graph.n)))
+    stiff = 1e4 * np.abs(graph.information).max()  # as gtsam_api.pose_covariances anchors its world scan
+    factors.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(poses[0]), gtsam.noiseModel.Isotropic.Precision(6, stiff)))
+    return marginal_covariances(factors, values, list(range(graph.n))), points
 
 
 def test_a_scan_held_by_a_corridor_edge_alone_is_underdetermined_and_a_second_edge_fixes_it():
-    """Scan 2 hangs on scan 1 by a corridor registration: its pose spreads over the corridor (more than a voxel)
-    and it is the one flagged; a corner registration to scan 0 as well fixes it (spread under a tenth of a
-    voxel) and nothing is flagged."""
-    graph, poses, points = _graph([(0, 1, "corner"), (1, 2, "corridor")], 3, seed=5)
-    C = _covariances(graph, poses)
-    scans = [points] * 3
-    assert underdetermined(C, scans, VOXEL, [1, 2]).tolist() == [False, False, True]
-    assert pose_spread(C[2], points) > VOXEL > 10 * pose_spread(C[1], points)
-    graph, poses, points = _graph([(0, 1, "corner"), (1, 2, "corridor"), (0, 2, "corner")], 3, seed=5)
-    C = _covariances(graph, poses)
-    assert not underdetermined(C, [points] * 3, VOXEL, [1, 2]).any()
+    """Scan 2 hangs on scan 1 by a corridor registration: its spread is the bound of the corridor's free
+    direction (10× smaller when that is 100× stiffer) and it is the one flagged; a corner registration to
+    scan 0 as well fixes it (spread under a tenth of a voxel, whatever the bound) and nothing is flagged."""
+    kinds = [(0, 1, "corner"), (1, 2, "corridor")]
+    (C, points), (stiff, _) = _covariances(kinds), _covariances(kinds, STIFFEN)
+    assert underdetermined(C, [points] * 3, VOXEL, [1, 2], stiff).tolist() == [False, False, True]
+    assert pose_spread(C[2], points) / pose_spread(stiff[2], points) == pytest.approx(np.sqrt(STIFFEN), rel=0.05)
+    assert pose_spread(C[1], points) / pose_spread(stiff[1], points) == pytest.approx(1.0, rel=0.05)
+    kinds.append((0, 2, "corner"))
+    (C, points), (stiff, _) = _covariances(kinds), _covariances(kinds, STIFFEN)
+    assert not underdetermined(C, [points] * 3, VOXEL, [1, 2], stiff).any()
     assert pose_spread(C[2], points) < VOXEL / 10
 
 
@@ -142,57 +145,61 @@ def test_an_indeterminate_covariance_is_underdetermined():
     assert underdetermined(C, [np.eye(3)] * 2, VOXEL, [1]).tolist() == [False, True]
 
 
-# --- the pipeline: a scan that sees only two walls of a room (a corridor's geometry) -----------------------
+# --- the pipeline: a corridor whose middle scan sees nothing but its walls ---------------------------------
 
 
-def _wedge(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The points of a scan's two largest planes that meet at more than 45°, and the direction of their
-    intersection line (the one direction they leave free), in the scan's frame."""
-    o3d.utility.random.seed(0)
-    keep, normals, rest = [], [], np.arange(len(points))
-    while len(keep) < 2:
-        plane, idx = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[rest])).segment_plane(
-            3 * NOISE, 3, 1000)
-        if all(abs(plane[:3] @ n) < np.cos(np.radians(45)) for n in normals):
-            keep.append(rest[idx]), normals.append(plane[:3])
-        rest = np.delete(rest, idx)
-    line = np.cross(*normals)
-    return points[np.concatenate(keep)], line / np.linalg.norm(line)
+def _corridor_scene(seed: int = 0):
+    """Five scans along a 26 m corridor (2 m wide, 2.5 m high) each seeing 8 m of it, in their own frames (random
+    poses): boxes stand on the floor in the first and last 9 m; the middle scan (x 9-17 m) sees only the walls,
+    floor and ceiling, so its registrations leave the slide along the corridor free."""
+    rng = np.random.default_rng(seed)
+    o3d.utility.random.seed(seed)
+    walls = _surface("corridor", rng, 150_000) * [26 / 6, 1.0, 1.0]
+    boxes = []
+    for x in list(rng.uniform(0.5, 8.5, 6)) + list(rng.uniform(17.5, 25.5, 6)):
+        box = o3d.geometry.TriangleMesh.create_box(*rng.uniform(0.2, 0.6, 3))
+        box.translate([x, rng.uniform(0.1, 1.2), 0.0])
+        boxes.append(np.asarray(box.sample_points_uniformly(2000).points))
+    world = np.concatenate([walls] + boxes)
+    starts = [0.0, 5.0, 9.0, 13.0, 18.0]
+    poses = np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.normal(size=3))
+                      for k in range(len(starts))])
+    scans = []
+    for k, x0 in enumerate(starts):
+        part = world[(world[:, 0] >= x0) & (world[:, 0] <= x0 + 8.0)]
+        part = part + rng.normal(0, NOISE, part.shape)
+        scans.append(Scan(f"scan_{k}.ply", (part - poses[k][:3, 3]) @ poses[k][:3, :3]))
+    return scans, poses
 
 
-@pytest.fixture(scope="module")
-def wedge_room():
-    scene = make_scene(kind="room", n_scans=6, seed=0)
-    cut, line = _wedge(scene.scans[5])
-    scans = [Scan(n, P) for n, P in zip(scene.names[:5], scene.scans[:5])] + [Scan("wedge.ply", cut)]
-    return scene, scans, scene.poses[5][:3, :3] @ line
-
-
-def test_a_scan_seen_as_two_walls_is_placed_off_along_them_and_reported(wedge_room, monkeypatch):
-    """Scan 5 keeps two walls of a room (floor and wall, or two walls): FPFH cannot register it, so its
-    registrations are planted, right but for a slide of 3 voxels along the walls' intersection, with enough
-    inliers to count. The run places it 3 voxels off, as its edges say, and reports it underdetermined; the
-    other scans are placed within a voxel and not flagged."""
-    scene, scans, line = wedge_room
-    off = scene.poses.copy()
-    off[5] = make_T(np.eye(3), 3 * scene.voxel * line) @ off[5]
+def test_a_scan_that_sees_only_a_corridor_is_reported_underdetermined(monkeypatch):
+    """Every pair of the corridor is registered as the truth would be, except that the middle scan's pairs put
+    it 3 voxels along the corridor: exactly what its geometry cannot tell apart. Those two pairs leave one
+    direction free, the others none; the scans beyond the middle one (2, 3, 4), which nothing ties to the world
+    scan along the corridor, are reported underdetermined, and every scan placed more than a voxel off is
+    among them; scans 0 and 1, which the boxes fix, are placed within a tenth of a voxel and not flagged."""
+    scans, poses = _corridor_scene()
+    voxel = VOXEL
+    off = poses.copy()
+    off[2] = make_T(np.eye(3), np.array([3 * voxel, 0.0, 0.0])) @ off[2]
 
     def planted(shared, pair):
         features, voxel, config = shared
         a, b = pair
-        if 5 not in pair:
-            return batch.register_pair(features[a], features[b], voxel, matcher=config.matcher,
-                                       icp_distance=config.icp_distance, seed=config.seed)
         result = score_pair(features[a], features[b], inv_T(off[a]) @ off[b], voxel, config.icp_distance)
         result.inliers = 100
         return result
 
     monkeypatch.setattr(batch, "_register", planted)
-    cfg = Config(record=False, workers=1, voxel=scene.voxel, refine=False, loops=False, retry=False)
-    result = register(scans, cfg, log=lambda m: None)
-    err = scan_errors(result.names, result.poses, scene.poses)
-    wedge_edges = [p.free for i, j, p in zip(result.graph.i, result.graph.j, result.pairs) if 5 in (i, j)]
-    assert wedge_edges and min(wedge_edges) >= 1
-    assert result.underdetermined == ["wedge.ply"], result.underdetermined
-    assert err.translation[5] > 2 * scene.voxel
-    assert err.translation[:5].max() < scene.voxel
+    n = len(scans)
+    scores = np.array([[0.9 if 0 < abs(a - b) <= 1 else 0.0 for b in range(n)] for a in range(n)])
+    cfg = Config(record=False, workers=1, voxel=voxel, k=1, refine=False, loops=False, retry=False)
+    result = register(scans, cfg, log=lambda m: None, scores=scores)
+    err = scan_errors(result.names, result.poses, poses)
+    free = {(int(i), int(j)): p.free for i, j, p in zip(result.graph.i, result.graph.j, result.pairs)
+            if abs(int(i) - int(j)) == 1}
+    assert len(free) == n - 1 and all((f >= 1) == (2 in pair) for pair, f in free.items()), free
+    assert result.underdetermined == ["scan_2.ply", "scan_3.ply", "scan_4.ply"], result.underdetermined
+    off_by_more = {result.names[k] for k in np.flatnonzero(err.translation > voxel)}
+    assert off_by_more and off_by_more <= set(result.underdetermined), off_by_more
+    assert err.translation[:2].max() < voxel / 10

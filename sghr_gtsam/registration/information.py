@@ -32,6 +32,12 @@ MIN_PAIRS = 7
 MIN_CELLS = 12
 """The sandwich's middle ``M`` sums one outer product per cell: with fewer cells than twice the pose's
 dimension it is too poorly estimated to invert (cluster-robust covariances need many clusters)."""
+FREE_FLOOR = 1e-6
+"""Least information of a free direction, relative to the pair's best-determined one (both per unit RMS
+displacement of the points): gtsam's Cholesky calls a pose block whose information spans more than about
+10⁷ indeterminate (a corridor pair bounded by its overlap alone spans 10⁹), so a free direction keeps a
+σ at most 1000× the best one's. ``underdetermined`` tells such a σ from a measured one by its dependence on
+this bound."""
 
 
 class Grid(Protocol):
@@ -105,17 +111,18 @@ def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
 
 
 def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray,
-                    step: float) -> tuple[np.ndarray, int]:
-    """The information with the directions of ``T exp(ξ)`` the pair's geometry does not fix (a plane's three,
-    a corridor's one, a cylinder's two) set to the overlap's own extent, and their number.
+                    step: float) -> Information:
+    """``information`` of ``T exp(ξ)`` with the directions the pair's geometry does not fix (a plane's three, a
+    corridor's one, a cylinder's two) bounded only by the overlap's extent, and their number.
 
     A direction does not fix the pose when moving scan j's close points ``q`` by ``step`` (RMS) along it,
     with every point re-associated to its nearest target point, raises their mean squared point-to-plane
     residual by less than the residual itself: the data cannot tell the pose from one moved that far. The
     linearized information cannot say so: noisy normals tilt off a flat wall and give sliding along it a
     spurious stiffness. Directions are tried from the least informative (generalized eigenvectors of the
-    information in ``displacement_metric``) until one is fixed; a free one gets the information of a
-    displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap)."""
+    information in ``displacement_metric``) until one is fixed. A free one gets the information of a
+    displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap),
+    or ``FREE_FLOOR`` times the best direction's when that is more (see there)."""
     A = displacement_metric(q)
     values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
     base = _mean_square(target_i, q, T)
@@ -127,13 +134,12 @@ def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: n
             break
         free += 1
     if free == 0:
-        return information, 0
-    radius2 = float(np.sum(np.var(q, axis=0)))
-    values = values.copy()
-    values[:free] = 1.0 / radius2
+        return Information(information, 0, np.zeros((6, 6)))
     AV = A @ vectors
-    info = AV @ np.diag(values) @ AV.T
-    return (info + info.T) / 2, free
+    bound = max(1.0 / float(np.sum(np.var(q, axis=0))), FREE_FLOOR * values[-1])
+    fixed = AV[:, free:] @ np.diag(values[free:]) @ AV[:, free:].T
+    loose = bound * AV[:, :free] @ AV[:, :free].T
+    return Information((fixed + fixed.T) / 2 + (loose + loose.T) / 2, free, (loose + loose.T) / 2)
 
 
 def _exp(xi: np.ndarray) -> np.ndarray:
@@ -143,11 +149,13 @@ def _exp(xi: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Information:
-    """An edge's information (6, 6) and the number of directions its geometry leaves free
-    (``free_directions``); ``matrix`` carries them with the overlap's extent as their only bound."""
+    """An edge's information ``matrix`` (6, 6), the number of directions its geometry leaves ``free``
+    (``free_directions``), and ``loose``: the part of ``matrix`` along them (their bound alone; zeros when
+    none is free)."""
 
     matrix: np.ndarray
     free: int
+    loose: np.ndarray
 
 
 def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
@@ -168,7 +176,7 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray,
     residuals = np.einsum("mk,mk->m", moved[close] - target_i.points[nearest], n)
     cell = correlation_length(target_i, target_i.points[nearest])
     information = plane_information(q[close], n @ R, residuals, cell)
-    return Information(*free_directions(target_i, q[close], T, information, max_distance))
+    return free_directions(target_i, q[close], T, information, max_distance)
 
 
 def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
@@ -182,13 +190,25 @@ def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(L.T @ covariance @ L)[-1], 0.0)))
 
 
-def underdetermined(covariances: np.ndarray, points: list[np.ndarray], voxel: float,
-                    registered: list[int]) -> np.ndarray:
-    """(N,) bool: registered scans whose pose is not fixed to within ``voxel`` in some direction, i.e. whose
-    ``pose_spread`` exceeds the voxel (the resolution the run registers at: descriptors, inlier distance and
-    grids all work at it), or whose covariance the graph leaves indeterminate. A scan held only by edges
-    that leave a direction free (``free_directions``) gets a spread of the overlap's size there."""
+STIFFEN = 100.0
+"""``underdetermined`` compares covariances with the free directions' bounds as they are and this many times
+stiffer: a spread those bounds set shrinks by √STIFFEN = 10, one the measurements set does not move."""
+
+
+def underdetermined(covariances: np.ndarray, points: list[np.ndarray], voxel: float, registered: list[int],
+                    stiffened: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: the ``registered`` scans whose pose is not fixed in some direction.
+
+    A scan is flagged when its ``pose_spread`` exceeds ``voxel`` (the resolution the run registers at:
+    descriptors, inlier distances and grids all work at it), when the graph leaves its covariance
+    indeterminate, or when its spread is set by the bounds of its edges' free directions (``free_directions``)
+    rather than by measurements: ``stiffened`` holds the covariances with every kept edge's ``loose`` part
+    ``STIFFEN`` times stiffer, and a spread that shrinks by more than ``STIFFEN^¼`` (the geometric middle of no
+    change and ``√STIFFEN``) is one no measurement fixes. ``covariances``: (N, 6, 6) as
+    ``gtsam_api.pose_covariances``; ``points[k]``: scan k's points in its own frame."""
     flagged = np.zeros(len(covariances), dtype=bool)
     for k in registered:
-        flagged[k] = pose_spread(covariances[k], points[k]) > voxel
+        spread = pose_spread(covariances[k], points[k])
+        flagged[k] = spread > voxel or (stiffened is not None
+                                        and spread > STIFFEN**0.25 * pose_spread(stiffened[k], points[k]))
     return flagged

@@ -72,6 +72,8 @@ class PairResult:
     free: int = 0
     """Directions of ``T`` the pair's geometry does not fix (a plane, a corridor, a cylinder: ``information.
     free_directions``); ``information`` bounds them only by the overlap's extent."""
+    loose: np.ndarray | None = None
+    """The part of ``information`` along those directions (``information.Information.loose``)."""
 
 
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:
@@ -193,4 +195,5 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
         coverage=len(np.unique(cells, axis=0)),
         matches=(a, b),
         free=0 if information is None else information.free,
+        loose=None if information is None else information.loose,
     )
