@@ -95,6 +95,7 @@ def real(names: list[str], data: Path) -> None:
         anchor = int(np.flatnonzero(result.sync.component == 0)[0])
         nees, rot, trans = scan_nees(result.poses, gt, C, result.registered, anchor)
         s_rot, s_trans = sigmas(C)
+        print(f"{scene}: underdetermined {result.underdetermined}", file=sys.stderr, flush=True)
         others = [k for k in result.registered if k != anchor]
         for row, k in enumerate(others):
             print(f"| {scene} | {result.names[k]} | {s_rot[k]:.4f} | {rot[row]:.4f} | {1e3 * s_trans[k]:.3f} | "

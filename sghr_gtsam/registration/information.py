@@ -32,6 +32,9 @@ MIN_PAIRS = 7
 MIN_CELLS = 12
 """The sandwich's middle ``M`` sums one outer product per cell: with fewer cells than twice the pose's
 dimension it is too poorly estimated to invert (cluster-robust covariances need many clusters)."""
+CORRELATION_SAMPLE = 2000
+"""Points whose neighbour distances give ``correlation_length``'s median (a median needs no more; the
+k-nearest-neighbour search on every point of a dense 3DMatch grid costs a tenth of a second a pair)."""
 FREE_FLOOR = 1e-6
 """Least information of a free direction, relative to the pair's best-determined one (both per unit RMS
 displacement of the points): gtsam's Cholesky calls a pose block whose information spans more than about
@@ -80,8 +83,10 @@ def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray,
 def correlation_length(grid: Grid, points: np.ndarray) -> float:
     """Diameter of the neighbourhood a normal of ``grid`` is fitted on: twice the median distance from
     ``points`` (grid points) to their ``COV_NEIGHBORS``-th neighbour. Two residuals closer than this share
-    neighbours of their normals, so their errors are correlated; farther apart they share none."""
-    _, sq = grid.cloud_tree.batch_knn_search(points, COV_NEIGHBORS, GICP_THREADS)
+    neighbours of their normals, so their errors are correlated; farther apart they share none. The median
+    is taken over at most ``CORRELATION_SAMPLE`` of ``points``, evenly spaced in their order."""
+    sample = points[:: max(1, len(points) // CORRELATION_SAMPLE)]
+    _, sq = grid.cloud_tree.batch_knn_search(sample, COV_NEIGHBORS, GICP_THREADS)
     return 2.0 * float(np.sqrt(np.median(np.asarray(sq)[:, -1])))
 
 
