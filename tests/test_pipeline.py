@@ -61,6 +61,9 @@ def test_outputs_parse_back_to_the_result(room_run):
     assert report["pairs_registered"] == result.graph.num_edges
     assert report["unregistered"] == [] and report["unverified"] == result.unverified == []
     assert report["contested"] == result.contested == []
+    assert report["underdetermined"] == result.underdetermined == []
+    assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p
+                                          in zip(result.graph.i, result.graph.j, result.pairs) if p.free]
     assert report["peak_memory_mb"] > 0
     assert {"features", "pairwise", "sync", "total"} <= set(report["seconds"])
     assert Config.from_json(out / "config.json") == Config(seed=0)
