@@ -264,7 +264,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     for name in run.underdetermined:
         log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
     if recorder:
-        recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed})
+        recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed,
+                                   "underdetermined": run.underdetermined})
         recorder.log_covariances(poses, run.covariances)
     return run
 
