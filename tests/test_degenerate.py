@@ -203,3 +203,16 @@ def test_a_scan_that_sees_only_a_corridor_is_reported_underdetermined(monkeypatc
     off_by_more = {result.names[k] for k in np.flatnonzero(err.translation > voxel)}
     assert off_by_more and off_by_more <= set(result.underdetermined), off_by_more
     assert err.translation[:2].max() < voxel / 10
+
+
+def test_pose_spread_is_the_worst_displacement_and_copes_with_collinear_points():
+    """A covariance of σ² along one unit-RMS direction of the points' displacement spreads them by σ; points on
+    a line (their metric singular) still get a spread."""
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(500, 3)) * [2.0, 1.0, 0.5]
+    A = displacement_metric(q)
+    values, vectors = eigh(np.eye(6), A)  # columns: directions of unit RMS displacement
+    u = vectors[:, 2]
+    assert pose_spread(0.03**2 * np.outer(u, u), q) == pytest.approx(0.03, rel=1e-6)
+    line = np.c_[np.linspace(0, 1, 50), np.zeros(50), np.zeros(50)]
+    assert pose_spread(1e-4 * np.eye(6), line) > 0.01

@@ -143,7 +143,10 @@ def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: n
     displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap),
     or ``FREE_FLOOR`` times the best direction's when that is more (see there)."""
     A = displacement_metric(q)
-    values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
+    try:
+        values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
+    except np.linalg.LinAlgError:  # collinear points (A singular) or a non-finite information: nothing to test
+        return Information(information, 0, np.zeros((6, 6)))
     base = _mean_square(target_i, q, T)
     free = 0
     for k in range(6):
@@ -205,7 +208,8 @@ def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
     direction is; inf when the covariance is not finite."""
     if not np.isfinite(covariance).all():
         return float("inf")
-    L = np.linalg.cholesky(displacement_metric(points))
+    w, V = np.linalg.eigh(displacement_metric(points))
+    L = V * np.sqrt(np.maximum(w, 0.0))  # A = L Lᵀ, also for collinear points (A singular)
     return float(np.sqrt(max(np.linalg.eigvalsh(L.T @ covariance @ L)[-1], 0.0)))
 
 
