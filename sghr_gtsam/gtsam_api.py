@@ -18,6 +18,7 @@ can extend, re-optimize and query for covariances.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import gtsam
@@ -178,11 +179,16 @@ def variance_factor(result: "RunResult", *, noise: str = "information") -> float
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
-def pose_covariances(result: "RunResult", *, noise: str = "information") -> np.ndarray:
+def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0) -> np.ndarray:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
-    edges' information, scaled by the variance factor when the graph's loops show that information
-    overconfident (``max(1, σ̂₀²)``: real scans have systematic errors that per-point noise does not see); NaN
-    for unregistered scans."""
+    edges' information with the directions their geometry leaves free bounded by the overlap alone
+    (``PairResult.bounded``; those bounds ``stiffen`` times stiffer), scaled by the variance factor when the
+    graph's loops show that information overconfident (``max(1, σ̂₀²)``: real scans have systematic errors that
+    per-point noise does not see); NaN for unregistered scans."""
+    if result.graph.information is not None and any(p.bounded is not None for p in result.pairs):
+        information = np.stack([p.information if p.bounded is None else p.bounded + (stiffen - 1.0) * p.loose
+                                for p in result.pairs])
+        result = replace(result, graph=replace(result.graph, information=information))
     factor = variance_factor(result, noise=noise)
     factors, values = to_gtsam(result, noise=noise)
     nodes = result.registered

@@ -277,10 +277,8 @@ def _underdetermined(run: RunResult, anchor: int) -> list[str]:
     kept = [p for p, w in zip(run.pairs, run.sync.weights) if w > 0]
     stiffened = None
     if run.graph.information is not None and any(p.free for p in kept):
-        loose = np.stack([np.zeros((6, 6)) if p.loose is None else p.loose for p in run.pairs])
-        graph = replace(run.graph, information=run.graph.information + (STIFFEN - 1.0) * loose)
         try:
-            stiffened = pose_covariances(replace(run, graph=graph))
+            stiffened = pose_covariances(run, stiffen=STIFFEN)
         except RuntimeError:  # indeterminate (see above): the spreads alone decide
             pass
     flagged = underdetermined(run.covariances, [f.points for f in run.features], run.voxel, others, stiffened)

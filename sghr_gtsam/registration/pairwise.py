@@ -71,9 +71,12 @@ class PairResult:
     matches: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
     free: int = 0
     """Directions of ``T`` the pair's geometry does not fix (a plane, a corridor, a cylinder: ``information.
-    free_directions``); ``information`` bounds them only by the overlap's extent."""
+    free_directions``); ``bounded`` bounds them only by the overlap's extent."""
+    bounded: np.ndarray | None = None
+    """``information`` with those directions bounded only by the overlap (``information.Information.matrix``):
+    what the reported covariances use; None when none is free."""
     loose: np.ndarray | None = None
-    """The part of ``information`` along those directions (``information.Information.loose``)."""
+    """The part of ``bounded`` along those directions (``information.Information.loose``)."""
 
 
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:
@@ -190,10 +193,11 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
         inliers=int(np.count_nonzero(agree)),
         fitness=n / len(q),
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
-        information=None if information is None else information.matrix,
+        information=None if information is None else information.measured,
         seconds=0.0,
         coverage=len(np.unique(cells, axis=0)),
         matches=(a, b),
         free=0 if information is None else information.free,
+        bounded=information.matrix if information is not None and information.free else None,
         loose=None if information is None else information.loose,
     )
