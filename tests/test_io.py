@@ -252,7 +252,7 @@ BAD_SCANS = {
         "no points",
     ),
     "garbage pcd": (_write("g.pcd", "garbage\n"), "not a PCD file"),
-    "truncated pcd": (_truncated_pcd, "corrupt"),
+    "truncated pcd": (_truncated_pcd, "truncated PCD"),
     "binary labelled txt": (_write("b.txt", bytes(range(256))), "not a text file"),
     "text with two columns": (_write("two.xyz", "1 2 3\n3 4\n"), "expected x y z numbers"),
     "text with words": (_write("w.txt", "x y z\n1 2 3\n"), "could not convert string 'x'"),

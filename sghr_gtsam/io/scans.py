@@ -1,9 +1,8 @@
 """Reading and writing scans (point clouds as (N, 3) float64 arrays).
 
 Every failure to read a scan becomes a one-line ``InputError("cannot read scan X: reason")``.
-open3d does not report failures: it returns an empty cloud for a garbage file and a full-length
-cloud padded with zeros for a truncated PLY, so PLY and PCD headers are checked here first and the
-point count open3d returns is compared with the header's.
+PLY and PCD are read here with every count and size their header declares checked against the data (open3d,
+which reports none of it, only for the layouts whose size is known only after parsing).
 """
 
 from __future__ import annotations
@@ -57,11 +56,17 @@ def list_scans(folder: str | Path) -> list[Path]:
     return scans
 
 
-# --- PLY / PCD header checks -------------------------------------------------------------------
+# --- PLY and PCD ---------------------------------------------------------------------------------
+# Read here rather than by open3d, which reports nothing: it fills the rows after a non-number of an ASCII file
+# with uninitialised memory, pads a truncated file with zeros and reads a file whose header undercounts its data
+# short. Every count and size a header declares is checked against the data. open3d remains the fallback for the
+# layouts whose size cannot be known before parsing (binary PLY with list properties before or in the vertex
+# element, compressed PCD), with its point count compared to the header's.
 
-_PLY_TYPE_SIZES = {
-    "char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
-    "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8,
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
+    "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
+    "double": "f8", "float64": "f8",
 }  # fmt: skip
 _HEADER_LIMIT = 1 << 20  # a header longer than this is not a point cloud header
 
@@ -70,8 +75,11 @@ _HEADER_LIMIT = 1 << 20  # a header longer than this is not a point cloud header
 class _PlyElement:
     name: str
     count: int
-    properties: list[str]
-    stride: int | None  # bytes per record in a binary file; None when a list property makes it vary
+    properties: list[tuple[str, str]]  # (name, numpy type code)
+    has_list: bool = False
+
+    def dtype(self, order: str) -> np.dtype:
+        return np.dtype([(f"p{k}", order + code) for k, (_, code) in enumerate(self.properties)])
 
 
 def _read_header(path: Path, end_marker: bytes) -> tuple[list[str], int] | None:
@@ -89,8 +97,31 @@ def _read_header(path: Path, end_marker: bytes) -> tuple[list[str], int] | None:
     return None
 
 
-def _check_ply(path: Path) -> int:
-    """Check a PLY header and that all vertex data is present; return the vertex count."""
+def _data_rows(path: Path, offset: int) -> list[bytes]:
+    with open(path, "rb") as f:
+        f.seek(offset)
+        return [row for row in f.read().splitlines() if row.strip()]
+
+
+def _parse_rows(rows: list[bytes], columns: int, first_line: int) -> np.ndarray:
+    """ASCII records of ``columns`` numbers each as a float64 (len(rows), columns) array; ``InputError`` naming the
+    first row (counted from ``first_line``) that has another number of values or a value that is not a number."""
+    for k, row in enumerate(rows):
+        if len(row.split()) != columns:
+            raise InputError(f"line {first_line + k}: {len(row.split())} values where the header declares {columns}")
+    try:
+        return np.array(b" ".join(rows).split(), dtype=np.float64).reshape(len(rows), columns)
+    except ValueError:
+        for k, row in enumerate(rows):
+            try:
+                np.array(row.split(), dtype=np.float64)
+            except ValueError:
+                raise InputError(f"line {first_line + k}: not a number in {row[:60].decode('ascii', 'replace')!r}") from None
+        raise
+
+
+def _ply_header(path: Path) -> tuple[str, list[_PlyElement], int, int]:
+    """Format, elements, byte offset of the data and the header's number of lines."""
     with open(path, "rb") as f:
         if f.read(4).rstrip(b"\r\n") != b"ply":
             raise InputError("not a PLY file (first line is not 'ply')")
@@ -108,14 +139,16 @@ def _check_ply(path: Path) -> int:
             elif words[0] == "element":
                 if int(words[2]) < 0:
                     raise ValueError
-                elements.append(_PlyElement(words[1], int(words[2]), [], 0))
+                elements.append(_PlyElement(words[1], int(words[2]), []))
             elif words[0] == "property":
                 element = elements[-1]
-                element.properties.append(words[-1])
                 if words[1] == "list":
-                    element.stride = None
-                elif element.stride is not None:
-                    element.stride += _PLY_TYPE_SIZES[words[1]]
+                    if words[2] not in _PLY_TYPES or words[3] not in _PLY_TYPES:
+                        raise KeyError(words[2])
+                    element.has_list = True
+                    element.properties.append((words[4], "list"))
+                else:
+                    element.properties.append((words[2], _PLY_TYPES[words[1]]))
         except (IndexError, ValueError, KeyError):
             raise InputError(f"malformed PLY header line {line!r}") from None
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
@@ -123,38 +156,101 @@ def _check_ply(path: Path) -> int:
     names = [e.name for e in elements]
     if "vertex" not in names:
         raise InputError("PLY has no vertex element")
-    upto = elements[: names.index("vertex") + 1]
-    vertex = upto[-1]
-    if not {"x", "y", "z"} <= set(vertex.properties):
+    vertex = elements[names.index("vertex")]
+    if not {"x", "y", "z"} <= {name for name, _ in vertex.properties}:
         raise InputError("PLY vertices have no x, y, z properties")
-
-    if fmt == "ascii":
-        needed = sum(e.count for e in upto)
-        with open(path, "rb") as f:
-            f.seek(data_offset)
-            rows = [row for row in f.read().splitlines() if row.strip()]
-        if len(rows) < needed:
-            raise InputError(f"truncated PLY: {len(rows)} of at least {needed} data lines")
-        if vertex.stride is not None and vertex.count and len(rows[needed - 1].split()) != len(vertex.properties):
-            raise InputError("truncated or malformed PLY vertex data")
-    elif all(e.stride is not None for e in upto):  # with list properties the size is not known up front
-        needed = sum(e.count * e.stride for e in upto)  # type: ignore[operator]
-        available = path.stat().st_size - data_offset
-        if available < needed:
-            raise InputError(f"truncated PLY: {available} of {needed} bytes of vertex data")
-    return vertex.count
+    return fmt, elements, data_offset, len(lines)
 
 
-def _check_pcd(path: Path) -> int:
-    """Check a PCD header; return its point count."""
+def _xyz_columns(element: _PlyElement) -> list[int]:
+    names = [name for name, _ in element.properties]
+    return [names.index(axis) for axis in "xyz"]
+
+
+def _read_ply(path: Path) -> np.ndarray:
+    fmt, elements, data_offset, header_lines = _ply_header(path)
+    at = [e.name for e in elements].index("vertex")
+    before, vertex, after = elements[:at], elements[at], elements[at + 1:]
+    if fmt == "ascii":  # one record a line
+        rows = _data_rows(path, data_offset)
+        first, total = sum(e.count for e in before), sum(e.count for e in elements)
+        if len(rows) < first + vertex.count:
+            raise InputError(f"truncated PLY: {len(rows)} of at least {first + vertex.count} data lines")
+        if len(rows) != total:
+            raise InputError(f"PLY holds {len(rows)} data lines where its header declares {total} (a wrong count)")
+        if vertex.has_list:
+            return _read_open3d(path, "ply", vertex.count)
+        table = _parse_rows(rows[first:first + vertex.count], len(vertex.properties), header_lines + first + 1)
+        return table[:, _xyz_columns(vertex)]
+    if vertex.has_list or any(e.has_list for e in before):  # record sizes vary: offsets unknown until parsed
+        return _read_open3d(path, "ply", vertex.count)
+    order = "<" if fmt == "binary_little_endian" else ">"
+    start = data_offset + sum(e.count * e.dtype(order).itemsize for e in before)
+    needed = start - data_offset + vertex.count * vertex.dtype(order).itemsize
+    available = path.stat().st_size - data_offset
+    if available < needed:
+        raise InputError(f"truncated PLY: {available} of {needed} bytes of vertex data")
+    if not any(e.has_list for e in after):
+        needed += sum(e.count * e.dtype(order).itemsize for e in after)
+        if available != needed:
+            raise InputError(f"PLY holds {available} bytes of data where its header declares {needed} (wrong "
+                             f"property types or counts: float written as double?)")
+    table = np.fromfile(path, dtype=vertex.dtype(order), count=vertex.count, offset=start)
+    return np.stack([table[f"p{k}"] for k in _xyz_columns(vertex)], axis=1).astype(np.float64)
+
+
+_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
+              ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+
+
+def _read_pcd(path: Path) -> np.ndarray:
     header = _read_header(path, b"DATA")
     if header is None:
         raise InputError("not a PCD file (no DATA line)")
-    for line in header[0]:
+    lines, data_offset = header
+    fields: dict[str, list[str]] = {}
+    for line in lines:
         words = line.split()
-        if len(words) == 2 and words[0] == "POINTS" and words[1].isdigit():
-            return int(words[1])
-    raise InputError("PCD header has no POINTS line")
+        if words and not words[0].startswith("#"):
+            fields[words[0]] = words[1:]
+    try:
+        names = fields["FIELDS"]
+        sizes = [int(s) for s in fields["SIZE"]]
+        types = fields["TYPE"]
+        counts = [int(c) for c in fields.get("COUNT", ["1"] * len(names))]
+        width, height = int(fields["WIDTH"][0]), int(fields.get("HEIGHT", ["1"])[0])
+        points = int(fields.get("POINTS", [str(width * height)])[0])
+        data = fields["DATA"][0]
+        codes = [_PCD_TYPES[(t, s)] for t, s in zip(types, sizes)]
+    except KeyError as e:
+        raise InputError(f"PCD header has no {e.args[0]} line or an unknown type" if isinstance(e.args[0], str)
+                         else f"PCD header has an unknown TYPE/SIZE {e.args[0]}") from None
+    except (IndexError, ValueError):
+        raise InputError("malformed PCD header") from None
+    if not (len(names) == len(sizes) == len(types) == len(counts)) or min(counts + [width, height, points]) < 0:
+        raise InputError("malformed PCD header (FIELDS, SIZE, TYPE and COUNT differ in length)")
+    if points != width * height:
+        raise InputError(f"PCD header declares {points} POINTS but WIDTH x HEIGHT = {width * height}")
+    if not {"x", "y", "z"} <= set(names):
+        raise InputError("PCD has no x, y, z fields")
+    if data == "binary_compressed":
+        return _read_open3d(path, "pcd", points)
+    columns = [sum(counts[:names.index(axis)]) for axis in "xyz"]
+    if data == "ascii":
+        rows = _data_rows(path, data_offset)
+        if len(rows) != points:
+            raise InputError(f"{'truncated' if len(rows) < points else 'corrupt'} PCD: {len(rows)} data lines "
+                             f"where its header declares {points} POINTS")
+        return _parse_rows(rows, sum(counts), len(lines) + 1)[:, columns] if points else np.zeros((0, 3))
+    if data != "binary":
+        raise InputError(f"unknown PCD DATA {data!r}")
+    dtype = np.dtype([(f"p{k}", "<" + code, (c,)) for k, (code, c) in enumerate(zip(codes, counts))])
+    available, needed = path.stat().st_size - data_offset, points * dtype.itemsize
+    if available != needed:
+        raise InputError(f"{'truncated' if available < needed else 'corrupt'} PCD: {available} bytes of data where "
+                         f"its header declares {needed}")
+    table = np.fromfile(path, dtype=dtype, count=points, offset=data_offset)
+    return np.stack([table[f"p{names.index(axis)}"][:, 0] for axis in "xyz"], axis=1).astype(np.float64)
 
 
 # --- readers -------------------------------------------------------------------------------------
@@ -242,9 +338,10 @@ def _read_e57(path: Path) -> np.ndarray:
 def load_scan(path: str | Path) -> np.ndarray:
     """Points of one scan as a C-contiguous (N, 3) float64 array, N >= 1.
 
-    .ply / .pcd via open3d; .xyz / .txt: x y z per line (whitespace or commas, ``#`` comments, extra
-    columns ignored); .npy: an (N, >=3) numeric array; .npz: the array ``points``, else the first one;
-    .las / .laz: the point records' coordinates (laspy, lazrs); .e57: all its point sets in the file's frame (pye57).
+    .ply / .pcd (ASCII or binary; x, y, z of any numeric type); .xyz / .txt: x y z per line (whitespace or commas,
+    ``#`` comments, extra columns ignored); .npy: an (N, >=3) numeric array; .npz: the array ``points``, else the
+    first one; .las / .laz: the point records' coordinates (laspy, lazrs); .e57: all its point sets in the file's
+    frame (pye57).
     Non-finite rows are kept (see ``finite_points``). Raises ``InputError`` when the file cannot be
     read, is corrupt or truncated, has the wrong shape, or holds no points.
     """
@@ -258,9 +355,9 @@ def load_scan(path: str | Path) -> np.ndarray:
         if path.stat().st_size == 0:
             raise InputError("empty file")
         if suffix == ".ply":
-            points = _read_open3d(path, "ply", _check_ply(path))
+            points = _read_ply(path)
         elif suffix == ".pcd":
-            points = _read_open3d(path, "pcd", _check_pcd(path))
+            points = _read_pcd(path)
         elif suffix in (".xyz", ".txt"):
             points = _read_text(path)
         elif suffix == ".npy":
