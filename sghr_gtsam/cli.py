@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import signal
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
@@ -46,15 +47,36 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+class _Stopped(BaseException):
+    """SIGTERM (``timeout``, ``docker stop``, SLURM) as an exception, so that a run unwinds like on Ctrl-C."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _stop(signum: int, frame: object) -> None:
+    raise _Stopped(signum)
+
+
 def _guard(fn, *args, **kwargs):
     """Bad input ends in one line on stderr and a non-zero exit, never a traceback
-    (set SGHR_DEBUG=1 to see the traceback of an unexpected failure)."""
+    (set SGHR_DEBUG=1 to see the traceback of an unexpected failure). SIGINT and SIGTERM end the command with one
+    line and exit 130 / 143: what it was writing is removed, earlier outputs stay as they were."""
+    try:
+        signal.signal(signal.SIGTERM, _stop)
+    except ValueError:  # not the main thread: signals stay as they are
+        pass
     try:
         return fn(*args, **kwargs)
     except InputError as e:
         _fail(str(e))
-    except (KeyboardInterrupt, typer.Exit):
+    except typer.Exit:
         raise
+    except (KeyboardInterrupt, _Stopped) as e:
+        signum = e.signum if isinstance(e, _Stopped) else signal.SIGINT
+        _fail(f"stopped by {signal.Signals(signum).name}: nothing written, earlier results left as they were",
+              code=128 + signum)
     except Exception as e:  # noqa: BLE001 - the CLI's last line of defence
         if os.environ.get("SGHR_DEBUG"):
             raise
@@ -216,13 +238,23 @@ def demo(
     """Generate a small room scanned from several stations (known poses), register it, print the errors."""
     from .evaluate import scan_errors
     from .io.poses import read_poses
+    from .io.results import staged_results
     from .pipeline import run as run_pipeline
     from .synthetic import make_scene, write_scene
 
-    scene = make_scene(kind="room", n_scans=scans, seed=seed)
-    scene_dir = out / "scene"
-    write_scene(scene, scene_dir)
     cfg = _guard(_config, None, seed=seed, workers=workers)
+
+    def generate() -> Path:
+        if scans < 2:
+            raise InputError(f"--scans must be at least 2 (a registration needs two scans); got {scans}")
+        if out.exists() and not out.is_dir():
+            raise InputError(f"--out {out} is an existing file, not a folder")
+        scene_dir = out / "scene"
+        with staged_results(scene_dir) as stage:  # replaced as a whole: no scan of an earlier, larger demo stays
+            write_scene(make_scene(kind="room", n_scans=scans, seed=seed), stage)
+        return scene_dir
+
+    scene_dir = _guard(generate)
     result = _observed(run_pipeline, quiet, scene_dir, out / "results", cfg)
     gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
     gt = gt[[gt_names.index(n) for n in result.names]]
@@ -259,7 +291,7 @@ def sync(
     def work() -> None:
         check_choice("--noise", noise, NOISE_MODELS)
         check_choice("--kernel", kernel, KERNELS)
-        ids, _, graph = read_g2o(graph_file)
+        ids, _, graph = read_g2o(graph_file, positive_definite=True)
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
         if method in _BASELINE_NAMES:
@@ -291,4 +323,4 @@ def train(ctx: typer.Context) -> None:
 
     sub = typer.Typer(add_completion=False)
     sub.command()(train_command)
-    sub(ctx.args, prog_name="python -m sghr_gtsam train")
+    _guard(sub, ctx.args, prog_name="python -m sghr_gtsam train")

@@ -3,10 +3,26 @@
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 from .types import InputError
+
+
+_TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+
+
+def _check_type(name: str, annotation: str, value: object) -> None:
+    """``InputError`` naming the key unless ``value`` has the field's type (``"float | None"`` and the like; an int
+    is a float, a bool is no number)."""
+    kinds = [kind.strip() for kind in annotation.split("|")]
+    if value is None and "None" in kinds:
+        return
+    allowed = tuple(t for kind in kinds for t in _TYPES.get(kind, ()))
+    if not isinstance(value, allowed) or (isinstance(value, bool) and bool not in allowed):
+        wanted = " or ".join(k if k != "None" else "null" for k in kinds)
+        raise InputError(f"{name} must be {wanted}; got {value!r} ({type(value).__name__})")
 
 
 @dataclass
@@ -120,13 +136,22 @@ class Config:
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
+        for f in fields(self):
+            _check_type(f.name, f.type, getattr(self, f.name))
         for name in ("k", "iters", "min_points", "rounds"):
-            if not isinstance(getattr(self, name), int) or getattr(self, name) < 1:
+            if getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
-        if self.workers is not None and (not isinstance(self.workers, int) or self.workers < 1):
+        if self.workers is not None and self.workers < 1:
             raise InputError(f"workers must be a positive integer; got {self.workers!r}")
-        if self.voxel is not None and not (self.voxel > 0):
-            raise InputError(f"voxel must be positive; got {self.voxel!r}")
+        for name in ("voxel", "normal_radius", "fpfh_radius", "icp_distance"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise InputError(f"{name} must be a positive finite number; got {value!r}")
+        if self.min_inliers < 0 or self.seed < 0:
+            name = "min_inliers" if self.min_inliers < 0 else "seed"
+            raise InputError(f"{name} must be a non-negative integer; got {getattr(self, name)!r}")
+        if not 0 <= self.min_weight < 1:
+            raise InputError(f"min_weight must be a fraction in [0, 1); got {self.min_weight!r}")
         return self
 
     def to_json(self) -> str:

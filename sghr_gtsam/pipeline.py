@@ -24,7 +24,7 @@ from .features.netvlad import (
 from .graph import bridge_components, top_k_edges, top_k_graph
 from .gtsam_api import pose_covariances
 from .io.features import read_features
-from .io.results import write_results
+from .io.results import check_output_folder, staged_results, write_results
 from .io.scans import finite_points, list_scans, load_scan
 from .progress import QUIET, Progress
 from .recording import Recorder
@@ -311,28 +311,25 @@ def merged_cloud(result: RunResult) -> np.ndarray:
 
 def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
         progress: Progress = QUIET) -> RunResult:
-    """Load ``scene_dir``, register its scans and write every output into ``out_dir``; ``progress`` observes
-    the long stages (``progress.TerminalProgress`` draws bars)."""
+    """Load ``scene_dir``, register its scans and write every output into ``out_dir``, which is replaced as a
+    whole when the run completes (``io.results.staged_results``): stopped or failed, it leaves ``out_dir`` as it
+    was. ``out_dir`` must be new, empty or an earlier run's results (``InputError`` otherwise). ``progress``
+    observes the long stages (``progress.TerminalProgress`` draws bars)."""
     config.validate()
     started = time.perf_counter()
+    out = Path(out_dir)
+    check_output_folder(out, Path(scene_dir))
     start_server(WORKER_MODULES, config.workers)  # its imports overlap the loading
     timer = _Timer()
     with timer.stage("load"):
         scans, skipped = load_scene(scene_dir, config, log)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    partial = out / "recording.rrd.partial"
-    recorder = Recorder(partial, min_weight=config.min_weight) if config.record else None
-    try:
-        result = register(scans, config, recorder, log, skipped, progress=progress)
-    except BaseException:
-        if recorder:
-            recorder.close()
-            partial.unlink(missing_ok=True)
-        raise
-    if recorder:
-        recorder.close()
-        partial.replace(out / "recording.rrd")
-    result.timings = {**timer.seconds, **result.timings}
-    write_results(out, result, config, started, merged_cloud(result))
+    with staged_results(out) as stage:
+        recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight) if config.record else None
+        try:
+            result = register(scans, config, recorder, log, skipped, progress=progress)
+        finally:
+            if recorder:
+                recorder.close()
+        result.timings = {**timer.seconds, **result.timings}
+        write_results(stage, result, config, started, merged_cloud(result))
     return result

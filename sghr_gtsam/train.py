@@ -105,13 +105,28 @@ def load_cache(folder: str | Path, limit: int | None = None) -> list[CachedScene
     if not paths:
         raise InputError(f"no cached scenes (scene_*.npz) in {folder}: make them with "
                          f"'python -m data_tools.simulate {folder}'")
-    scenes = []
-    for path in paths[:limit]:
-        with np.load(path) as z:
-            desc, off = z["desc"].astype(np.float32), z["offsets"]
-            scenes.append(CachedScene(path.stem, [desc[a:b] for a, b in zip(off[:-1], off[1:])],
-                                      z["overlap"].astype(np.float32), str(z["kind"]) if "kind" in z else ""))
-    return scenes
+    return [_read_cached(path) for path in paths[:limit]]
+
+
+def _read_cached(path: Path) -> CachedScene:
+    """One cached scene, checked: ``InputError`` naming the file when it is unreadable or inconsistent."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            missing = sorted({"desc", "offsets", "overlap"} - set(z.files))
+            if missing:
+                raise InputError(f"no {', '.join(missing)} array")
+            desc, off, overlap = z["desc"].astype(np.float32), z["offsets"], z["overlap"].astype(np.float32)
+            kind = str(z["kind"]) if "kind" in z.files else ""
+    except InputError as e:
+        raise InputError(f"cached scene {path}: {e}") from None
+    except Exception as e:  # noqa: BLE001 - a corrupt or truncated archive fails in numpy or zipfile
+        raise InputError(f"cannot read cached scene {path}: {' '.join(str(e).split()) or type(e).__name__}") from None
+    n = len(off) - 1
+    if (desc.ndim != 2 or off.ndim != 1 or n < 2 or off[0] != 0 or off[-1] != len(desc) or np.any(np.diff(off) < 1)
+            or overlap.shape != (n, n) or not np.isfinite(desc).all() or not np.isfinite(overlap).all()):
+        raise InputError(f"cached scene {path} is inconsistent: descriptors {desc.shape}, offsets {off.shape}, "
+                         f"overlap {overlap.shape} (expected at least 2 scans of at least one descriptor)")
+    return CachedScene(path.stem, [desc[a:b] for a, b in zip(off[:-1], off[1:])], overlap, kind)
 
 
 def split(scenes: list[CachedScene]) -> tuple[list[CachedScene], list[CachedScene]]:

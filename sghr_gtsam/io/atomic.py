@@ -11,13 +11,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
+from ..types import InputError
+
 # mkstemp creates files 0600; finished outputs get the usual 0666 & ~umask instead. The umask can
 # only be read by setting it, so read it once at import rather than on every write.
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
     """Make the rename itself durable (POSIX); not possible on every platform, hence best effort."""
     try:
         fd = os.open(folder, os.O_RDONLY)
@@ -38,11 +40,18 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     The temporary name ends with ``path``'s own suffix, because those writers choose the format
     from the extension. On success the file is fsynced and renamed onto ``path``; on an exception
     it is removed and the exception propagates. The temporary name starts with a dot, so
-    ``list_scans`` never picks it up.
+    ``list_scans`` never picks it up. Missing folders are created; ``InputError`` when ``path`` is a folder or
+    cannot be written.
     """
     path = Path(path)
     folder = path.parent
-    fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
+    if path.is_dir():
+        raise InputError(f"cannot write {path}: it is a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
+    except OSError as e:  # the temporary's name would only confuse: say which output could not be written
+        raise InputError(f"cannot write {path}: {e.strerror or e}") from None
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -57,7 +66,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    _fsync_dir(folder)
+    fsync_dir(folder)
 
 
 @contextlib.contextmanager

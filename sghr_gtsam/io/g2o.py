@@ -23,11 +23,15 @@ _G2O_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # gtsam index k holds g2o index _G
 def _poses(x: np.ndarray, where: list[str]) -> np.ndarray:
     """Rows ``x y z qx qy qz qw`` as 4×4 transforms; ``where[k]`` names row k's line for errors."""
     x = x.reshape(-1, 7)
-    norm = np.linalg.norm(x[:, 3:], axis=1)
-    bad = ~np.all(np.isfinite(x), axis=1) | (norm < 1e-12)
+    finite = np.all(np.isfinite(x), axis=1)
+    # A quaternion is a direction: scaled by its largest entry first, 1e300 does not overflow its norm.
+    q = np.where(finite[:, None], x[:, 3:], 1.0)
+    q = q / np.maximum(np.abs(q).max(axis=1, keepdims=True), np.finfo(float).tiny)
+    norm = np.linalg.norm(q, axis=1)
+    bad = ~finite | (np.abs(x[:, 3:]).max(axis=1) < 1e-12)
     if bad.any():
         raise InputError(f"{where[np.flatnonzero(bad)[0]]}: pose is not finite or its quaternion is zero")
-    return make_T(Rotation.from_quat(x[:, 3:] / norm[:, None]).as_matrix().reshape(-1, 3, 3), x[:, :3])
+    return make_T(Rotation.from_quat(q / norm[:, None]).as_matrix().reshape(-1, 3, 3), x[:, :3])
 
 
 def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
@@ -42,11 +46,14 @@ def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
         raise InputError(f"{where}: malformed number in {' '.join(tok)[:60]!r}") from None
 
 
-def read_g2o(path: str | Path) -> tuple[list[int], np.ndarray, PoseGraph]:
+def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[int], np.ndarray, PoseGraph]:
     """Vertex ids (file order), their poses (N, 4, 4) and the edges as a ``PoseGraph`` (weight 1).
 
     ``FIX`` lines (gauge hints), blank lines and ``#`` comments are skipped; anything else that is not a
-    well-formed vertex or edge raises ``InputError`` naming the line.
+    well-formed vertex or edge (finite values, a non-zero quaternion, a symmetric positive semi-definite information
+    matrix, positive definite with ``positive_definite``, between two different vertices that are defined) raises
+    ``InputError`` naming the line. Repeated edges are kept. (The zero information of a failed registration in
+    a run's graph_rejected.g2o is semi-definite.)
     """
     path = Path(path)
     try:
@@ -83,6 +90,13 @@ def read_g2o(path: str | Path) -> tuple[list[int], np.ndarray, PoseGraph]:
     omega = np.zeros((E, 6, 6))
     omega[:, _UPPER[0], _UPPER[1]] = values[:, 7:]
     omega = omega + np.swapaxes(np.triu(omega, 1), 1, 2)
+    if E:  # eigenvalues relative to each matrix's largest entry: no overflow, and a tolerance that scales
+        scale = np.abs(omega).max(axis=(1, 2))
+        lowest = np.linalg.eigvalsh(omega / np.where(scale > 0, scale, 1.0)[:, None, None])[:, 0]
+        bad = lowest <= 1e-12 if positive_definite else lowest < -1e-9
+        if bad.any():
+            raise InputError(f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
+                             f"{'definite' if positive_definite else 'semi-definite'}")
     information = omega[:, _G2O_TO_GTSAM][:, :, _G2O_TO_GTSAM]
     index = {v: k for k, v in enumerate(ids)}
     if len(index) != len(ids):
@@ -90,6 +104,10 @@ def read_g2o(path: str | Path) -> tuple[list[int], np.ndarray, PoseGraph]:
     for (a, b), where in zip(ends, edge_lines):
         if a not in index or b not in index:
             raise InputError(f"{where}: edge {a}-{b} refers to a vertex that is not defined")
+        if a == b:
+            raise InputError(f"{where}: edge {a}-{b} joins a vertex to itself")
+    if not ids:
+        raise InputError(f"{path}: no VERTEX_SE3:QUAT lines")
     graph = PoseGraph(n=len(ids), i=np.array([index[a] for a, _ in ends], dtype=int).reshape(E),
                       j=np.array([index[b] for _, b in ends], dtype=int).reshape(E), T=T, weight=np.ones(E),
                       information=information)
