@@ -128,11 +128,85 @@ def _global_features(features: list[ScanFeatures], config: Config) -> tuple[np.n
     return F, f"unsupervised VLAD codebook ({clusters} clusters of {kind}, k-means on this scene)"
 
 
-def _features(scan: Scan, voxel: float, config: Config) -> ScanFeatures:
+UNIT_RATIO = 30.0
+"""A scan whose extent (1st-99th percentile box diagonal) differs from the median scan's by more than this factor
+is skipped as in another unit or of another scene (a scan in millimetres among scans in metres: 1000×; a small
+object among room scans: 33×)."""
+
+
+def _same_units(scans: list[Scan], skipped: dict[str, str], log: Log) -> list[Scan]:
+    """The scans whose points do not all coincide and whose extent is within ``UNIT_RATIO`` of the median scan's;
+    the others are named in ``skipped``."""
+    extents = np.array([np.linalg.norm(np.diff(np.percentile(s.points, [1, 99], axis=0), axis=0)) for s in scans])
+    flat = extents <= 0
+    median = float(np.median(extents[~flat])) if (~flat).any() else 0.0
+    keep = []
+    for s, extent, is_flat in zip(scans, extents, flat):
+        ratio = extent / median if median > 0 else 1.0
+        if is_flat:
+            skipped[s.name] = "all its points coincide"
+        elif not 1 / UNIT_RATIO <= ratio <= UNIT_RATIO:
+            skipped[s.name] = (f"its extent {extent:.3g} is {ratio:.3g}x the median scan's {median:.3g}: another unit "
+                               f"or another scene?")
+        else:
+            keep.append(s)
+            continue
+        log(f"skipped {s.name}: {skipped[s.name]}")
+    return keep
+
+
+def _centred(scan: Scan, centre: np.ndarray) -> Scan:
+    """The scan moved by ``-centre`` in float64: the stages after it see coordinates of the scan's own size, since
+    float32 code (kiss-matcher's correspondences, rerun) would lose metres of georeferenced ones (1e6 m)."""
+    given = None if scan.keypoints is None else Keypoints(scan.keypoints.points - centre, scan.keypoints.descriptors)
+    return Scan(scan.name, scan.points - centre, given)
+
+
+def _features(scan: Scan, voxel: float, config: Config, sensor: np.ndarray, skipped: dict[str, str],
+              log: Log) -> ScanFeatures | None:
+    """The scan's features (normals towards ``sensor``, the origin of its input frame); None, named in
+    ``skipped``, when it has none (a stray point far away: too many voxels; given keypoints off the scan)."""
     try:
-        return compute_features(scan.points, voxel, config.normal_radius, config.fpfh_radius, scan.keypoints)
+        return compute_features(scan.points, voxel, config.normal_radius, config.fpfh_radius, scan.keypoints,
+                                sensor=sensor)
     except InputError as e:
-        raise InputError(f"{scan.name}: {e}") from None
+        skipped[scan.name] = str(e)
+        log(f"skipped {scan.name}: {e}")
+        return None
+
+
+def _translation(c: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) translations by ``c`` (..., 3)."""
+    S = np.broadcast_to(np.eye(4), c.shape[:-1] + (4, 4)).copy()
+    S[..., :3, 3] = c
+    return S
+
+
+def _adjoint(c: np.ndarray) -> np.ndarray:
+    """(..., 6, 6) adjoint of the translation by ``c`` in gtsam's tangent order [rotation, translation]:
+    ``S(c) exp(ξ) S(-c) = exp(Ad ξ)``."""
+    A = np.broadcast_to(np.eye(6), c.shape[:-1] + (6, 6)).copy()
+    A[..., 3:, :3] = np.cross(c[..., None, :], -np.eye(3))  # the skew matrix [c]×: [c]× ω = c × ω
+    return A
+
+
+def _to_input_frame(run: RunResult, centres: np.ndarray) -> None:
+    """Poses, edges, their information and the pose covariances of a run on centred scans, in the scans' input
+    frames: scan k centred at ``c_k``, ``T_k = S(c_a) T_k' S(-c_k)`` with the world at scan a, ``T_ij = S(c_i)
+    T_ij' S(-c_j)``. Features and ``sync`` stay in the centred frames (``centres`` is kept to map them back)."""
+    anchor = int(np.flatnonzero(run.sync.component == 0)[0])
+    g = run.graph
+    run.poses = _translation(centres[anchor]) @ run.poses @ _translation(-centres)
+    g.T = _translation(centres[g.i]) @ g.T @ _translation(-centres[g.j])
+    back = _adjoint(-centres[g.j])  # ξ' = Ad(c_j) ξ: the information is Ad(-c_j)ᵀ Ω Ad(-c_j)
+    if g.information is not None:
+        g.information = np.swapaxes(back, 1, 2) @ g.information @ back
+    run.pairs = [replace(p, T=T, information=None if p.information is None else A.T @ p.information @ A)
+                 for p, T, A in zip(run.pairs, g.T, back)]
+    if run.covariances is not None:
+        forward = _adjoint(centres)
+        run.covariances = forward @ run.covariances @ np.swapaxes(forward, 1, 2)
+    run.centres = centres
 
 
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
@@ -162,17 +236,23 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     if recorder:
         log = _also_recorded(log, recorder)
     timer = _Timer(recorder.begin_stage if recorder else None)
-    names = [s.name for s in scans]
+    skipped = dict(skipped or {})
+    scans = _same_units(scans, skipped, log)
+    centres = np.array([np.median(s.points, axis=0) for s in scans])
+    scans = [_centred(s, c) for s, c in zip(scans, centres)]
     voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
-    if not np.isfinite(voxel) or voxel <= 0:
-        raise InputError(f"voxel size must be a positive number, got {voxel}")
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
 
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
         features = []
-        for s in scans:
-            features.append(_features(s, voxel, config))
+        for s, c in zip(scans, centres):
+            features.append(_features(s, voxel, config, -c, skipped, log))
             tick()
+    usable = [k for k, f in enumerate(features) if f is not None]
+    scans, centres, features = [scans[k] for k in usable], centres[usable], [features[k] for k in usable]
+    if len(scans) < 2:
+        raise InputError(f"need at least 2 usable scans, {len(scans)} left after skipping {', '.join(skipped)}")
+    names = [s.name for s in scans]
     if recorder:
         recorder.log_scans(names, [f.points for f in features])
 
@@ -252,7 +332,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
                     edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered,
-                    skipped=dict(skipped or {}), features=features, timings=timer.seconds,
+                    skipped=skipped, features=features, timings=timer.seconds,
                     global_feature=feature_kind, unverified=weak, contested=disputed)
     with timer.stage("covariances"):
         try:
@@ -267,6 +347,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed,
                                    "underdetermined": run.underdetermined})
         recorder.log_covariances(poses, run.covariances)
+    _to_input_frame(run, centres)
     return run
 
 
@@ -304,7 +385,8 @@ def merged_cloud(result: RunResult) -> np.ndarray:
     """All registered scans under their poses, voxel-downsampled once more where they overlap."""
     import open3d as o3d
 
-    parts = [transform_points(result.poses[k], result.features[k].points) for k in result.registered]
+    parts = [transform_points(result.poses[k], result.features[k].points + result.centres[k])
+             for k in result.registered]
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(parts)))
     return np.asarray(pcd.voxel_down_sample(result.voxel).points)
 

@@ -84,12 +84,14 @@ def compute_features(
     normal_radius: float = 2.0,
     fpfh_radius: float = 5.0,
     given: Keypoints | None = None,
+    sensor: np.ndarray | None = None,
 ) -> ScanFeatures:
     """Voxel grid, normals, GICP covariances and FPFH of one scan; radii in voxels (as in ``Config``).
     With ``given`` keypoints and descriptors no FPFH is computed and pairs are matched on those;
     ``InputError`` when the keypoints do not lie on the scan (another frame or unit).
 
-    Normals point towards the scan's origin: the sensor for scans in sensor coordinates (3DMatch),
+    Normals point towards ``sensor`` (default: the origin; the pipeline passes the input frame's origin of a scan
+    it centred), the scan's origin: the sensor for scans in sensor coordinates (3DMatch),
     the object's inside for object-centred scans (Stanford). Either way they are consistent across
     scans, which FPFH needs (its angles change sign with the normals): unoriented normals lose 4 of
     the 20 right kitchen pairs and 5 of the 24 right bunny pairs.
@@ -100,10 +102,15 @@ def compute_features(
     if not voxel > 0:
         raise InputError(f"voxel must be positive, got {voxel}")
     points = points[np.isfinite(points).all(axis=1)]
+    if not len(points):
+        raise InputError("no finite points")
+    cells = float(np.ptp(points, axis=0).max()) / voxel
+    if cells >= np.iinfo(np.int32).max:  # open3d's voxel grid indexes cells by int32
+        raise InputError(f"its points span {cells:.3g} voxels of {voxel:.3g} (at most 2^31): a stray point far away?")
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(normal_radius * voxel, NORMAL_MAX_NN))
-    pcd.orient_normals_towards_camera_location(np.zeros(3))
+    pcd.orient_normals_towards_camera_location(np.zeros(3) if sensor is None else np.asarray(sensor, dtype=float))
     grid = np.asarray(pcd.points)
     cloud, cloud_tree = _gicp_cloud(grid)
 
