@@ -251,7 +251,10 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     usable = [k for k, f in enumerate(features) if f is not None]
     scans, centres, features = [scans[k] for k in usable], centres[usable], [features[k] for k in usable]
     if len(scans) < 2:
-        raise InputError(f"need at least 2 usable scans, {len(scans)} left after skipping {', '.join(skipped)}")
+        first = next(iter(skipped.items()), None)
+        raise InputError(f"need at least 2 usable scans, {len(scans)} left" + (
+            f"; skipped {first[0]}: {first[1]}" + (f" (and {len(skipped) - 1} more)" if len(skipped) > 1 else "")
+            if first else ""))
     names = [s.name for s in scans]
     if recorder:
         recorder.log_scans(names, [f.points for f in features])
