@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -52,6 +53,7 @@ def _receive(shared: Any, started: Any) -> None:
     spinning threads on two cores and the stage ran slower than in one process (seen here)."""
     global _SHARED
     _SHARED = shared
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the caller alone unwinds
     with started.get_lock():
         index = started.value
         started.value += 1

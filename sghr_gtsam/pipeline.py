@@ -97,9 +97,16 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
                 log(f"skipped {s.name}: {skipped[s.name]}")
         scans = [s for s in scans if s.keypoints is not None]
     if len(scans) < 2:
-        raise InputError(f"{folder}: need at least 2 usable scans, found {len(scans)}"
-                         + (f" ({len(skipped)} skipped)" if skipped else ""))
+        raise _too_few(scans, skipped, f"{folder}: ")
     return scans, skipped
+
+
+def _too_few(scans: list[Scan], skipped: dict[str, str], where: str = "") -> InputError:
+    """The error of a run left with fewer than two scans, naming the first skipped one and why."""
+    first = next(iter(skipped.items()), None)
+    why = f"; skipped {first[0]}: {first[1]}" if first else ""
+    more = f" (and {len(skipped) - 1} more)" if len(skipped) > 1 else ""
+    return InputError(f"{where}need at least 2 usable scans, {len(scans)} left{why}{more}")
 
 
 def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
@@ -134,17 +141,26 @@ is skipped as in another unit or of another scene (a scan in millimetres among s
 object among room scans: 33×)."""
 
 
+STRAY_RATIO = 1e6
+"""A scan whose bounding box is this many times larger than the box of 98 % of its points holds stray points far
+away (one point at 1e9 m in a 10 m room); it is skipped, since it would also set the scene's voxel size."""
+
+
 def _same_units(scans: list[Scan], skipped: dict[str, str], log: Log) -> list[Scan]:
-    """The scans whose points do not all coincide and whose extent is within ``UNIT_RATIO`` of the median scan's;
-    the others are named in ``skipped``."""
+    """The scans whose points do not all coincide, hold no stray point far away and whose extent is within
+    ``UNIT_RATIO`` of the median scan's; the others are named in ``skipped``."""
     extents = np.array([np.linalg.norm(np.diff(np.percentile(s.points, [1, 99], axis=0), axis=0)) for s in scans])
-    flat = extents <= 0
-    median = float(np.median(extents[~flat])) if (~flat).any() else 0.0
+    spans = np.array([np.linalg.norm(np.ptp(s.points, axis=0)) for s in scans])
+    flat, stray = spans <= 0, spans > STRAY_RATIO * extents
+    usable = ~flat & ~stray
+    median = float(np.median(extents[usable])) if usable.any() else 0.0
     keep = []
-    for s, extent, is_flat in zip(scans, extents, flat):
+    for s, extent, span, is_flat, is_stray in zip(scans, extents, spans, flat, stray):
         ratio = extent / median if median > 0 else 1.0
         if is_flat:
             skipped[s.name] = "all its points coincide"
+        elif is_stray:
+            skipped[s.name] = f"its points span {span:.3g} but 98 % of them {extent:.3g}: a stray point far away?"
         elif not 1 / UNIT_RATIO <= ratio <= UNIT_RATIO:
             skipped[s.name] = (f"its extent {extent:.3g} is {ratio:.3g}x the median scan's {median:.3g}: another unit "
                                f"or another scene?")
@@ -251,10 +267,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     usable = [k for k, f in enumerate(features) if f is not None]
     scans, centres, features = [scans[k] for k in usable], centres[usable], [features[k] for k in usable]
     if len(scans) < 2:
-        first = next(iter(skipped.items()), None)
-        raise InputError(f"need at least 2 usable scans, {len(scans)} left" + (
-            f"; skipped {first[0]}: {first[1]}" + (f" (and {len(skipped) - 1} more)" if len(skipped) > 1 else "")
-            if first else ""))
+        raise _too_few(scans, skipped)
     names = [s.name for s in scans]
     if recorder:
         recorder.log_scans(names, [f.points for f in features])

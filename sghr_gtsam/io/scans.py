@@ -34,9 +34,11 @@ def _natural_key(path: Path) -> tuple[list[str | int], str]:
 
 
 def _is_scan_file(path: Path) -> bool:
+    """A file, or a symbolic link that does not lead to one (broken, a loop: listed, so that it is skipped with a
+    reason instead of silently), with a scan suffix and not a known non-scan name."""
     name = path.name.lower()
     return (
-        path.is_file()
+        (path.is_file() or path.is_symlink() and not path.is_dir())
         and path.suffix.lower() in SCAN_SUFFIXES
         and not name.startswith(".")  # hidden files, including atomic_write's temporaries
         and not any(fnmatch.fnmatch(name, pattern) for pattern in NON_SCAN_PATTERNS)
@@ -351,7 +353,8 @@ def load_scan(path: str | Path) -> np.ndarray:
         if suffix not in SCAN_SUFFIXES:
             raise InputError(f"unknown scan format {path.suffix!r} (supported: {', '.join(SCAN_SUFFIXES)})")
         if not path.is_file():
-            raise InputError("no such file" if not path.exists() else "not a file")
+            raise InputError("a symbolic link that leads nowhere (broken or a loop)" if path.is_symlink()
+                             else "no such file" if not path.exists() else "not a file")
         if path.stat().st_size == 0:
             raise InputError("empty file")
         if suffix == ".ply":
