@@ -86,14 +86,30 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
     # chunksize 1 keeps both workers busy when task costs vary (a wrong pair costs more than a right one).
     started = context.Value("i", 0)
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared, started)) as pool:
-        with _main_not_rerun(fn):
-            pending = pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)  # starts the workers
-        results = []
-        for k, result in enumerate(pending):
-            results.append(result)
-            if on_result is not None:
-                on_result(k, result)
-        return results
+        try:
+            with _main_not_rerun(fn), _signals_held():
+                pending = pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)  # starts the workers
+            results = []
+            for k, result in enumerate(pending):
+                results.append(result)
+                if on_result is not None:
+                    on_result(k, result)
+            return results
+        except BaseException:  # Ctrl-C, SIGTERM, a failed task: drop the tasks not started instead of running them
+            pool.shutdown(cancel_futures=True)
+            raise
+
+
+@contextmanager
+def _signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM wait while the workers start: one arriving while a worker's start-up data is being sent
+    cut it short, and the fork server printed a traceback."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
 
 
 @contextmanager

@@ -212,6 +212,7 @@ def _to_input_frame(run: RunResult, centres: np.ndarray) -> None:
     T_ij' S(-c_j)``. Features and ``sync`` stay in the centred frames (``centres`` is kept to map them back)."""
     anchor = int(np.flatnonzero(run.sync.component == 0)[0])
     g = run.graph
+    run.poses[anchor] = np.eye(4)  # exactly: its rounding residue would be multiplied by the offset
     run.poses = _translation(centres[anchor]) @ run.poses @ _translation(-centres)
     g.T = _translation(centres[g.i]) @ g.T @ _translation(-centres[g.j])
     back = _adjoint(-centres[g.j])  # ξ' = Ad(c_j) ξ: the information is Ad(-c_j)ᵀ Ω Ad(-c_j)
