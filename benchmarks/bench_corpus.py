@@ -30,11 +30,9 @@ def _state(out: Path) -> str:
     return "present"
 
 
-def _row(case: str, code: int, lines: list[str], state: str) -> str:
-    line = (lines[-1] if lines else "").replace("|", "\\|")
-    for long in (str(Path(tempfile.gettempdir())),):
-        line = line.replace(long, "…")
-    return f"| {case} | {line[:150]} | {code} | {state} |"
+def _row(case: str, code: int, lines: list[str], state: str, folder: str) -> str:
+    line = (lines[-1] if lines else "").replace(folder, "…").replace("|", "\\|")
+    return f"| {case} | {line[:160]} | {code} | {state} |"
 
 
 def main() -> None:
@@ -48,7 +46,7 @@ def main() -> None:
             corpus._write_bad(scene / name, content)
             corpus._old_result(out)
             code, lines = corpus._cli("run", scene, "--out", out, "--workers", "1")
-            print(_row(f"scan: {case}", code, lines, _state(out)))
+            print(_row(f"scan: {case}", code, lines, _state(out), d))
     for case, (args, _) in corpus.BAD_RUNS.items():
         with tempfile.TemporaryDirectory() as d:
             t = Path(d)
@@ -57,12 +55,12 @@ def main() -> None:
             extra = [] if "--workers" in args else ["--workers", "1"]
             code, lines = corpus._cli("run", *args, *extra)
             print(_row(f"run: {case}", code, lines, "no report.json written" if not (out / "report.json").exists()
-                       else "report.json written"))
+                       else "report.json written", d))
     for case, (text, _) in corpus.SYNC_ERRORS.items():
         with tempfile.TemporaryDirectory() as d:
             (Path(d) / "in.g2o").write_text(text)
             code, lines = corpus._cli("sync", Path(d) / "in.g2o", "--out", Path(d) / "out.g2o")
-            print(_row(f"sync: {case}", code, lines, "out.g2o " + _state(Path(d) / "out.g2o")))
+            print(_row(f"sync: {case}", code, lines, "out.g2o " + _state(Path(d) / "out.g2o"), d))
 
 
 if __name__ == "__main__":
