@@ -171,6 +171,19 @@ def _same_units(scans: list[Scan], skipped: dict[str, str], log: Log) -> list[Sc
     return keep
 
 
+FAR_VOXELS = 1e4
+"""Scans farther than this many voxels from the origin are centred (``_centres``): float32 code (kiss-matcher's
+correspondences in voxel units, rerun) resolves 6e-4 voxels there, and loses metres at 1e6 m."""
+
+
+def _centres(scans: list[Scan], voxel: float) -> np.ndarray:
+    """(N, 3) the point each scan is centred at: its median when some scan lies farther than ``FAR_VOXELS`` from
+    the origin (georeferenced coordinates), else zero. Scans near the origin are not moved, since centring changes
+    a run's rounding (and so, at the margin, its results: the kitchen's cloud_bin_21 went from 1.5° to 3.4°)."""
+    medians = np.array([np.median(s.points, axis=0) for s in scans])
+    return medians if np.abs(medians).max() > FAR_VOXELS * voxel else np.zeros_like(medians)
+
+
 def _centred(scan: Scan, centre: np.ndarray) -> Scan:
     """The scan moved by ``-centre`` in float64: the stages after it see coordinates of the scan's own size, since
     float32 code (kiss-matcher's correspondences, rerun) would lose metres of georeferenced ones (1e6 m)."""
@@ -255,9 +268,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     timer = _Timer(recorder.begin_stage if recorder else None)
     skipped = dict(skipped or {})
     scans = _same_units(scans, skipped, log)
-    centres = np.array([np.median(s.points, axis=0) for s in scans])
-    scans = [_centred(s, c) for s, c in zip(scans, centres)]
+    if len(scans) < 2:
+        raise _too_few(scans, skipped)
     voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
+    centres = _centres(scans, voxel)
+    scans = [_centred(s, c) for s, c in zip(scans, centres)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
 
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:

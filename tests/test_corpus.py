@@ -24,6 +24,7 @@ from typer.testing import CliRunner
 
 from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
+from sghr_gtsam.gtsam_api import pose_covariances
 from sghr_gtsam.io.g2o import read_g2o, write_g2o
 from sghr_gtsam.io.results import RESULT_FILES, staged_results
 from sghr_gtsam.io.scans import load_scan, write_scan
@@ -316,6 +317,9 @@ def test_georeferenced_scans_register_exactly_as_near_the_origin():
                        Config(record=False, workers=1), log=lambda m: None)
         S = make_T(np.eye(3), shift)
         assert res.unregistered == []
+        if offset == 0.0:  # the edges' information and the covariances mapped back agree with gtsam's on the result
+            C = pose_covariances(res)
+            np.testing.assert_allclose(C, res.covariances, rtol=0, atol=1e-3 * np.abs(C).max())
         np.testing.assert_allclose(res.poses[0], np.eye(4), atol=1e-12)
         runs[offset] = inv_T(S) @ res.poses @ S, res.graph.num_edges
     gt = inv_T(scene.poses[0]) @ scene.poses

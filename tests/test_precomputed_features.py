@@ -87,12 +87,10 @@ def test_kitchen_yoho_poses_are_within_tolerance_of_gt(kitchen_yoho, data_dir):
 
 
 def _fpfh_as_given(scans: list[Scan], voxel: float) -> list[Scan]:
-    """FPFH as the pipeline computes it: on the scan centred at its median, normals towards its own origin."""
     out = []
     for s in scans:
-        c = np.median(s.points, axis=0)
-        f = compute_features(s.points - c, voxel, sensor=-c)
-        out.append(Scan(s.name, s.points, Keypoints(f.points + c, f.fpfh)))
+        f = compute_features(s.points, voxel)
+        out.append(Scan(s.name, s.points, Keypoints(f.points, f.fpfh)))
     return out
 
 

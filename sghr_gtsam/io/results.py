@@ -45,8 +45,10 @@ if TYPE_CHECKING:
     from ..config import Config
     from ..result import RunResult
 
-RESULT_FILES = ("poses.txt", "poses_kitti.txt", "graph.g2o", "graph_rejected.g2o", "edges.csv", "merged.ply",
-                "report.json", "config.json", "recording.rrd")
+RESULT_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt", "graph.g2o", "graph_rejected.g2o", "edges.csv",
+                "merged.ply", "report.json", "config.json", "recording.rrd", "summary.png")
+"""Every file a run may write (an output added to ``write_results`` belongs here too: a folder holding anything
+else is not replaced, ``check_output_folder``)."""
 CACHE = "cache"
 """``OUT/cache``: state a run writes in place to resume from (kept across the swap, never staged)."""
 _LEGACY = ("recording.rrd.partial",)  # left by runs from before the swap
