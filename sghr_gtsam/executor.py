@@ -95,7 +95,11 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
                 if on_result is not None:
                     on_result(k, result)
             return results
-        except BaseException:  # Ctrl-C, SIGTERM, a failed task: drop the tasks not started instead of running them
+        except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
+            # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
+            # process table is private, but there is no public way to end its workers before Python 3.14.
+            for process in list(getattr(pool, "_processes", {}).values()):
+                process.terminate()
             pool.shutdown(cancel_futures=True)
             raise
 
