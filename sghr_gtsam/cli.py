@@ -150,8 +150,7 @@ def _summary_table(result: "RunResult", out: Path) -> "Table":
     table.add_column(style="bold")
     table.add_column()
     table.add_row("scans placed", f"{len(result.registered)}/{n}")
-    for label, names in (("unregistered", result.unregistered), ("unverified", result.unverified),
-                         ("contested", result.contested), ("skipped files", list(result.skipped))):
+    for label, names in [*result.flags.items(), ("skipped files", list(result.skipped))]:
         table.add_row(label, f"{len(names)}" + (f": {_names(names)}" if names else ""))
     g, s = result.graph, result.sync
     kept = np.flatnonzero(s.weights > 0)
@@ -167,6 +166,8 @@ def _summary_table(result: "RunResult", out: Path) -> "Table":
 
 def _close(result: "RunResult", out: Path, recorded: bool) -> None:
     """Print the summary table, the warnings (stderr) and how to open the recording."""
+    from .result import FLAGS
+
     console = _console()
     if console.is_terminal:
         console.print(_summary_table(result, out))
@@ -174,15 +175,9 @@ def _close(result: "RunResult", out: Path, recorded: bool) -> None:
         with console.capture() as table:
             console.print(_summary_table(result, out))
         typer.echo("\n".join(line.rstrip() for line in table.get().splitlines()))
-    if result.unregistered:
-        typer.echo(f"unregistered: {', '.join(result.unregistered)}", err=True)
-    if result.unverified:
-        typer.echo(f"unverified (pose rests on one unchecked registration): {', '.join(result.unverified)}", err=True)
-    if result.contested:
-        typer.echo(f"contested (dropped registrations outweigh the kept ones): {', '.join(result.contested)}", err=True)
-    if result.underdetermined:
-        typer.echo(f"underdetermined (not fixed to a voxel in some direction): {', '.join(result.underdetermined)}",
-                   err=True)
+    for flag, names in result.flags.items():
+        if names:
+            typer.echo(f"{flag}{f' ({FLAGS[flag]})' if FLAGS[flag] else ''}: {', '.join(names)}", err=True)
     typer.echo(f"summary picture: {out / 'summary.png'}")
     if recorded:
         typer.echo(f"review the run: rerun {out / 'recording.rrd'}")
@@ -261,9 +256,7 @@ def demo(
     err = scan_errors(result.names, result.poses, gt)
     typer.echo(f"{'scan':<16}{'rot err [deg]':>15}{'trans err [m]':>15}")
     for k, name in enumerate(result.names):
-        flag = ("  (unregistered)" if name in result.unregistered
-                else "  (unverified)" if name in result.unverified
-                else "  (contested)" if name in result.contested else "")
+        flag = next((f"  ({flag})" for flag, names in result.flags.items() if name in names), "")
         typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
     _close(result, out / "results", cfg.record)
 

@@ -376,8 +376,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     for name in run.underdetermined:
         log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
     if recorder:
-        recorder.log_final(poses, {"unregistered": unregistered, "unverified": weak, "contested": disputed,
-                                   "underdetermined": run.underdetermined})
+        recorder.log_final(poses, run.flags)
         recorder.log_covariances(poses, run.covariances)
     _to_input_frame(run, centres)
     return run

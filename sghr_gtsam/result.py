@@ -12,6 +12,13 @@ from .registration.pairwise import PairResult
 from .types import PoseGraph, SyncResult
 
 
+FLAGS = {"unregistered": "", "unverified": "pose rests on one unchecked registration",
+         "contested": "dropped registrations outweigh the kept ones",
+         "underdetermined": "not fixed to a voxel in some direction"}
+"""Each way a run can doubt a scan (a ``RunResult`` field naming the scans), in the order they are reported,
+with what it means in a line."""
+
+
 @dataclass
 class RunResult:
     """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
@@ -49,6 +56,11 @@ class RunResult:
     centres: np.ndarray | None = None
     """(N, 3) the point each scan was centred at (``features`` and ``sync`` are in those centred frames; ``poses``,
     ``graph`` and ``covariances`` in the scans' input frames)."""
+
+    @property
+    def flags(self) -> dict[str, list[str]]:
+        """The scans of each of ``FLAGS``, in its order."""
+        return {flag: getattr(self, flag) for flag in FLAGS}
 
     @property
     def registered(self) -> list[int]:
