@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import local_frame
 from .config import Config
 from .executor import start_server
 from .features.local import ScanFeatures, compute_features, default_voxel
@@ -171,19 +172,6 @@ def _same_units(scans: list[Scan], skipped: dict[str, str], log: Log) -> list[Sc
     return keep
 
 
-FAR_VOXELS = 1e4
-"""Scans farther than this many voxels from the origin are centred (``_centres``): float32 code (kiss-matcher's
-correspondences in voxel units, rerun) resolves 6e-4 voxels there, and loses metres at 1e6 m."""
-
-
-def _centres(scans: list[Scan], voxel: float) -> np.ndarray:
-    """(N, 3) the point each scan is centred at: its median when some scan lies farther than ``FAR_VOXELS`` from
-    the origin (georeferenced coordinates), else zero. Scans near the origin are not moved, since centring changes
-    a run's rounding (and so, at the margin, its results: the kitchen's cloud_bin_21 went from 1.5° to 3.4°)."""
-    medians = np.array([np.median(s.points, axis=0) for s in scans])
-    return medians if np.abs(medians).max() > FAR_VOXELS * voxel else np.zeros_like(medians)
-
-
 def _centred(scan: Scan, centre: np.ndarray) -> Scan:
     """The scan moved by ``-centre`` in float64: the stages after it see coordinates of the scan's own size, since
     float32 code (kiss-matcher's correspondences, rerun) would lose metres of georeferenced ones (1e6 m)."""
@@ -202,41 +190,6 @@ def _features(scan: Scan, voxel: float, config: Config, sensor: np.ndarray, skip
         skipped[scan.name] = str(e)
         log(f"skipped {scan.name}: {e}")
         return None
-
-
-def _translation(c: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) translations by ``c`` (..., 3)."""
-    S = np.broadcast_to(np.eye(4), c.shape[:-1] + (4, 4)).copy()
-    S[..., :3, 3] = c
-    return S
-
-
-def _adjoint(c: np.ndarray) -> np.ndarray:
-    """(..., 6, 6) adjoint of the translation by ``c`` in gtsam's tangent order [rotation, translation]:
-    ``S(c) exp(ξ) S(-c) = exp(Ad ξ)``."""
-    A = np.broadcast_to(np.eye(6), c.shape[:-1] + (6, 6)).copy()
-    A[..., 3:, :3] = np.cross(c[..., None, :], -np.eye(3))  # the skew matrix [c]×: [c]× ω = c × ω
-    return A
-
-
-def _to_input_frame(run: RunResult, centres: np.ndarray) -> None:
-    """Poses, edges, their information and the pose covariances of a run on centred scans, in the scans' input
-    frames: scan k centred at ``c_k``, ``T_k = S(c_a) T_k' S(-c_k)`` with the world at scan a, ``T_ij = S(c_i)
-    T_ij' S(-c_j)``. Features and ``sync`` stay in the centred frames (``centres`` is kept to map them back)."""
-    anchor = int(np.flatnonzero(run.sync.component == 0)[0])
-    g = run.graph
-    run.poses[anchor] = np.eye(4)  # exactly: its rounding residue would be multiplied by the offset
-    run.poses = _translation(centres[anchor]) @ run.poses @ _translation(-centres)
-    g.T = _translation(centres[g.i]) @ g.T @ _translation(-centres[g.j])
-    back = _adjoint(-centres[g.j])  # ξ' = Ad(c_j) ξ: the information is Ad(-c_j)ᵀ Ω Ad(-c_j)
-    if g.information is not None:
-        g.information = np.swapaxes(back, 1, 2) @ g.information @ back
-    run.pairs = [replace(p, T=T, information=None if p.information is None else A.T @ p.information @ A)
-                 for p, T, A in zip(run.pairs, g.T, back)]
-    if run.covariances is not None:
-        forward = _adjoint(centres)
-        run.covariances = forward @ run.covariances @ np.swapaxes(forward, 1, 2)
-    run.centres = centres
 
 
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
@@ -271,7 +224,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     if len(scans) < 2:
         raise _too_few(scans, skipped)
     voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
-    centres = _centres(scans, voxel)
+    centres = local_frame.centres([s.points for s in scans], voxel)
     scans = [_centred(s, c) for s, c in zip(scans, centres)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
 
@@ -378,7 +331,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     if recorder:
         recorder.log_final(poses, run.flags)
         recorder.log_covariances(poses, run.covariances)
-    _to_input_frame(run, centres)
+    local_frame.to_input_frame(run, centres)
     return run
 
 
