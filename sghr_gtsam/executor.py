@@ -83,24 +83,34 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
         return results
     context = multiprocessing.get_context("forkserver")
     context.set_forkserver_preload([fn.__module__])
-    # chunksize 1 keeps both workers busy when task costs vary (a wrong pair costs more than a right one).
     started = context.Value("i", 0)
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared, started)) as pool:
         try:
+            # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right
+            # one). Futures, not pool.map: map cancels the pending ones when stopped, and the pool's manager thread
+            # of Python < 3.12 then fails on them with a traceback on stderr.
             with _main_not_rerun(fn), _signals_held():
-                pending = pool.map(_call, [fn] * len(tasks), tasks, chunksize=1)  # starts the workers
+                futures = [pool.submit(_call, fn, task) for task in tasks]  # starts the workers
             results = []
-            for k, result in enumerate(pending):
-                results.append(result)
+            for k, future in enumerate(futures):
+                results.append(future.result())
                 if on_result is not None:
-                    on_result(k, result)
+                    on_result(k, results[-1])
             return results
         except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
             # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
             # process table is private, but there is no public way to end its workers before Python 3.14.
-            for process in list(getattr(pool, "_processes", {}).values()):
+            processes = list((getattr(pool, "_processes", None) or {}).values())
+            for process in processes:
                 process.terminate()
-            pool.shutdown(cancel_futures=True)
+            for process in processes:
+                process.join(5)
+            # A worker ended while sending its result leaves half a message in the result pipe, and the manager
+            # thread then waits for ever for the rest (1 stop in ~20, seen here): with the workers' copies of the
+            # pipe's write end gone, closing ours ends that wait with EOF.
+            results_pipe = getattr(pool, "_result_queue", None)
+            if results_pipe is not None:
+                results_pipe._writer.close()
             raise
 
 

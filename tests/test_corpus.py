@@ -375,9 +375,7 @@ def _stop_mid_run(scene: Path, out: Path, signum: int) -> tuple[int, str]:
 
 
 @pytest.mark.parametrize("signum, code", [
-    pytest.param(signal.SIGINT, 130, marks=pytest.mark.xfail(strict=False, reason=(
-        "open (issue 14): 2 of about 10 stops ran to completion (exit 0) as if the SIGINT were lost; not explained"))),
-    (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
+    (signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
 def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, code):
     out = _old_result(tmp_path / "out")
     got, err = _stop_mid_run(small_room, out, signum)
