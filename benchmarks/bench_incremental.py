@@ -86,7 +86,7 @@ def real(names: list[str], data: Path) -> None:
         cfg = Config(record=False, workers=1)
         scans, _ = load_scene(data / scene, cfg, log=lambda m: None)
         batch = register(scans, cfg, log=lambda m: None)
-        session, steps = _session([s.name for s in scans], [s.points for s in scans], cfg, batch.voxel)
+        session, steps = _session([s.name for s in scans], [s.read()[0] for s in scans], cfg, batch.voxel)
         P = session.poses
         both = [k for k in batch.registered if np.isfinite(P[k]).all()]
         rot, trans = relative_errors(P[both], batch.poses[both])

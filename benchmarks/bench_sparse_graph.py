@@ -175,7 +175,7 @@ def real_scene(name: str, data: Path) -> Scene:
     names = [s.name for s in scans]
     gt_names, gt_poses = read_poses(data / gt_dir / "gt_poses.txt")
     scene = Scene(name, scans, gt_poses[[gt_names.index(s) for s in names]],
-                  gt_overlap(name, data, names, [s.points for s in scans]), max_deg, max_t, unit, scale)
+                  gt_overlap(name, data, names, [s.read()[0] for s in scans]), max_deg, max_t, unit, scale)
     if (data / gt_dir / "gt.log").exists():
         gt_log, gt_info = read_gt_log(data / gt_dir / "gt.log"), read_gt_info(data / gt_dir / "gt.info")
         ids = set(fragment_id(s) for s in names)

@@ -205,6 +205,9 @@ def run(
                                           "closure." + _default("every core")),
     record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun "
                                           "viewer." + _default("--record")),
+    cache: Optional[bool] = typer.Option(None, "--cache/--no-cache", help="Keep features and pair registrations in "
+                                         "OUT/cache and reuse them: a stopped run started again redoes only what is "
+                                         "missing." + _default("--cache")),
     config_file: Optional[Path] = typer.Option(None, "--config", help="A config.json from an earlier run; options "
                                                "given here override it."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars and no stage messages: only the "
@@ -212,7 +215,8 @@ def run(
 ) -> None:
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
-                 workers=workers, record=record, global_feature=global_feature, features=features and str(features),
+                 workers=workers, record=record, cache=cache, global_feature=global_feature,
+                 features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
     _start_workers(cfg)
     from .pipeline import run as run_pipeline

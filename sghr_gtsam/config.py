@@ -122,6 +122,10 @@ class Config:
     every core. Results do not depend on it."""
     record: bool = True
     """Write recording.rrd (rerun)."""
+    cache: bool = True
+    """Keep features, refinement grids and pair registrations in ``OUT/cache`` as they are computed, keyed by the
+    scans' content and every parameter that made them, and reuse them: a run stopped in the middle and started
+    again redoes only what is missing (``sghr_gtsam.cache``). False: neither read nor written."""
 
     def validate(self) -> "Config":
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""

@@ -41,10 +41,25 @@ def start_server(modules: Sequence[str], workers: int | None = None) -> None:
     workers = default_workers() if workers is None else workers
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
         return
+    _ensure_server(modules)
+
+
+def _ensure_server(modules: Sequence[str]) -> None:
+    """Start the fork server, importing ``modules``, unless it is running; with one OpenMP thread: a worker forked
+    from a server whose OpenMP runtime (libgomp, started by importing open3d) has threads hung in its first parallel
+    region (open3d's normals, seen here), and each worker has one core anyway (``_receive``)."""
     from multiprocessing import forkserver
 
     forkserver.set_forkserver_preload(list(modules))
-    forkserver.ensure_running()
+    saved = os.environ.get("OMP_NUM_THREADS")
+    os.environ["OMP_NUM_THREADS"] = "1"  # the server inherits this process's environment; this process keeps its own
+    try:
+        forkserver.ensure_running()
+    finally:
+        if saved is None:
+            del os.environ["OMP_NUM_THREADS"]
+        else:
+            os.environ["OMP_NUM_THREADS"] = saved
 
 
 def _receive(shared: Any, started: Any) -> None:
@@ -82,7 +97,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
                 on_result(k, results[-1])
         return results
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload([fn.__module__])
+    _ensure_server([fn.__module__])
     started = context.Value("i", 0)
     with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared, started)) as pool:
         try:

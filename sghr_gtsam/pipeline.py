@@ -3,7 +3,6 @@ pairwise registration on graph edges -> history-reweighted IRLS -> gtsam polish 
 
 from __future__ import annotations
 
-import hashlib
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
@@ -13,9 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from . import local_frame
+from .cache import Cache, cached_map, pyramid_key, scan_key
 from .config import Config
 from .executor import start_server
-from .features.local import ScanFeatures, compute_features, default_voxel
+from .features.local import ScanFeatures, scan_features, voxel_from_spans
 from .features.netvlad import (
     DEFAULT_HEAD,
     codebook_features,
@@ -25,8 +25,8 @@ from .features.netvlad import (
 from .graph import bridge_components, top_k_edges, top_k_graph
 from .gtsam_api import pose_covariances
 from .io.features import read_features
-from .io.results import check_output_folder, staged_results, write_results
-from .io.scans import finite_points, list_scans, load_scan
+from .io.results import CACHE, check_output_folder, staged_results, write_results
+from .io.scans import check_memory, finite_points, list_scans, load_scan
 from .progress import QUIET, Progress
 from .recording import Recorder
 from .registration import WORKER_MODULES
@@ -34,21 +34,14 @@ from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
 from .registration.information import STIFFEN, underdetermined
-from .registration.refine import build_pyramid
+from .registration.refine import scan_pyramid
 from .registration.retry import weak_scans
 from .result import RunResult
 from .se3 import inv_T, transform_points
 from .sync import contested, synchronize, unverified
-from .types import InputError, IterationRecord, Keypoints, PoseGraph, SyncResult
+from .types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
 
 Log = Callable[[str], None]
-
-
-@dataclass
-class Scan:
-    name: str
-    points: np.ndarray  # (P, 3) finite points in the scan's own frame
-    keypoints: Keypoints | None = None  # precomputed local features; given, they replace FPFH
 
 
 class _Timer:
@@ -66,12 +59,15 @@ class _Timer:
 
 
 def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[list[Scan], dict[str, str]]:
-    """Read every scan of ``folder``, and its keypoints and descriptors from ``config.features`` if set;
-    unusable files and scans without features are skipped with a reason instead of failing the run."""
+    """The scans of ``folder``, each read once for its checks and ``ScanStats`` (its points are not kept: the
+    stages read them again), with its keypoints and descriptors from ``config.features`` if set; unusable files
+    and scans without features are skipped with a reason instead of failing the run. ``InputError`` before reading
+    a scan that would not fit in the memory available (``io.scans.check_memory``)."""
     scans: list[Scan] = []
     skipped: dict[str, str] = {}
     digests: dict[str, str] = {}
     for path in list_scans(folder):
+        check_memory(path)  # a scan too large for this machine ends the run: it is no bad file to skip
         try:
             P, dropped = finite_points(load_scan(path))
         except InputError as e:
@@ -84,11 +80,12 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
             skipped[path.name] = f"only {len(P)} finite points (< {config.min_points})"
             log(f"skipped {path.name}: {skipped[path.name]}")
             continue
-        digest = hashlib.sha1(np.ascontiguousarray(P).tobytes()).hexdigest()
-        if digest in digests:
-            log(f"note: {path.name} holds the same points as {digests[digest]}")
-        digests.setdefault(digest, path.name)
-        scans.append(Scan(path.name, P))
+        stats = ScanStats.of(P)
+        del P  # the stages read the scan again when they need its points: none holds every scan's at once
+        if stats.digest in digests:
+            log(f"note: {path.name} holds the same points as {digests[stats.digest]}")
+        digests.setdefault(stats.digest, path.name)
+        scans.append(Scan(path.name, path, stats=stats))
     if config.features:
         given = read_features(config.features, [Path(s.name).stem for s in scans])
         for s in scans:
@@ -147,16 +144,16 @@ STRAY_RATIO = 1e6
 away (one point at 1e9 m in a 10 m room); it is skipped, since it would also set the scene's voxel size."""
 
 
-def _same_units(scans: list[Scan], skipped: dict[str, str], log: Log) -> list[Scan]:
-    """The scans whose points do not all coincide, hold no stray point far away and whose extent is within
-    ``UNIT_RATIO`` of the median scan's; the others are named in ``skipped``."""
-    extents = np.array([np.linalg.norm(np.diff(np.percentile(s.points, [1, 99], axis=0), axis=0)) for s in scans])
-    spans = np.array([np.linalg.norm(np.ptp(s.points, axis=0)) for s in scans])
+def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str], log: Log) -> list[int]:
+    """The indices of the scans whose points do not all coincide, hold no stray point far away and whose extent is
+    within ``UNIT_RATIO`` of the median scan's (from their ``stats``); the others are named in ``skipped``."""
+    extents = np.array([st.extent for st in stats])
+    spans = np.array([st.span for st in stats])
     flat, stray = spans <= 0, spans > STRAY_RATIO * extents
     usable = ~flat & ~stray
     median = float(np.median(extents[usable])) if usable.any() else 0.0
     keep = []
-    for s, extent, span, is_flat, is_stray in zip(scans, extents, spans, flat, stray):
+    for k, (s, extent, span, is_flat, is_stray) in enumerate(zip(scans, extents, spans, flat, stray)):
         ratio = extent / median if median > 0 else 1.0
         if is_flat:
             skipped[s.name] = "all its points coincide"
@@ -166,30 +163,10 @@ def _same_units(scans: list[Scan], skipped: dict[str, str], log: Log) -> list[Sc
             skipped[s.name] = (f"its extent {extent:.3g} is {ratio:.3g}x the median scan's {median:.3g}: another unit "
                                f"or another scene?")
         else:
-            keep.append(s)
+            keep.append(k)
             continue
         log(f"skipped {s.name}: {skipped[s.name]}")
     return keep
-
-
-def _centred(scan: Scan, centre: np.ndarray) -> Scan:
-    """The scan moved by ``-centre`` in float64: the stages after it see coordinates of the scan's own size, since
-    float32 code (kiss-matcher's correspondences, rerun) would lose metres of georeferenced ones (1e6 m)."""
-    given = None if scan.keypoints is None else Keypoints(scan.keypoints.points - centre, scan.keypoints.descriptors)
-    return Scan(scan.name, scan.points - centre, given)
-
-
-def _features(scan: Scan, voxel: float, config: Config, sensor: np.ndarray, skipped: dict[str, str],
-              log: Log) -> ScanFeatures | None:
-    """The scan's features (normals towards ``sensor``, the origin of its input frame); None, named in
-    ``skipped``, when it has none (a stray point far away: too many voxels; given keypoints off the scan)."""
-    try:
-        return compute_features(scan.points, voxel, config.normal_radius, config.fpfh_radius, scan.keypoints,
-                                sensor=sensor)
-    except InputError as e:
-        skipped[scan.name] = str(e)
-        log(f"skipped {scan.name}: {e}")
-        return None
 
 
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
@@ -202,11 +179,14 @@ def _also_recorded(log: Log, recorder: Recorder) -> Log:
 
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
              log: Log = print, skipped: dict[str, str] | None = None,
-             scores: np.ndarray | None = None, progress: Progress = QUIET) -> RunResult:
+             scores: np.ndarray | None = None, progress: Progress = QUIET, cache: Cache | None = None) -> RunResult:
     """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe.
 
     ``scores``: an (N, N) symmetric matrix of overlap scores to choose the top-k graph from instead of the
     global features (e.g. ground-truth overlaps or another method's), with their values as ``s`` in ``w⁰``.
+    ``cache``: features, pyramids and pair registrations are read from it where it holds them and stored in it as
+    they are computed (``cache.Cache``; ``run`` passes ``OUT/cache``). No stage holds every scan's points at once:
+    the checks use their ``ScanStats`` and each parallel task reads its scan.
     """
     config.validate()
     if len(scans) < 2:
@@ -220,20 +200,28 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         log = _also_recorded(log, recorder)
     timer = _Timer(recorder.begin_stage if recorder else None)
     skipped = dict(skipped or {})
-    scans = _same_units(scans, skipped, log)
+    stats = [s.statistics() for s in scans]  # a scan given without them is read here, one at a time
+    keep = _same_units(scans, stats, skipped, log)
+    scans, stats = [scans[k] for k in keep], [stats[k] for k in keep]
     if len(scans) < 2:
         raise _too_few(scans, skipped)
-    voxel = config.voxel if config.voxel else default_voxel([s.points for s in scans])
-    centres = local_frame.centres([s.points for s in scans], voxel)
-    scans = [_centred(s, c) for s, c in zip(scans, centres)]
+    voxel = config.voxel if config.voxel else voxel_from_spans([st.span for st in stats])
+    centres = local_frame.centres(np.array([st.median for st in stats]), voxel)
+    scans = [replace(s, centre=c, stats=st) for s, c, st in zip(scans, centres, stats)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
 
+    # Each task reads its scan where it runs: full-resolution points live only in the scans in flight.
+    keys = [scan_key(s, voxel, config) for s in scans]
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        features = []
-        for s, c in zip(scans, centres):
-            features.append(_features(s, voxel, config, -c, skipped, log))
-            tick()
-    usable = [k for k, f in enumerate(features) if f is not None]
+        features = cached_map(cache, "features", scan_features, (voxel, config.normal_radius, config.fpfh_radius),
+                              scans, keys, config.workers, tick)
+    for s, f, key in zip(scans, features, keys):
+        if isinstance(f, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
+            skipped[s.name] = f
+            log(f"skipped {s.name}: {f}")
+        else:
+            f.key = key  # the cache names the pairs by their scans' keys
+    usable = [k for k, f in enumerate(features) if not isinstance(f, str)]
     scans, centres, features = [scans[k] for k in usable], centres[usable], [features[k] for k in usable]
     if len(scans) < 2:
         raise _too_few(scans, skipped)
@@ -256,7 +244,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
 
     edges = EdgeSet()
     with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
-        edges.add(top_k, register_edges(features, top_k, voxel, config, on_result=tick), "top-k")
+        edges.add(top_k, register_edges(features, top_k, voxel, config, tick, cache), "top-k")
     graph = edges.pose_graph(n, scores, config.min_inliers, config.initial_weight)
     log(f"pairwise: {graph.num_edges} pairs in {timer.seconds['pairwise']:.2f} s")
     if recorder:
@@ -274,18 +262,19 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     for _ in range(config.rounds):
         changed = 0
         if (config.refine or config.loops) and pyramids is None:
-            with timer.stage("pyramids"):
-                pyramids = [build_pyramid(s.points, voxel) for s in scans]
+            with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
+                pyramids = cached_map(cache, "pyramids", scan_pyramid, voxel, scans,
+                                      [pyramid_key(f.key) for f in features], config.workers, tick)
         if config.refine:
             with timer.stage("refine"):
-                changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress)
+                changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress, cache)
         if config.loops:
             with timer.stage("loops"):
-                changed += close_loops(features, pyramids, edges, result, voxel, config, densify, progress)
+                changed += close_loops(features, pyramids, edges, result, voxel, config, densify, progress, cache)
         if config.retry:
             with timer.stage("retry"):
                 changed += retry_weak(features, scores, edges, result, unverified(graph, result), voxel, config,
-                                      densify, progress)
+                                      densify, progress, cache)
         if not changed:
             break
         densify.rounds += 1
@@ -318,7 +307,8 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
                     edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=skipped, features=features, timings=timer.seconds,
-                    global_feature=feature_kind, unverified=weak, contested=disputed)
+                    global_feature=feature_kind, unverified=weak, contested=disputed,
+                    cache=cache.report() if cache else None)
     with timer.stage("covariances"):
         try:
             run.covariances = pose_covariances(run)
@@ -392,7 +382,8 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     with staged_results(out) as stage:
         recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight) if config.record else None
         try:
-            result = register(scans, config, recorder, log, skipped, progress=progress)
+            cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
+            result = register(scans, config, recorder, log, skipped, progress=progress, cache=cache)
         finally:
             if recorder:
                 recorder.close()

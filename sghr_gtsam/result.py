@@ -53,6 +53,9 @@ class RunResult:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan, gtsam order [rotation, translation]
     at the pose (``gtsam_api.pose_covariances``); NaN for unregistered scans. None: not computed yet."""
 
+    cache: dict | None = None
+    """What the resume cache gave (``cache.Cache.report``: per kind, results cached and computed); None without
+    one."""
     centres: np.ndarray | None = None
     """(N, 3) the point each scan was centred at (``features`` and ``sync`` are in those centred frames; ``poses``,
     ``graph`` and ``covariances`` in the scans' input frames)."""

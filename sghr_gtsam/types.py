@@ -3,7 +3,9 @@ the frame of scan i; ``T_i`` maps scan i into the world; ``T_ij = inv(T_i) @ T_j
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -35,6 +37,73 @@ class Keypoints:
             raise InputError(f"{len(self.points)} keypoints but {len(self.descriptors)} descriptors")
         self.points = np.ascontiguousarray(self.points, dtype=np.float64)
         self.descriptors = np.ascontiguousarray(self.descriptors, dtype=np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class ScanStats:
+    """What the checks before registration need of a scan's points, so that the points need not be held: the
+    count of finite ``points``, ``extent`` (the diagonal of the box of their 1st-99th percentiles: the unit check),
+    ``span`` (their bounding box's diagonal: the stray-point check and the default voxel), ``median`` (3,) (where a
+    georeferenced scan is centred) and ``digest`` (sha1 of the points as float64: duplicates, the resume cache)."""
+
+    points: int
+    extent: float
+    span: float
+    median: np.ndarray
+    digest: str
+
+    @classmethod
+    def of(cls, points: np.ndarray) -> "ScanStats":
+        """The statistics of finite (P, 3) float64 ``points``; column by column, so that the percentiles' working
+        copy is a third of the points."""
+        low, high, median = np.zeros(3), np.zeros(3), np.zeros(3)
+        for k in range(3):
+            column = points[:, k].copy()
+            median[k] = np.median(column, overwrite_input=True)
+            low[k], high[k] = np.percentile(column, [1, 99], overwrite_input=True)
+        span = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        return cls(len(points), float(np.linalg.norm(high - low)), span, median,
+                   hashlib.sha1(np.ascontiguousarray(points)).hexdigest())
+
+
+@dataclass(eq=False)
+class Scan:
+    """One scan to register: its ``name``; its ``source``, a scan file (read when a stage needs its points, by
+    ``io.scans.load_scan``) or its (P, 3) points given in memory; optional ``keypoints`` given with it (they
+    replace FPFH), in the same frame; the ``centre`` (3,) the stages see it moved by (set by the pipeline for
+    georeferenced scans); and its ``stats``, when known (``load_scene`` keeps them from its one reading)."""
+
+    name: str
+    source: str | Path | np.ndarray
+    keypoints: Keypoints | None = None
+    centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    stats: ScanStats | None = None
+
+    def input_points(self) -> np.ndarray:
+        """The scan's finite points in its input frame, (P, 3) float64, read from its file if it has one
+        (``InputError`` when it cannot be read or would not fit in memory: ``io.scans.check_memory``)."""
+        if isinstance(self.source, np.ndarray):
+            points = self.source
+            if points.ndim != 2 or points.shape[1] != 3:
+                raise InputError(f"scan {self.name}: points must be (N, 3), got shape {points.shape}")
+        else:
+            from .io.scans import check_memory, load_scan  # io builds on this module
+
+            check_memory(self.source)
+            points = load_scan(self.source)
+        points = np.asarray(points, dtype=np.float64)
+        return points[np.isfinite(points).all(axis=1)]
+
+    def statistics(self) -> ScanStats:
+        """``stats``, or computed from the points when not known (reading the scan once)."""
+        return self.stats if self.stats is not None else ScanStats.of(self.input_points())
+
+    def read(self) -> tuple[np.ndarray, Keypoints | None]:
+        """The scan's finite points and its given keypoints (or None), both moved by ``-centre``, in float64."""
+        given = self.keypoints
+        if given is not None and self.centre.any():
+            given = Keypoints(given.points - self.centre, given.descriptors)
+        return self.input_points() - self.centre, given
 
 
 @dataclass

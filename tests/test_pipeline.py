@@ -97,7 +97,7 @@ def test_result_does_not_depend_on_the_world_frame():
     a = register(scans, Config(record=False), log=lambda m: None)
     T = np.eye(4)
     T[:3, 3] = [1.0, -2.0, 0.5]
-    moved = [Scan(s.name, s.points @ T[:3, :3].T + T[:3, 3]) if k == 2 else s for k, s in enumerate(scans)]
+    moved = [Scan(s.name, s.source @ T[:3, :3].T + T[:3, 3]) if k == 2 else s for k, s in enumerate(scans)]
     b = register(moved, Config(record=False), log=lambda m: None)
     rel_a = inv_T(a.poses[0]) @ a.poses[2]
     rel_b = inv_T(b.poses[0]) @ b.poses[2] @ T

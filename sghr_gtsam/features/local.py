@@ -13,7 +13,7 @@ import open3d as o3d
 import small_gicp
 from scipy.spatial import cKDTree
 
-from sghr_gtsam.types import InputError, Keypoints
+from sghr_gtsam.types import InputError, Keypoints, Scan
 
 # small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
 # one thread ran GICP 2.5x faster (wall) than two. scipy's k-d queries use plain threads.
@@ -39,7 +39,8 @@ class ScanFeatures:
     ``descriptors`` (K, D) float32, which are ``points`` and ``fpfh`` (M, 33) unless they were given
     (then ``fpfh`` is None: not computed). Search structures built once for all pairs:
     ``descriptor_tree`` (k-d tree on ``descriptors``), ``cloud`` (``points`` with GICP covariances,
-    small_gicp) and its k-d tree ``cloud_tree``.
+    small_gicp) and its k-d tree ``cloud_tree``. ``key``: what made them, as the resume cache names them
+    (``cache.scan_key``: the scan's content and centre, the voxel and radii); empty when not known.
     """
 
     points: np.ndarray
@@ -51,6 +52,15 @@ class ScanFeatures:
     descriptor_tree: cKDTree = field(repr=False)
     cloud: small_gicp.PointCloud = field(repr=False)
     cloud_tree: small_gicp.KdTree = field(repr=False)
+    key: str = ""
+
+    @classmethod
+    def from_arrays(cls, points: np.ndarray, normals: np.ndarray, fpfh: np.ndarray | None, voxel: float,
+                    keypoints: np.ndarray, descriptors: np.ndarray) -> "ScanFeatures":
+        """Features from their arrays, the search structures built as ``compute_features`` builds them (the resume
+        cache stores the arrays only)."""
+        return cls(points, normals, fpfh, float(voxel), keypoints, descriptors, cKDTree(descriptors),
+                   *_gicp_cloud(points))
 
     def __len__(self) -> int:
         return len(self.points)
@@ -140,16 +150,33 @@ def compute_features(
     )
 
 
+def scan_features(shared: tuple[float, float, float], scan: Scan) -> ScanFeatures | str:
+    """An executor task: ``compute_features`` of ``scan`` (``shared``: voxel, normal and FPFH radii), read where
+    the task runs, so that its full-resolution points live only there, with normals towards the origin of its input
+    frame (``-scan.centre``). The reason, as a string, when it has none (a stray point far away: too many voxels;
+    given keypoints off the scan)."""
+    voxel, normal_radius, fpfh_radius = shared
+    points, given = scan.read()
+    try:
+        return compute_features(points, voxel, normal_radius, fpfh_radius, given, sensor=-scan.centre)
+    except InputError as e:
+        return str(e)
+
+
 def default_voxel(scans: list[np.ndarray]) -> float:
-    """Voxel size from the scene: 1/100 of the median scan's bounding-box diagonal.
+    """Voxel size from the scene: ``voxel_from_spans`` of the scans' finite points."""
+    finite = [s[np.isfinite(s).all(axis=1)] for s in map(np.asarray, scans)]
+    return voxel_from_spans([np.linalg.norm(np.ptp(s, axis=0)) for s in finite if len(s)])
+
+
+def voxel_from_spans(spans: list[float]) -> float:
+    """Voxel size from the scans' bounding-box diagonals ``spans``: 1/100 of the median one.
 
     4.2 cm on the 3DMatch kitchen and 2.5 mm on the Stanford bunny, where both scenes do best:
     with kiss-matcher and FPFH at 5 voxels the kitchen gets 19 / 20 / 19 of its 29 overlapping pairs
     right at 3 / 4.2 / 5 cm (3 cm costs 2.5x the time), the bunny 24 / 24 / 22 / 19 at 2 / 2.5 / 3 /
     4 mm (coarser grids miss its 1 mm bound).
     """
-    finite = [s[np.isfinite(s).all(axis=1)] for s in map(np.asarray, scans)]
-    diagonals = [np.linalg.norm(np.ptp(s, axis=0)) for s in finite if len(s)]
-    if not diagonals:
+    if not len(spans):
         raise InputError("no finite points to derive a voxel size from")
-    return float(np.median(diagonals)) / 100.0
+    return float(np.median(spans)) / 100.0

@@ -146,6 +146,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p
                              in zip(result.graph.i, result.graph.j, result.pairs) if p.free],
         "front_end": result.densify,
+        "cache": result.cache,
         "skipped": result.skipped,
         "voxel": result.voxel,
         "global_feature": result.global_feature,

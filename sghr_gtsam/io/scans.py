@@ -381,6 +381,79 @@ def load_scan(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(points)
 
 
+READ_BYTES_PER_POINT = {"text": 400, "binary": 120}
+"""Peak memory of reading a scan and computing its features, per point (measured, ``benchmarks/bench_memory.py``):
+text formats hold the file's lines as Python objects while parsing; binary ones the reader's table, the float64
+points, their finite copy and the features' working copies."""
+
+
+def point_count(path: str | Path) -> int:
+    """How many points the scan file at ``path`` holds, from its header (PLY, PCD, NPY, NPZ, LAS/LAZ, E57) or, for
+    text, its size over the mean length of its first lines; 0 when that cannot be told (the reader will say why)."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".ply":
+            _, elements, _, _ = _ply_header(path)
+            return next(e.count for e in elements if e.name == "vertex")
+        if suffix == ".pcd":
+            lines, _ = _read_header(path, b"DATA") or ([], 0)
+            fields = {words[0]: words[1:] for words in map(str.split, lines) if words}
+            return int(fields["POINTS"][0])
+        if suffix == ".npy":
+            return int(np.load(path, mmap_mode="r", allow_pickle=False).shape[0])
+        if suffix == ".npz":
+            with np.load(path, allow_pickle=False) as archive:
+                name = "points" if "points" in archive.files else archive.files[0]
+                with archive.zip.open(name + ".npy") as member:
+                    fmt = np.lib.format
+                    read = fmt.read_array_header_1_0 if fmt.read_magic(member) == (1, 0) else fmt.read_array_header_2_0
+                    return int(read(member)[0][0])
+        if suffix in (".las", ".laz"):
+            import laspy
+
+            with laspy.open(path) as las:
+                return int(las.header.point_count)
+        if suffix == ".e57":
+            import pye57
+
+            with pye57.E57(str(path)) as e57:
+                return sum(int(e57.get_header(k).point_count) for k in range(e57.scan_count))
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+        lines = head.count(b"\n")
+        return int(path.stat().st_size * lines / len(head)) if lines else 1
+    except Exception:  # noqa: BLE001 - a header that cannot be read is the reader's to report
+        return 0
+
+
+def check_memory(path: str | Path) -> None:
+    """``InputError`` when reading the scan at ``path`` and computing its features would need more memory than is
+    available now (``READ_BYTES_PER_POINT``): one line before the machine runs out, instead of the kernel's kill."""
+    import psutil
+
+    path = Path(path)
+    count = point_count(path)
+    kind = "text" if _is_text(path) else "binary"
+    needed, available = count * READ_BYTES_PER_POINT[kind], psutil.virtual_memory().available
+    if needed > available:
+        raise InputError(f"scan {path.name} holds {count:,} points: reading it needs about {needed / 2**30:.1f} GB, "
+                         f"{available / 2**30:.1f} GB are available (thin it first, e.g. by voxel down-sampling)")
+
+
+def _is_text(path: Path) -> bool:
+    """Whether the scan at ``path`` is parsed as text (.xyz, .txt, ASCII PLY and PCD)."""
+    suffix = path.suffix.lower()
+    if suffix not in (".ply", ".pcd"):
+        return suffix in (".xyz", ".txt")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return b"format ascii" in head or b"DATA ascii" in head
+
+
 def finite_points(points: np.ndarray) -> tuple[np.ndarray, int]:
     """The rows of ``points`` whose coordinates are all finite, and how many rows were dropped."""
     keep = np.isfinite(points).all(axis=1)

@@ -6,8 +6,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..cache import Cache, cached_map, pair_key
 from ..config import Config
-from ..executor import parallel_map
 from ..features.local import ScanFeatures
 from .pairwise import PairResult, register_pair
 
@@ -20,8 +20,10 @@ def _register(shared: tuple[list[ScanFeatures], float, Config], pair: tuple[int,
 
 
 def register_edges(features: list[ScanFeatures], edges: np.ndarray, voxel: float, config: Config,
-                   on_result: Callable[[int, PairResult], None] | None = None) -> list[PairResult]:
+                   on_result: Callable[[int, PairResult], None] | None = None,
+                   cache: Cache | None = None) -> list[PairResult]:
     """``register_pair`` on every (i, j) row of ``edges``, over ``config.workers`` processes; ``on_result`` as
-    in ``parallel_map`` (progress)."""
-    return parallel_map(_register, (features, voxel, config), [(int(a), int(b)) for a, b in edges], config.workers,
-                        on_result)
+    in ``parallel_map`` (progress); ``cache``: results stored as they arrive and reused (``cache.Cache``)."""
+    pairs = [(int(a), int(b)) for a, b in edges]
+    keys = [pair_key(features[a].key, features[b].key, config) for a, b in pairs]
+    return cached_map(cache, "pairs", _register, (features, voxel, config), pairs, keys, config.workers, on_result)

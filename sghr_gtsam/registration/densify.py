@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..cache import Cache
 from ..config import Config
 from ..features.local import ScanFeatures
 from ..progress import QUIET, Progress
@@ -52,7 +53,8 @@ def _guesses(poses: np.ndarray, ij: np.ndarray) -> np.ndarray:
 
 
 def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
-                 voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET) -> int:
+                 voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET,
+                 cache: Cache | None = None) -> int:
     """Re-register every kept edge of the largest part not refined yet by multi-scale ICP from the
     synchronized ``T_i⁻¹ T_j``; an edge takes the result when it ``confirms`` the guess. Returns the count."""
     main = sync.component == 0
@@ -63,7 +65,7 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
     with progress.stage("refinement", len(todo)) as tick:
         results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel,
                                                    config.icp_distance, config.workers,
-                                                   [edges.pairs[e].matches for e in todo], tick)
+                                                   [edges.pairs[e].matches for e in todo], tick, cache)
     changed = 0
     for e, result, ok, guess in zip(todo, results, converged, guesses):
         edges.refined[e] = True
@@ -76,7 +78,8 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
 
 
 def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
-                voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET) -> int:
+                voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET,
+                cache: Cache | None = None) -> int:
     """Register the pairs of the largest part that overlap under the synchronized poses but have no kept edge,
     by multi-scale ICP from the synchronized guess: pairs never tried, and pairs whose global registration
     synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
@@ -98,7 +101,7 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
     known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
     with progress.stage("loop closure", len(ij)) as tick:
         results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config.icp_distance,
-                                                   config.workers, known, tick)
+                                                   config.workers, known, tick, cache)
     closed = 0
     for (a, b), result, ok, guess in zip(ij, results, converged, guesses):
         if not confirms(result, ok, guess, voxel, config.min_inliers):
@@ -117,7 +120,7 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
 
 def retry_weak(features: list[ScanFeatures], scores: np.ndarray, edges: EdgeSet, sync: SyncResult,
                unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport,
-               progress: Progress = QUIET) -> int:
+               progress: Progress = QUIET, cache: Cache | None = None) -> int:
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
     by overlap score; the pairs that register enter as retry edges. Returns how many registered."""
     n = len(features)
@@ -130,7 +133,7 @@ def retry_weak(features: list[ScanFeatures], scores: np.ndarray, edges: EdgeSet,
         return 0
     report._tried.update(map(tuple, ij.tolist()))
     with progress.stage("retry", len(ij)) as tick:
-        results = register_edges(features, ij, voxel, config, tick)
+        results = register_edges(features, ij, voxel, config, tick, cache)
     good = [k for k, p in enumerate(results) if p.inliers >= config.min_inliers]
     edges.add(ij[good], [results[k] for k in good], "retry")
     report.retry_tried += len(ij)

@@ -19,8 +19,10 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
+from ..cache import Cache, cached_map, refined_key
 from ..features.local import COV_NEIGHBORS, GICP_THREADS, ScanFeatures
 from ..se3 import inv_T, rotation_angle
+from ..types import Scan
 from .information import registration_information
 from .pairwise import PairResult, score_pair
 
@@ -93,6 +95,11 @@ def build_pyramid(points: np.ndarray, voxel: float) -> Pyramid:
     return Pyramid(tuple(voxels), tuple(grids))
 
 
+def scan_pyramid(voxel: float, scan: Scan) -> Pyramid:
+    """An executor task: ``build_pyramid`` of ``scan``, read where the task runs."""
+    return build_pyramid(scan.read()[0], voxel)
+
+
 def _levels(target_i: Pyramid, source_j: Pyramid) -> int:
     return min(len(target_i.voxels), len(source_j.voxels))
 
@@ -148,13 +155,14 @@ def _refine_task(shared: tuple, task: tuple) -> tuple[PairResult, bool]:
 def register_from_guesses(features: list[ScanFeatures], pyramids: list[Pyramid], ij: np.ndarray,
                           guesses: np.ndarray, voxel: float, icp_distance: float, workers: int | None,
                           matches: list | None = None, on_result: Callable[[int, object], None] | None = None,
-                          ) -> tuple[list[PairResult], np.ndarray]:
+                          cache: Cache | None = None) -> tuple[list[PairResult], np.ndarray]:
     """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), over the executor's
     processes, with each pair's earlier descriptor ``matches`` where known (None: found anew): the results and
-    whether each converged. ``on_result`` as in ``parallel_map`` (progress)."""
-    from ..executor import parallel_map
-
+    whether each converged. ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored and reused
+    (``cache.Cache``)."""
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
-    out = parallel_map(_refine_task, (features, pyramids, voxel, icp_distance), tasks, workers, on_result)
+    keys = [refined_key(features[a].key, features[b].key, T, icp_distance) for a, b, T, _ in tasks]
+    out = cached_map(cache, "refined", _refine_task, (features, pyramids, voxel, icp_distance), tasks, keys, workers,
+                     on_result)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)

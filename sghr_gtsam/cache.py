@@ -1,0 +1,251 @@
+"""The resume cache: what the parallel stages computed, on disk in ``OUT/cache`` (``io.results.CACHE``), so that a
+run killed in the middle and started again redoes only what is missing.
+
+One file per result, ``OUT/cache/<kind>/<key>.npz`` (arrays only, no pickle), written atomically as each result
+arrives (``io.atomic``): a scan's features (``features``) and refinement grids (``pyramids``), a pair's global
+registration (``pairs``) and its re-registration from a synchronized guess (``refined``: refinement and loop
+closures). A key is a digest of everything that made the result: the scan's points (``ScanStats.digest``), its given
+keypoints and its centre, the parameters (voxel, radii, matcher, ICP distance, seed, the guess), the source of the
+modules that compute them and the versions of the libraries they call; a change to any of them misses. An entry
+that cannot be read (truncated, damaged) is computed again and overwritten. Nothing removes old entries: delete
+the folder to reclaim its space.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from collections.abc import Callable, Sequence
+from importlib import metadata
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .executor import parallel_map
+from .io.atomic import atomic_write
+
+if TYPE_CHECKING:
+    from .config import Config
+    from .types import Scan
+
+FORMAT = 1
+"""Bumped when what a file holds changes meaning."""
+KINDS = ("features", "pyramids", "pairs", "refined")
+_SOURCES = ("features/local.py", "registration/pairwise.py", "registration/estimators.py",
+            "registration/information.py", "registration/refine.py")
+"""The modules whose code (and constants) make the cached results."""
+_LIBRARIES = ("numpy", "scipy", "open3d-cpu", "small-gicp", "kiss-matcher")
+_STALE_SECONDS = 60.0
+"""A write's temporary file older than this belongs to a killed run (a write takes milliseconds)."""
+
+
+def _version(name: str) -> str:
+    try:
+        return metadata.version(name)
+    except metadata.PackageNotFoundError:
+        return "none"
+
+
+_CODE: str | None = None
+
+
+def _code() -> str:
+    """Digest of the computing modules' source and the libraries' versions (once per process)."""
+    global _CODE
+    if _CODE is None:
+        root = Path(__file__).resolve().parent
+        h = hashlib.sha256()
+        for name in _SOURCES:
+            h.update((root / name).read_bytes())
+        h.update(" ".join(_version(lib) for lib in _LIBRARIES).encode())
+        _CODE = h.hexdigest()
+    return _CODE
+
+
+def _key(*parts: Any) -> str:
+    h = hashlib.sha256(f"{FORMAT} {_code()}".encode())
+    for part in parts:
+        data = np.ascontiguousarray(part).tobytes() if isinstance(part, np.ndarray) else repr(part).encode()
+        h.update(len(data).to_bytes(8, "little") + data)
+    return h.hexdigest()
+
+
+def scan_key(scan: "Scan", voxel: float, config: "Config") -> str:
+    """A scan's features: its points, given keypoints and centre, the voxel and the radii."""
+    given = scan.keypoints
+    return _key("scan", scan.statistics().digest, None if given is None else given.points,
+                None if given is None else given.descriptors, scan.centre, float(voxel), config.normal_radius,
+                config.fpfh_radius)
+
+
+def pyramid_key(scan: str) -> str | None:
+    """A scan's refinement grids, from its ``scan_key`` (None: not cached)."""
+    return _key("pyramid", scan) if scan else None
+
+
+def pair_key(a: str, b: str, config: "Config") -> str | None:
+    """A pair's global registration, from its scans' keys (None when one is not known: not cached)."""
+    return _key("pair", a, b, config.matcher, config.icp_distance, config.seed) if a and b else None
+
+
+def refined_key(a: str, b: str, guess: np.ndarray, icp_distance: float) -> str | None:
+    """A pair's re-registration from ``guess``, from its scans' keys (None when one is not known)."""
+    return _key("refined", a, b, np.asarray(guess, dtype=np.float64), icp_distance) if a and b else None
+
+
+# --- what a file holds -----------------------------------------------------------------------------------------
+
+
+def _encode_features(f) -> dict[str, np.ndarray] | None:
+    if isinstance(f, str):  # a scan without features: its reason is not stored
+        return None
+    out = {"points": f.points, "normals": f.normals, "voxel": np.float64(f.voxel)}
+    if f.fpfh is not None:
+        out["fpfh"] = f.fpfh
+    else:
+        out["keypoints"], out["descriptors"] = f.keypoints, f.descriptors
+    return out
+
+
+def _decode_features(a: dict[str, np.ndarray]):
+    from .features.local import ScanFeatures
+
+    fpfh = a.get("fpfh")
+    keypoints, descriptors = (a["points"], fpfh) if fpfh is not None else (a["keypoints"], a["descriptors"])
+    return ScanFeatures.from_arrays(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
+
+
+def _encode_pyramid(p) -> dict[str, np.ndarray]:
+    return {"voxels": np.array(p.voxels), **{f"grid{k}": g for k, g in enumerate(p.grids)}}
+
+
+def _decode_pyramid(a: dict[str, np.ndarray]):
+    from .registration.refine import Pyramid
+
+    voxels = tuple(float(v) for v in a["voxels"])
+    return Pyramid(voxels, tuple(a[f"grid{k}"] for k in range(len(voxels))))
+
+
+_PAIR_ARRAYS = ("information", "bounded", "loose")
+
+
+def _encode_pair(p) -> dict[str, np.ndarray]:
+    out = {"T": p.T, "numbers": np.array([p.inliers, p.fitness, p.rmse, p.seconds, p.coverage, p.free])}
+    out.update({name: getattr(p, name) for name in _PAIR_ARRAYS if getattr(p, name) is not None})
+    if p.matches is not None:
+        out["match_i"], out["match_j"] = p.matches
+    return out
+
+
+def _decode_pair(a: dict[str, np.ndarray]):
+    from .registration.pairwise import PairResult
+
+    inliers, fitness, rmse, seconds, coverage, free = a["numbers"].tolist()
+    matches = (a["match_i"], a["match_j"]) if "match_i" in a else None
+    if a["T"].shape != (4, 4):
+        raise ValueError(f"T of shape {a['T'].shape}")
+    return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
+                      int(free), a.get("bounded"), a.get("loose"))
+
+
+def _encode_refined(result) -> dict[str, np.ndarray]:
+    pair, converged = result
+    return {**_encode_pair(pair), "converged": np.bool_(converged)}
+
+
+def _decode_refined(a: dict[str, np.ndarray]):
+    return _decode_pair(a), bool(a["converged"])
+
+
+_CODECS: dict[str, tuple[Callable, Callable]] = {
+    "features": (_encode_features, _decode_features),
+    "pyramids": (_encode_pyramid, _decode_pyramid),
+    "pairs": (_encode_pair, _decode_pair),
+    "refined": (_encode_refined, _decode_refined),
+}
+
+
+class Cache:
+    """The cache in ``folder`` (created on the first write) and what this run took from it: ``counts[kind]`` the
+    results ``cached`` (read back) and ``computed``, ``unreadable`` the entries that could not be read."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        self.counts = {kind: {"cached": 0, "computed": 0} for kind in KINDS}
+        self.unreadable = 0
+        self._remove_stale()
+
+    def report(self) -> dict:
+        """What report.json says of the cache."""
+        return {**self.counts, "unreadable": self.unreadable}
+
+    def _path(self, kind: str, key: str) -> Path:
+        return self.folder / kind / f"{key}.npz"
+
+    def _remove_stale(self) -> None:
+        """Temporary files of writes a killed run left (``io.atomic``'s hidden names)."""
+        if not self.folder.is_dir():
+            return
+        now = time.time()
+        for path in self.folder.glob("*/.*.tmp.npz"):
+            try:
+                if now - path.stat().st_mtime > _STALE_SECONDS:
+                    path.unlink()
+            except OSError:
+                pass
+
+    def load(self, kind: str, key: str | None) -> Any:
+        """The stored result, or ``MISS`` (also when its file cannot be read)."""
+        path = None if key is None else self._path(kind, key)
+        if path is None or not path.is_file():
+            return MISS
+        try:
+            with np.load(path, allow_pickle=False) as archive:
+                arrays = {name: archive[name] for name in archive.files}  # reading each checks its CRC
+            return _CODECS[kind][1](arrays)
+        except Exception:  # noqa: BLE001 - a damaged entry is recomputed, whatever broke while reading it
+            self.unreadable += 1
+            return MISS
+
+    def store(self, kind: str, key: str | None, result: Any) -> None:
+        arrays = None if key is None else _CODECS[kind][0](result)
+        if arrays is not None:
+            with atomic_write(self._path(kind, key), "wb") as f:
+                np.savez(f, **arrays)
+
+    def map(self, kind: str, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
+            workers: int | None, on_result: Callable[[int, Any], None] | None = None) -> list:
+        """``executor.parallel_map(fn, shared, tasks, workers, on_result)`` for the tasks whose ``keys`` miss the
+        cache, each result stored as it arrives; the others read back. ``on_result`` is told of the cached
+        results first, then of the computed ones as they arrive."""
+        results: list = [MISS] * len(tasks)
+        for k, key in enumerate(keys):
+            results[k] = self.load(kind, key)
+            if results[k] is not MISS and on_result is not None:
+                on_result(k, results[k])
+        todo = [k for k, r in enumerate(results) if r is MISS]
+
+        def arrived(m: int, result: Any) -> None:
+            self.store(kind, keys[todo[m]], result)
+            if on_result is not None:
+                on_result(todo[m], result)
+
+        for k, result in zip(todo, parallel_map(fn, shared, [tasks[k] for k in todo], workers, arrived)):
+            results[k] = result
+        self.counts[kind]["cached"] += len(tasks) - len(todo)
+        self.counts[kind]["computed"] += len(todo)
+        return results
+
+
+MISS = object()
+"""``Cache.load``'s answer for a result it does not hold."""
+
+
+def cached_map(cache: Cache | None, kind: str, fn: Callable, shared: Any, tasks: Sequence,
+               keys: Sequence[str | None], workers: int | None,
+               on_result: Callable[[int, Any], None] | None = None) -> list:
+    """``cache.map(...)``, or ``executor.parallel_map`` of every task without a cache."""
+    if cache is None:
+        return parallel_map(fn, shared, tasks, workers, on_result)
+    return cache.map(kind, fn, shared, tasks, keys, workers, on_result)
