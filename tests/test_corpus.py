@@ -26,7 +26,7 @@ from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.gtsam_api import pose_covariances
 from sghr_gtsam.io.g2o import read_g2o, write_g2o
-from sghr_gtsam.io.results import RESULT_FILES, staged_results
+from sghr_gtsam.io.results import CACHE, RESULT_FILES, staged_results
 from sghr_gtsam.io.scans import load_scan, write_scan
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
@@ -52,8 +52,9 @@ def _old_result(out: Path) -> Path:
 
 
 def _untouched(out: Path) -> bool:
-    """``out`` holds the earlier result exactly, and no staging folder is left beside it."""
-    left = {p.name: p.read_text() for p in out.iterdir()}
+    """``out`` holds the earlier result exactly (beside the resume cache the run wrote in place), and no staging
+    folder is left beside it."""
+    left = {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE}
     return left == OLD and not [p for p in out.parent.iterdir() if p.name.startswith(f".{out.name}.")]
 
 
@@ -236,6 +237,18 @@ def test_scans_that_do_not_overlap_leave_the_earlier_result(tmp_path):
     assert _untouched(out)
 
 
+def test_scan_too_large_for_the_memory_stops_before_reading_it(tmp_path):
+    """A scan whose header declares more points than memory holds: one line naming it and the sizes, exit 2,
+    before it is read (the machine would otherwise swap or kill the run); the earlier result stays."""
+    scene = _scene_with_scan(tmp_path)
+    (scene / "huge.ply").write_text(_ply_header(10**11))
+    out = _old_result(tmp_path / "out")
+    code, lines = _cli("run", scene, "--out", out, "--workers", "1")
+    assert code == 2 and lines[-1].startswith("error: scan huge.ply holds 100,000,000,000 points: reading it needs "
+                                              "about "), lines
+    assert "GB are available" in lines[-1] and _untouched(out)
+
+
 # --- runs that register: one scene holding every kind of bad scan among good ones ---------------------------------
 
 GOOD_NAMES = ["scan 0 with spaces.ply", "skän_1.ply", "scan_2.ply", "scan_3.ply"]
@@ -298,7 +311,7 @@ def test_second_run_into_the_scene_folder_reads_no_output_and_keeps_no_old_file(
     second = json.loads((out / "report.json").read_text())
     assert code == 0, lines
     assert second["scans"] == first["scans"] and sorted(second["registered"]) == sorted(GOOD_NAMES)
-    assert {p.name for p in out.iterdir()} == set(RESULT_FILES) - {"recording.rrd"}
+    assert {p.name for p in out.iterdir()} == set(RESULT_FILES) - {"recording.rrd"} | {CACHE}
     assert not [p for p in out.parent.iterdir() if p.name.startswith(".results.")]
 
 
@@ -380,14 +393,14 @@ def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, cod
     out = _old_result(tmp_path / "out")
     got, err = _stop_mid_run(small_room, out, signum)
     assert got == code, err
-    assert {p.name: p.read_text() for p in out.iterdir()} == OLD
+    assert {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE} == OLD
     if signum == signal.SIGKILL:  # nothing could clean up: the next run removes the staging folder
         stale = [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp-")]
         assert len(stale) == 1
         with staged_results(out) as stage:
             assert not stale[0].exists()
             (stage / "poses.txt").write_text("new\n")
-        assert [p.name for p in out.iterdir()] == ["poses.txt"]
+        assert [p.name for p in out.iterdir() if p.name != CACHE] == ["poses.txt"]
     else:
         name = signal.Signals(signum).name
         assert err.strip().splitlines() == [f"error: stopped by {name}: nothing written, earlier results left as "

@@ -23,7 +23,7 @@ from sghr_gtsam.io.poses import (
     write_kitti,
     write_poses,
 )
-from sghr_gtsam.io.scans import finite_points, list_scans, load_scan, write_ply, write_scan
+from sghr_gtsam.io.scans import finite_points, list_scans, load_scan, point_count, write_ply, write_scan
 from sghr_gtsam.se3 import inv_T, make_T, project_to_so3
 from sghr_gtsam.types import InputError
 
@@ -136,6 +136,20 @@ def test_scan_formats_round_trip_exactly(tmp_path, suffix):
     got = load_scan(path)
     assert got.dtype == np.float64 and got.flags.c_contiguous
     np.testing.assert_array_equal(got, P)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".pcd", ".npy", ".npz", ".xyz"])
+def test_point_count_reads_the_header_before_the_points(tmp_path, suffix):
+    """``point_count`` (the memory check's count) is the header's (text: estimated from the first lines' length,
+    here within 5 %); a header it cannot read counts 0, left to the reader to refuse."""
+    P = _points(3000)
+    write_scan(tmp_path / f"scan{suffix}", P)
+    np.savez_compressed(tmp_path / "packed.npz", points=P)
+    count = point_count(tmp_path / f"scan{suffix}")
+    assert count == 3000 if suffix != ".xyz" else abs(count - 3000) < 150
+    assert point_count(tmp_path / "packed.npz") == 3000
+    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex many\nend_header\n")
+    assert point_count(tmp_path / "bad.ply") == 0
 
 
 def test_pcd_round_trip_in_float32(tmp_path):

@@ -401,14 +401,13 @@ def point_count(path: str | Path) -> int:
             fields = {words[0]: words[1:] for words in map(str.split, lines) if words}
             return int(fields["POINTS"][0])
         if suffix == ".npy":
-            return int(np.load(path, mmap_mode="r", allow_pickle=False).shape[0])
+            with open(path, "rb") as f:
+                return _npy_rows(f)
         if suffix == ".npz":
             with np.load(path, allow_pickle=False) as archive:
                 name = "points" if "points" in archive.files else archive.files[0]
                 with archive.zip.open(name + ".npy") as member:
-                    fmt = np.lib.format
-                    read = fmt.read_array_header_1_0 if fmt.read_magic(member) == (1, 0) else fmt.read_array_header_2_0
-                    return int(read(member)[0][0])
+                    return _npy_rows(member)
         if suffix in (".las", ".laz"):
             import laspy
 
@@ -425,6 +424,13 @@ def point_count(path: str | Path) -> int:
         return int(path.stat().st_size * lines / len(head)) if lines else 1
     except Exception:  # noqa: BLE001 - a header that cannot be read is the reader's to report
         return 0
+
+
+def _npy_rows(f) -> int:
+    """The first dimension an .npy header declares (``f`` at its start)."""
+    fmt = np.lib.format
+    read = fmt.read_array_header_1_0 if fmt.read_magic(f) == (1, 0) else fmt.read_array_header_2_0
+    return int(read(f)[0][0])
 
 
 def check_memory(path: str | Path) -> None:
