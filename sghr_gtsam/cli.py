@@ -201,8 +201,8 @@ def run(
     features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
-    workers: Optional[int] = typer.Option(None, help="Processes for pairwise registration, refinement and loop "
-                                          "closure." + _default("every core")),
+    workers: Optional[int] = typer.Option(None, help="Processes for local features, pairwise registration, "
+                                          "refinement and loop closure." + _default("every core")),
     record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun "
                                           "viewer." + _default("--record")),
     cache: Optional[bool] = typer.Option(None, "--cache/--no-cache", help="Keep features and pair registrations in "

@@ -118,8 +118,8 @@ class Config:
     # --- run ----------------------------------------------------------------------------------------
     seed: int = 0
     workers: int | None = None
-    """Processes for pairwise registration, refinement and loop closure (``sghr_gtsam.executor``); None:
-    every core. Results do not depend on it."""
+    """Processes for local features, pairwise registration, refinement grids, refinement and loop closure
+    (``sghr_gtsam.executor``); None: every core. Results do not depend on it."""
     record: bool = True
     """Write recording.rrd (rerun)."""
     cache: bool = True

@@ -4,8 +4,8 @@ the frame of scan i; ``T_i`` maps scan i into the world; ``T_ij = inv(T_i) @ T_j
 from __future__ import annotations
 
 import hashlib
+import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -74,7 +74,7 @@ class Scan:
     georeferenced scans); and its ``stats``, when known (``load_scene`` keeps them from its one reading)."""
 
     name: str
-    source: str | Path | np.ndarray
+    source: str | os.PathLike | np.ndarray
     keypoints: Keypoints | None = None
     centre: np.ndarray = field(default_factory=lambda: np.zeros(3))
     stats: ScanStats | None = None
@@ -82,17 +82,19 @@ class Scan:
     def input_points(self) -> np.ndarray:
         """The scan's finite points in its input frame, (P, 3) float64, read from its file if it has one
         (``InputError`` when it cannot be read or would not fit in memory: ``io.scans.check_memory``)."""
-        if isinstance(self.source, np.ndarray):
-            points = self.source
-            if points.ndim != 2 or points.shape[1] != 3:
-                raise InputError(f"scan {self.name}: points must be (N, 3), got shape {points.shape}")
-        else:
+        if isinstance(self.source, (str, os.PathLike)):
             from .io.scans import check_memory, load_scan  # io builds on this module
 
             check_memory(self.source)
             points = load_scan(self.source)
-        points = np.asarray(points, dtype=np.float64)
-        return points[np.isfinite(points).all(axis=1)]
+        else:
+            points = np.asarray(self.source, dtype=np.float64)
+            if points.ndim != 2 or points.shape[1] != 3:
+                raise InputError(f"scan {self.name}: points must be (N, 3), got shape {points.shape}")
+        points = points[np.isfinite(points).all(axis=1)]
+        if not len(points):
+            raise InputError(f"scan {self.name} has no finite points")
+        return points
 
     def statistics(self) -> ScanStats:
         """``stats``, or computed from the points when not known (reading the scan once)."""
