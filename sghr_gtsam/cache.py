@@ -215,8 +215,8 @@ class Cache:
                 np.savez(f, **arrays)
 
     def map(self, kind: str, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
-            workers: int | None, on_result: Callable[[int, Any], None] | None = None) -> list:
-        """``executor.parallel_map(fn, shared, tasks, workers, on_result)`` for the tasks whose ``keys`` miss the
+            workers: int | None, on_result: Callable[[int, Any], None] | None = None, ray: str | None = None) -> list:
+        """``executor.parallel_map(fn, shared, tasks, workers, on_result, ray)`` for the tasks whose ``keys`` miss the
         cache, each result stored as it arrives; the others read back. ``on_result`` is told of the cached
         results first, then of the computed ones as they arrive."""
         results: list = [MISS] * len(tasks)
@@ -231,7 +231,7 @@ class Cache:
             if on_result is not None:
                 on_result(todo[m], result)
 
-        for k, result in zip(todo, parallel_map(fn, shared, [tasks[k] for k in todo], workers, arrived)):
+        for k, result in zip(todo, parallel_map(fn, shared, [tasks[k] for k in todo], workers, arrived, ray)):
             results[k] = result
         self.counts[kind]["cached"] += len(tasks) - len(todo)
         self.counts[kind]["computed"] += len(todo)
@@ -244,8 +244,8 @@ MISS = object()
 
 def cached_map(cache: Cache | None, kind: str, fn: Callable, shared: Any, tasks: Sequence,
                keys: Sequence[str | None], workers: int | None,
-               on_result: Callable[[int, Any], None] | None = None) -> list:
+               on_result: Callable[[int, Any], None] | None = None, ray: str | None = None) -> list:
     """``cache.map(...)``, or ``executor.parallel_map`` of every task without a cache."""
     if cache is None:
-        return parallel_map(fn, shared, tasks, workers, on_result)
-    return cache.map(kind, fn, shared, tasks, keys, workers, on_result)
+        return parallel_map(fn, shared, tasks, workers, on_result, ray)
+    return cache.map(kind, fn, shared, tasks, keys, workers, on_result, ray)

@@ -33,6 +33,10 @@ _METHOD_HELP = ("Synchronization method: history (SGHR's history reweighting), c
 _POLISH_HELP = ("After IRLS: loops (scans placed by counted loop evidence, then LM on the consistent edges), "
                 "robust (consensus re-placement, gtsam GNC, consensus, LM), lm (LM on the edges IRLS kept) or none.")
 
+# The backslash keeps rich's markup from taking [ray] for a style.
+_RAY_HELP = ("Run the parallel stages on Ray: local (a Ray instance on this machine, --workers CPUs), auto (this "
+             "machine's cluster) or a head's host:port / ray://host:port. Needs pip install 'sghr_gtsam\\[ray]'.")
+
 
 def _default(value: object) -> str:
     """A help text's default for an option whose real default is None (so that a --config file's value holds),
@@ -97,7 +101,7 @@ def _start_workers(cfg: Config) -> None:
     from .executor import start_server
     from .registration import WORKER_MODULES
 
-    start_server(WORKER_MODULES, cfg.workers)
+    start_server(WORKER_MODULES, cfg.workers, cfg.ray)
 
 
 def _observed(run_pipeline, quiet: bool, *args) -> "RunResult":
@@ -203,6 +207,8 @@ def run(
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
     workers: Optional[int] = typer.Option(None, help="Processes for local features, pairwise registration, "
                                           "refinement and loop closure." + _default("every core")),
+    ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS",
+                                      help=_RAY_HELP + _default("none: local processes")),
     record: Optional[bool] = typer.Option(None, "--record/--no-record", help="Write recording.rrd for the Rerun "
                                           "viewer." + _default("--record")),
     cache: Optional[bool] = typer.Option(None, "--cache/--no-cache", help="Keep features and pair registrations in "
@@ -215,7 +221,7 @@ def run(
 ) -> None:
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
-                 workers=workers, record=record, cache=cache, global_feature=global_feature,
+                 workers=workers, ray=ray, record=record, cache=cache, global_feature=global_feature,
                  features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
     _start_workers(cfg)
@@ -232,6 +238,8 @@ def demo(
     scans: int = typer.Option(8, help="Number of generated scans."),
     seed: int = typer.Option(0, help="Seed of the generated scene and of the run."),
     workers: Optional[int] = typer.Option(None, help="Processes for the parallel stages." + _default("every core")),
+    ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS",
+                                      help=_RAY_HELP + _default("none: local processes")),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars and no stage messages."),
 ) -> None:
     """Generate a small room scanned from several stations (known poses), register it, print the errors."""
@@ -241,7 +249,7 @@ def demo(
     from .pipeline import run as run_pipeline
     from .synthetic import make_scene, write_scene
 
-    cfg = _guard(_config, None, seed=seed, workers=workers)
+    cfg = _guard(_config, None, seed=seed, workers=workers, ray=ray)
 
     def generate() -> Path:
         if scans < 2:

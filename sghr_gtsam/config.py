@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import math
+import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -23,6 +25,13 @@ def _check_type(name: str, annotation: str, value: object) -> None:
     if not isinstance(value, allowed) or (isinstance(value, bool) and bool not in allowed):
         wanted = " or ".join(k if k != "None" else "null" for k in kinds)
         raise InputError(f"{name} must be {wanted}; got {value!r} ({type(value).__name__})")
+
+
+def _check_ray(address: str) -> None:
+    if address not in ("local", "auto") and not re.fullmatch(r"(ray://)?[\w.-]+:\d+", address):
+        raise InputError(f"ray must be local, auto, host:port or ray://host:port; got {address!r}")
+    if importlib.util.find_spec("ray") is None:
+        raise InputError("ray is not installed: pip install 'sghr_gtsam[ray]' (in a checkout: pip install -e '.[ray]')")
 
 
 @dataclass
@@ -120,6 +129,11 @@ class Config:
     workers: int | None = None
     """Processes for local features, pairwise registration, refinement grids, refinement and loop closure
     (``sghr_gtsam.executor``); None: every core. Results do not depend on it."""
+    ray: str | None = None
+    """Run those stages on a Ray cluster instead (``sghr_gtsam.executor_ray``; the optional extra ``ray``):
+    'local' (a Ray instance started on this machine with ``workers`` CPUs), 'auto' (the cluster this machine
+    belongs to), 'host:port' or 'ray://host:port' (a cluster's head); on ``workers`` of its CPUs (None: all).
+    None: the local processes. Results do not depend on it."""
     record: bool = True
     """Write recording.rrd (rerun)."""
     cache: bool = True
@@ -147,6 +161,8 @@ class Config:
                 raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
         if self.workers is not None and self.workers < 1:
             raise InputError(f"workers must be a positive integer; got {self.workers!r}")
+        if self.ray is not None:
+            _check_ray(self.ray)
         for name in ("voxel", "normal_radius", "fpfh_radius", "icp_distance"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):

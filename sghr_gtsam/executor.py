@@ -1,10 +1,10 @@
-"""One way to run a stage's independent tasks over processes: ``parallel_map(fn, shared, tasks, workers)``.
+"""One way to run a stage's independent tasks over processes: ``parallel_map(fn, shared, tasks, workers, ray=...)``.
 
 Every parallel stage (pairwise registration, refinement, loop closure, retries) calls it. A task is
 ``fn(shared, task)``; ``shared`` is the stage's read-only state (the scans' features), sent once to each
 worker; tasks and results cross process boundaries one by one. Results come back in the tasks' order and
-every task is a pure function of its inputs, so a run gives the same result for any number of workers. This
-is the seam a cluster executor (Ray) replaces: the same call with ``shared`` put in its object store.
+every task is a pure function of its inputs, so a run gives the same result for any number of workers. With
+``ray`` (``Config.ray``) the same call runs on a Ray cluster instead (``executor_ray``).
 
 Workers start from a fork server, not by forking this process: kiss-matcher and open3d run TBB thread pools,
 and a child forked from a process whose pool is running deadlocks in its first parallel call (seen here).
@@ -34,12 +34,12 @@ def default_workers() -> int:
     return len(os.sched_getaffinity(0))
 
 
-def start_server(modules: Sequence[str], workers: int | None = None) -> None:
+def start_server(modules: Sequence[str], workers: int | None = None, ray: str | None = None) -> None:
     """Start the fork server now, importing ``modules`` (those of the tasks to come), unless the stages will run
-    in this process (one worker) or the server is running already. Without it the first ``parallel_map`` starts
-    the server and waits for its imports."""
+    in this process (one worker) or on Ray, or the server is running already. Without it the first
+    ``parallel_map`` starts the server and waits for its imports."""
     workers = default_workers() if workers is None else workers
-    if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
+    if workers <= 1 or ray is not None or "forkserver" not in multiprocessing.get_all_start_methods():
         return
     _ensure_server(modules)
 
@@ -81,12 +81,17 @@ def _call(fn: Callable[[Any, T], R], task: T) -> R:
 
 
 def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None = None,
-                 on_result: Callable[[int, R], None] | None = None) -> list[R]:
-    """``[fn(shared, t) for t in tasks]`` over ``workers`` processes (None: every core; 1: in this process).
+                 on_result: Callable[[int, R], None] | None = None, ray: str | None = None) -> list[R]:
+    """``[fn(shared, t) for t in tasks]`` over ``workers`` processes (None: every core; 1: in this process), or
+    on the Ray cluster ``ray`` (``Config.ray``) over ``workers`` of its CPUs (None: all).
 
     ``fn`` must be a module-level function; ``shared`` and the results must pickle. ``on_result(k, result)``
     is called in this process, in task order, as results arrive (progress, recording).
     """
+    if ray is not None:
+        from .executor_ray import ray_map
+
+        return ray_map(fn, shared, tasks, workers, ray, on_result)
     workers = default_workers() if workers is None else workers
     workers = min(workers, len(tasks))
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():

@@ -214,7 +214,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     keys = [scan_key(s, voxel, config) for s in scans]
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
         features = cached_map(cache, "features", scan_features, (voxel, config.normal_radius, config.fpfh_radius),
-                              scans, keys, config.workers, tick)
+                              scans, keys, config.workers, tick, config.ray)
     for s, f, key in zip(scans, features, keys):
         if isinstance(f, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
             skipped[s.name] = f
@@ -264,7 +264,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
         if (config.refine or config.loops) and pyramids is None:
             with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
                 pyramids = cached_map(cache, "pyramids", scan_pyramid, voxel, scans,
-                                      [pyramid_key(f.key) for f in features], config.workers, tick)
+                                      [pyramid_key(f.key) for f in features], config.workers, tick, config.ray)
         if config.refine:
             with timer.stage("refine"):
                 changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress, cache)
@@ -375,7 +375,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     started = time.perf_counter()
     out = Path(out_dir)
     check_output_folder(out, Path(scene_dir))
-    start_server(WORKER_MODULES, config.workers)  # its imports overlap the loading
+    start_server(WORKER_MODULES, config.workers, config.ray)  # its imports overlap the loading
     timer = _Timer()
     with timer.stage("load"):
         scans, skipped = load_scene(scene_dir, config, log)

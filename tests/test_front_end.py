@@ -9,7 +9,6 @@ from scipy.stats import chi2
 
 from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
-from sghr_gtsam.executor import parallel_map
 from sghr_gtsam.features.local import compute_features
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.registration import batch
@@ -25,26 +24,10 @@ def _square(shared, x):
     return shared * x * x
 
 
-def test_parallel_map_keeps_task_order_and_matches_one_process():
-    tasks = list(range(23))
-    seen = []
-    two = parallel_map(_square, 3, tasks, workers=2, on_result=lambda k, r: seen.append(k))
-    assert two == parallel_map(_square, 3, tasks, workers=1) == [3 * t * t for t in tasks]
-    assert seen == tasks
-
-
 @pytest.fixture(scope="module")
 def room():
     scene = make_scene(kind="room", n_scans=6, seed=3)
     return scene, [Scan(n, P) for n, P in zip(scene.names, scene.scans)]
-
-
-def test_result_does_not_depend_on_the_number_of_workers(room):
-    _, scans = room
-    one = register(scans, Config(record=False, workers=1), log=lambda m: None)
-    two = register(scans, Config(record=False, workers=2), log=lambda m: None)
-    np.testing.assert_array_equal(one.poses, two.poses)
-    assert one.densify == two.densify
 
 
 def test_refinement_lands_on_ground_truth_and_is_reported(room):

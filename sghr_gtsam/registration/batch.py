@@ -22,8 +22,10 @@ def _register(shared: tuple[list[ScanFeatures], float, Config], pair: tuple[int,
 def register_edges(features: list[ScanFeatures], edges: np.ndarray, voxel: float, config: Config,
                    on_result: Callable[[int, PairResult], None] | None = None,
                    cache: Cache | None = None) -> list[PairResult]:
-    """``register_pair`` on every (i, j) row of ``edges``, over ``config.workers`` processes; ``on_result`` as
+    """``register_pair`` on every (i, j) row of ``edges``, over the executor's processes (``config.workers``,
+    ``config.ray``); ``on_result`` as
     in ``parallel_map`` (progress); ``cache``: results stored as they arrive and reused (``cache.Cache``)."""
     pairs = [(int(a), int(b)) for a, b in edges]
     keys = [pair_key(features[a].key, features[b].key, config) for a, b in pairs]
-    return cached_map(cache, "pairs", _register, (features, voxel, config), pairs, keys, config.workers, on_result)
+    return cached_map(cache, "pairs", _register, (features, voxel, config), pairs, keys, config.workers, on_result,
+                      config.ray)

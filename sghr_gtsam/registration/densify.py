@@ -63,8 +63,7 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
         return 0
     guesses = _guesses(sync.poses, edges.ij[todo])
     with progress.stage("refinement", len(todo)) as tick:
-        results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel,
-                                                   config.icp_distance, config.workers,
+        results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel, config,
                                                    [edges.pairs[e].matches for e in todo], tick, cache)
     changed = 0
     for e, result, ok, guess in zip(todo, results, converged, guesses):
@@ -100,8 +99,7 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
     guesses = _guesses(sync.poses, ij)
     known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
     with progress.stage("loop closure", len(ij)) as tick:
-        results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config.icp_distance,
-                                                   config.workers, known, tick, cache)
+        results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config, known, tick, cache)
     closed = 0
     for (a, b), result, ok, guess in zip(ij, results, converged, guesses):
         if not confirms(result, ok, guess, voxel, config.min_inliers):

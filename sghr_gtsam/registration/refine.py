@@ -20,6 +20,7 @@ import open3d as o3d
 import small_gicp
 
 from ..cache import Cache, cached_map, refined_key
+from ..config import Config
 from ..features.local import COV_NEIGHBORS, GICP_THREADS, ScanFeatures
 from ..se3 import inv_T, rotation_angle
 from ..types import Scan
@@ -153,16 +154,16 @@ def _refine_task(shared: tuple, task: tuple) -> tuple[PairResult, bool]:
 
 
 def register_from_guesses(features: list[ScanFeatures], pyramids: list[Pyramid], ij: np.ndarray,
-                          guesses: np.ndarray, voxel: float, icp_distance: float, workers: int | None,
-                          matches: list | None = None, on_result: Callable[[int, object], None] | None = None,
+                          guesses: np.ndarray, voxel: float, config: Config, matches: list | None = None,
+                          on_result: Callable[[int, object], None] | None = None,
                           cache: Cache | None = None) -> tuple[list[PairResult], np.ndarray]:
     """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), over the executor's
-    processes, with each pair's earlier descriptor ``matches`` where known (None: found anew): the results and
-    whether each converged. ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored and reused
-    (``cache.Cache``)."""
+    processes (``config.workers``, ``config.ray``), with each pair's earlier descriptor ``matches`` where known
+    (None: found anew): the results and whether each converged. ``on_result`` as in ``parallel_map`` (progress);
+    ``cache``: results stored and reused (``cache.Cache``)."""
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
-    keys = [refined_key(features[a].key, features[b].key, T, icp_distance) for a, b, T, _ in tasks]
-    out = cached_map(cache, "refined", _refine_task, (features, pyramids, voxel, icp_distance), tasks, keys, workers,
-                     on_result)
+    keys = [refined_key(features[a].key, features[b].key, T, config.icp_distance) for a, b, T, _ in tasks]
+    out = cached_map(cache, "refined", _refine_task, (features, pyramids, voxel, config.icp_distance), tasks, keys,
+                     config.workers, on_result, config.ray)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)

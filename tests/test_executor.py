@@ -1,0 +1,89 @@
+"""The executors (``sghr_gtsam.executor``): in this process, the process pool and a local Ray instance give the same
+results in the tasks' order, raise a task's error in the caller, and a run's poses do not depend on them."""
+
+import importlib.util
+import time
+
+import numpy as np
+import pytest
+
+from sghr_gtsam.config import Config
+from sghr_gtsam.executor import parallel_map
+from sghr_gtsam.pipeline import run
+from sghr_gtsam.synthetic import make_scene, write_scene
+from sghr_gtsam.types import InputError
+
+NO_RAY = "the optional extra ray is not installed (pip install -e '.[ray]')"
+BACKENDS = [pytest.param(1, None, id="in-process"), pytest.param(2, None, id="pool-2"),
+            pytest.param(2, "local", id="ray-local-2",
+                         marks=pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason=NO_RAY))]
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _stop_ray():
+    """The local Ray instance a test starts lives until the end of this module, not of the test session."""
+    yield
+    if importlib.util.find_spec("ray") is not None:
+        import ray
+
+        ray.shutdown()
+
+
+def _square_late_first(shared: int, x: int) -> int:
+    time.sleep(0.002 * (10 - x % 10))  # later tasks finish first: the results must still come back in order
+    return shared * x * x
+
+
+def _fails_at_five(shared: None, x: int) -> int:
+    if x == 5:
+        raise InputError(f"task {x} failed")
+    return x
+
+
+@pytest.mark.parametrize("workers, ray", BACKENDS)
+def test_results_and_on_result_come_in_task_order(workers, ray):
+    tasks = list(range(23))
+    seen = []
+    out = parallel_map(_square_late_first, 3, tasks, workers, lambda k, r: seen.append((k, r)), ray=ray)
+    assert out == [3 * t * t for t in tasks]
+    assert seen == list(enumerate(out))
+
+
+@pytest.mark.parametrize("workers, ray", BACKENDS)
+def test_a_failed_task_raises_its_error_and_the_next_stage_runs(workers, ray):
+    with pytest.raises(InputError, match="^task 5 failed$"):
+        parallel_map(_fails_at_five, None, list(range(12)), workers, ray=ray)
+    assert parallel_map(_fails_at_five, None, [1, 2, 3], workers, ray=ray) == [1, 2, 3]
+
+
+def test_ray_option_is_checked_before_any_work(monkeypatch):
+    with pytest.raises(InputError, match="ray must be local, auto, host:port or ray://host:port"):
+        Config(ray="cluster").validate()
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: object())  # as if installed
+    for address in ("local", "auto", "head.example:6379", "ray://10.0.0.1:10001"):
+        Config(ray=address).validate()
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
+    with pytest.raises(InputError, match=r"^ray is not installed: pip install 'sghr_gtsam\[ray\]'"):
+        Config(ray="local").validate()
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory):
+    d = tmp_path_factory.mktemp("executor") / "scene"
+    write_scene(make_scene("room", 6), d)
+    return d
+
+
+@pytest.fixture(scope="module")
+def in_process(room, tmp_path_factory):
+    return run(room, tmp_path_factory.mktemp("one") / "out", Config(record=False, workers=1), log=lambda m: None)
+
+
+@pytest.mark.parametrize("workers, ray", BACKENDS[1:])
+def test_poses_are_bit_identical_whatever_the_executor(room, in_process, tmp_path, workers, ray):
+    """Each task is a pure function of its inputs, run with one thread in each native pool: no floating-point
+    order differs, so the poses are equal to the last bit."""
+    other = run(room, tmp_path / "out", Config(record=False, workers=workers, ray=ray), log=lambda m: None)
+    np.testing.assert_array_equal(other.poses, in_process.poses)
+    assert other.densify == in_process.densify
+    assert other.densify["refine_tried"] > 0  # the refinement stage ran on the executor too
