@@ -6,7 +6,9 @@ import time
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
 
+from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.executor import parallel_map
 from sghr_gtsam.pipeline import run
@@ -56,15 +58,19 @@ def test_a_failed_task_raises_its_error_and_the_next_stage_runs(workers, ray):
     assert parallel_map(_fails_at_five, None, [1, 2, 3], workers, ray=ray) == [1, 2, 3]
 
 
-def test_ray_option_is_checked_before_any_work(monkeypatch):
+def test_ray_option_is_checked_before_any_work(monkeypatch, tmp_path):
     with pytest.raises(InputError, match="ray must be local, auto, host:port or ray://host:port"):
         Config(ray="cluster").validate()
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: object())  # as if installed
     for address in ("local", "auto", "head.example:6379", "ray://10.0.0.1:10001"):
         Config(ray=address).validate()
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)
-    with pytest.raises(InputError, match=r"^ray is not installed: pip install 'sghr_gtsam\[ray\]'"):
-        Config(ray="local").validate()
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None)  # as if not
+    for args in (["run", str(tmp_path), "--ray", "local"], ["demo", "--out", str(tmp_path / "demo"), "--ray", "auto"]):
+        r = CliRunner().invoke(app, args)
+        assert r.exit_code == 2
+        assert r.output.splitlines() == ["error: ray is not installed: pip install 'sghr_gtsam[ray]' (in a checkout: "
+                                         "pip install -e '.[ray]')"]
+    assert not (tmp_path / "demo").exists()
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +87,8 @@ def in_process(room, tmp_path_factory):
 
 @pytest.mark.parametrize("workers, ray", BACKENDS[1:])
 def test_poses_are_bit_identical_whatever_the_executor(room, in_process, tmp_path, workers, ray):
-    """Each task is a pure function of its inputs, run with one thread in each native pool: no floating-point
-    order differs, so the poses are equal to the last bit."""
+    """Each task is a pure function of its inputs whose arithmetic does not depend on its threads (the in-process
+    run uses every core, a worker one): no floating-point order differs, so the poses are equal to the last bit."""
     other = run(room, tmp_path / "out", Config(record=False, workers=workers, ray=ray), log=lambda m: None)
     np.testing.assert_array_equal(other.poses, in_process.poses)
     assert other.densify == in_process.densify
