@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-PARALLEL = ("pairwise", "refine", "loops", "retry")  # the stages that run through executor.parallel_map
+PARALLEL = ("features", "pairwise", "pyramids", "refine", "loops", "retry")  # the stages that run through executor.parallel_map
 
 CHILD = r"""
 import json, sys, time
