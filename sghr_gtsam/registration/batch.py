@@ -23,8 +23,8 @@ def register_edges(features: list[ScanFeatures], edges: np.ndarray, voxel: float
                    on_result: Callable[[int, PairResult], None] | None = None,
                    cache: Cache | None = None) -> list[PairResult]:
     """``register_pair`` on every (i, j) row of ``edges``, over the executor's processes (``config.workers``,
-    ``config.ray``); ``on_result`` as
-    in ``parallel_map`` (progress); ``cache``: results stored as they arrive and reused (``cache.Cache``)."""
+    ``config.ray``); ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored as they arrive and
+    reused (``cache.Cache``)."""
     pairs = [(int(a), int(b)) for a, b in edges]
     keys = [pair_key(features[a].key, features[b].key, config) for a, b in pairs]
     return cached_map(cache, "pairs", _register, (features, voxel, config), pairs, keys, config.workers, on_result,
