@@ -22,6 +22,9 @@ def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     assert ns["errors"].rotation_deg.max() < 1.0 and ns["result"].unverified == ns["result"].contested == []
     np.testing.assert_array_equal(np.flatnonzero(ns["synced"].weights == 0), ns["wrong"])
     assert ns["rot"].max() < 3.0
+    cached = ns["again"].cache  # the second run read every result back from OUT/cache and computed none
+    assert all(cached[stage]["computed"] == 0 < cached[stage]["cached"] for stage in ("features", "pairs", "refined"))
+    np.testing.assert_array_equal(ns["again"].poses, ns["result"].poses)
     assert "unregistered: [] | unverified: [] | contested: []" in capsys.readouterr().out
     assert not ns["work"].exists()  # the notebook removes its temporary folder
 
