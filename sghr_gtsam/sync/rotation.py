@@ -32,9 +32,6 @@ from ..se3 import project_to_so3, rotation_angle
 DENSE_NODES = 128
 """Parts with fewer nodes use a dense eigendecomposition: a 90×90 ``eigh`` takes under a millisecond, while
 from ~150×150 a multithreaded BLAS on a busy machine makes it 10-50× slower than warm LOBPCG (measured)."""
-_SMALL_EDGES = 2000
-"""Up to this many edges, parts are found by a Python union-find: scipy's sparse connected components
-cost ~0.5 ms a call in overhead, which IRLS pays whenever its kept edges change (measured, 50 scans)."""
 _DENSE_STEPS = 4
 """Inverse-iteration steps a dense part gets from a warm start before falling back to ``eigh``."""
 _SHIFT = 1e-6
@@ -46,11 +43,13 @@ _MAXITER = 20
 """LOBPCG iterations per attempt; a good preconditioner needs 3-9."""
 _RESTARTS = 2
 """Attempts with the scalar preconditioner, each from the rotations of the previous attempt."""
-_REFRESH = 8
-"""A cached factorization is dropped after a solve that needed more preconditioner applications than this
-and than twice what it needed when fresh."""
 _PROBE = 5
 """Iterations the scalar preconditioner gets right after the exact one was needed."""
+_SLACK = 1
+"""A cached factorization gets the preconditioner applications of its best solve so far (at most ``_PROBE``)
+plus this many, and is dropped once it needs more: a fresh factorization costs about 2.5 applications
+(5,000 scans), less than a stale one soon loses (measured: a cache kept until it needed 2× its fresh count
+took 13 applications an iteration by the end of IRLS, a fresh one 2-3)."""
 
 
 def connected_components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -59,11 +58,11 @@ def connected_components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray)
     Labels are ordered by part size, largest first (0), ties broken by the smallest node index, so the
     labelling does not depend on the edge order.
     """
-    if keep.sum() <= _SMALL_EDGES:
-        count, raw = _union_find(n, i[keep], j[keep])
-    else:
-        A = sp.coo_matrix((np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n))
-        count, raw = _cc(A, directed=False)
+    # The CSR arrays built directly: a COO matrix's conversion costs more than the search at IRLS sizes.
+    a, b = i[keep], j[keep]
+    order = np.argsort(a, kind="stable")
+    A = sp.csr_matrix((np.ones(len(a)), b[order], np.searchsorted(a[order], np.arange(n + 1))), shape=(n, n))
+    count, raw = _cc(A, directed=False)
     size = np.bincount(raw, minlength=count)
     first = np.full(count, n)
     np.minimum.at(first, raw, np.arange(n))
@@ -71,26 +70,6 @@ def connected_components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray)
     rank = np.empty(count, dtype=int)
     rank[order] = np.arange(count)
     return rank[raw]
-
-
-def _union_find(n: int, i: np.ndarray, j: np.ndarray) -> tuple[int, np.ndarray]:
-    """``scipy.sparse.csgraph.connected_components`` for small graphs, without its per-call overhead:
-    (number of parts, part of each node, numbered by first appearance)."""
-    parent = list(range(n))
-
-    def root(x: int) -> int:
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
-    for a, b in zip(i.tolist(), j.tolist()):
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    roots = np.array([root(x) for x in range(n)])
-    _, raw = np.unique(roots, return_inverse=True)
-    return int(raw.max()) + 1 if n else 0, raw
 
 
 def split_components(labels: np.ndarray, i: np.ndarray, j: np.ndarray, keep: np.ndarray):
@@ -113,18 +92,36 @@ def split_components(labels: np.ndarray, i: np.ndarray, j: np.ndarray, keep: np.
         yield nodes, edges, local[i[edges]], local[j[edges]]
 
 
-def connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray) -> sp.csr_matrix:
-    """Sparse 3n×3n weighted connection Laplacian of edges ``(i, j, R_ij, w)``."""
+def laplacian_map(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, dense: bool = False):
+    """The weighted connection Laplacian of edges ``(i, j, R_ij)`` as a linear map of the weights: ``K`` with
+    ``K @ w`` its entries (blocks ``−w R_ij`` at (i, j), ``−w R_ijᵀ`` at (j, i), the weighted degree on the
+    diagonal). ``dense``: ``K`` gives the 3n×3n array row by row; else ``(K, indices, indptr)``, ``K @ w``
+    being the data of the CSR matrix. Within IRLS only the weights change: the map is built once."""
     e = len(i)
     r = np.repeat(np.arange(3), 3)
     c = np.tile(np.arange(3), 3)
-    rows = np.concatenate([(3 * i)[:, None] + r, (3 * j)[:, None] + r]).ravel()
-    cols = np.concatenate([(3 * j)[:, None] + c, (3 * i)[:, None] + c]).ravel()
-    wR = w[:, None, None] * R
-    vals = -np.concatenate([wR.reshape(e, 9), np.swapaxes(wR, 1, 2).reshape(e, 9)]).ravel()
-    degree = np.bincount(i, w, n) + np.bincount(j, w, n)
-    A = sp.csr_matrix((vals, (rows, cols)), shape=(3 * n, 3 * n))
-    return (A + sp.diags(np.repeat(degree, 3))).tocsr()
+    d = np.arange(3)
+    rows = np.concatenate([((3 * i)[:, None] + r).ravel(), ((3 * j)[:, None] + r).ravel(),
+                           ((3 * i)[:, None] + d).ravel(), ((3 * j)[:, None] + d).ravel()])
+    cols = np.concatenate([((3 * j)[:, None] + c).ravel(), ((3 * i)[:, None] + c).ravel(),
+                           ((3 * i)[:, None] + d).ravel(), ((3 * j)[:, None] + d).ravel()])
+    vals = np.concatenate([-R.reshape(-1), -np.swapaxes(R, 1, 2).reshape(-1), np.ones(6 * e)])
+    edge = np.concatenate([np.repeat(np.arange(e), 9), np.repeat(np.arange(e), 9),
+                           np.repeat(np.arange(e), 3), np.repeat(np.arange(e), 3)])
+    flat = rows * (3 * n) + cols
+    if dense:
+        return sp.csc_matrix((vals, (flat, edge)), shape=(9 * n * n, e))
+    keys, position = np.unique(flat, return_inverse=True)
+    K = sp.csr_matrix((vals, (position, edge)), shape=(len(keys), e))
+    return K, (keys % (3 * n)).astype(np.int32), np.searchsorted(keys // (3 * n), np.arange(3 * n + 1)).astype(np.int32)
+
+
+def connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
+                         laplacian=None) -> sp.csr_matrix:
+    """Sparse 3n×3n weighted connection Laplacian of edges ``(i, j, R_ij, w)``; ``laplacian``: their
+    ``laplacian_map`` if already built."""
+    K, indices, indptr = laplacian_map(n, i, j, R) if laplacian is None else laplacian
+    return sp.csr_matrix((K @ w, indices, indptr), shape=(3 * n, 3 * n))
 
 
 def factor_spd(A: sp.spmatrix):
@@ -141,21 +138,11 @@ def scalar_laplacian(n: int, i: np.ndarray, j: np.ndarray, w: np.ndarray, shift:
     return (sp.diags(degree + shift) - W).tocsc()
 
 
-def dense_connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``connection_laplacian`` as a dense array, without scipy.sparse's per-call overhead (small parts)."""
-    # Entry (3a + r, 3b + c) of block (a, b) sits at flat index (3a + r)·3n + 3b + c; bincount sums the
-    # duplicates of parallel edges (5x faster than np.add.at on these sizes).
-    m = 3 * n
-    rc = (np.arange(3)[:, None] * m + np.arange(3)[None, :]).ravel()  # (9,) offsets of a 3×3 block
-    wR = (w[:, None, None] * R).reshape(-1, 9)
-    ij = (3 * i * m + 3 * j)[:, None] + rc
-    ji = (3 * j * m + 3 * i)[:, None] + rc
-    A = -np.bincount(np.concatenate([ij.ravel(), ji.ravel()]),
-                     np.concatenate([wR.ravel(), np.swapaxes(wR.reshape(-1, 3, 3), 1, 2).reshape(-1)]),
-                     minlength=m * m).reshape(m, m)
-    degree = np.bincount(i, w, n) + np.bincount(j, w, n)
-    A[np.arange(m), np.arange(m)] += np.repeat(degree, 3)
-    return A
+def dense_connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
+                               laplacian=None) -> np.ndarray:
+    """``connection_laplacian`` as a dense array (small parts); ``laplacian``: their dense ``laplacian_map``."""
+    K = laplacian_map(n, i, j, R, dense=True) if laplacian is None else laplacian
+    return (K @ w).reshape(3 * n, 3 * n)
 
 
 def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
@@ -170,24 +157,29 @@ def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: n
     largest weighted degree (parts of ``DENSE_NODES`` or more).
     """
     out = np.tile(np.eye(3), (n, 1, 1))
+    cache = {} if cache is None else cache
+    # Within IRLS the kept edges rarely change between iterations: reuse the parts and, while a part keeps its
+    # nodes, its solver state: the Laplacian map over every edge inside it (the dropped ones have weight 0),
+    # its last eigenvectors and preconditioner.
     keep = w > 0
-    # Within IRLS the kept edges rarely change between iterations: reuse the last part labels.
     mask = keep.tobytes()
-    last = cache.get("labels") if cache is not None else None
-    if last is not None and last[0] == mask:
-        labels = last[1]
-    else:
+    if cache.get("mask") != mask:
         labels = connected_components(n, i, j, keep)
-        if cache is not None:
-            cache["labels"] = (mask, labels)
-    for nodes, edges, li, lj in split_components(labels, i, j, keep):
+        cache["mask"] = mask
+        cache["parts"] = list(split_components(labels, i, j, labels[i] == labels[j]))
+        states = cache.get("states", {})
+        cache["states"] = {key: states.get(key, {}) for key in (nodes.tobytes() for nodes, *_ in cache["parts"])}
+    for nodes, edges, li, lj in cache["parts"]:
         m = len(nodes)
+        state = cache["states"][nodes.tobytes()]
+        if "map" not in state:
+            state["map"] = laplacian_map(m, li, lj, R[edges], dense=m < DENSE_NODES)
         if m < DENSE_NODES:
-            V = _dense_bottom(dense_connection_laplacian(m, li, lj, R[edges], w[edges]),
+            V = _dense_bottom(dense_connection_laplacian(m, li, lj, None, w[edges], state["map"]),
                               None if init is None else init[nodes], tol)
         else:
-            V = _sparse_bottom(connection_laplacian(m, li, lj, R[edges], w[edges]), li, lj, R[edges], w[edges],
-                               None if init is None else init[nodes], cache, nodes.tobytes(), tol)
+            V = _sparse_bottom(connection_laplacian(m, li, lj, None, w[edges], state["map"]), li, lj, R[edges],
+                               w[edges], None if init is None else init[nodes], state, tol)
         Rs = _blocks_to_rotations(V)
         out[nodes] = Rs[0].T @ Rs
     return out
@@ -198,18 +190,20 @@ def _dense_bottom(L: np.ndarray, init: np.ndarray | None = None, tol: float = TO
     block inverse iteration with one Cholesky factorization, which converges at the rate λ₃/λ₄ (tiny once
     outliers are down-weighted) in 1-3 steps, 10× cheaper than ``eigh``; otherwise, or if it stalls, ``eigh``."""
     if init is not None:
-        degree = np.diag(L).max()
-        try:
-            factor = scipy.linalg.cho_factor(L + _SHIFT * np.mean(np.diag(L)) * np.eye(len(L)), lower=True,
-                                            check_finite=False)
-        except np.linalg.LinAlgError:
-            factor = None
+        m = len(L)
+        degree = L.diagonal()
+        A = L.copy()
+        A.flat[::m + 1] += _SHIFT * degree.mean()
+        # LAPACK directly: scipy's wrappers cost as much as the 180×180 factorization itself. A is symmetric,
+        # so its transpose is the column-major array LAPACK factors in place.
+        factor, info = scipy.linalg.lapack.dpotrf(A.T, lower=1, clean=0, overwrite_a=1)
         V = np.swapaxes(init, 1, 2).reshape(-1, 3)
-        for _ in range(_DENSE_STEPS if factor is not None else 0):
-            V = np.linalg.qr(scipy.linalg.cho_solve(factor, V, check_finite=False))[0]
-            vals, U = np.linalg.eigh(V.T @ L @ V)  # Rayleigh-Ritz in the 3-d subspace
-            V = V @ U
-            if np.linalg.norm(L @ V - V * vals, axis=0).max() <= tol * degree:
+        for _ in range(_DENSE_STEPS if info == 0 else 0):
+            V = np.linalg.qr(scipy.linalg.lapack.dpotrs(factor, V, lower=1)[0])[0]
+            LV = L @ V
+            vals, U = np.linalg.eigh(V.T @ LV)  # Rayleigh-Ritz in the 3-d subspace
+            V, LV = V @ U, LV @ U
+            if np.linalg.norm(LV - V * vals, axis=0).max() <= tol * degree.max():
                 return V
     try:
         return scipy.linalg.eigh(L, subset_by_index=[0, 2], check_finite=False)[1]
@@ -243,15 +237,21 @@ def _conjugated(factor, est: np.ndarray, Y: np.ndarray) -> np.ndarray:
 
 
 def _sparse_bottom(L: sp.csr_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                   init: np.ndarray | None, cache: dict | None, key: bytes, tol: float) -> np.ndarray:
-    """Bottom eigenvectors by preconditioned LOBPCG; ``cache[key]`` keeps ``(kind, factor, applications)``."""
+                   init: np.ndarray | None, state: dict, tol: float) -> np.ndarray:
+    """Bottom eigenvectors by preconditioned LOBPCG. ``state`` (kept by the caller across IRLS iterations for
+    this part) holds the last eigenvectors (``"V"``, the start when ``init`` is given: closer to the new ones
+    than ``init``'s rotations) and a factorization that still works (``"factor"``: kind, factor, fewest
+    preconditioner applications it needed)."""
     n = L.shape[0] // 3
     degree = np.bincount(i, w, n) + np.bincount(j, w, n)
     shift = _SHIFT * degree.mean()
     tol = tol * degree.max()
-    est = spanning_tree_rotations(n, i, j, R, w) if init is None else init
-    V = np.swapaxes(est, 1, 2).reshape(3 * n, 3)
-    cache = {} if cache is None else cache
+    if init is None:
+        positive = w > 0
+        est = spanning_tree_rotations(n, i[positive], j[positive], R[positive], w[positive])
+    else:
+        est = init
+    V = state["V"] if init is not None and "V" in state else np.swapaxes(est, 1, 2).reshape(3 * n, 3)
 
     def attempt(kind: str, factor, maxiter: int) -> tuple[bool, int]:
         nonlocal V
@@ -263,16 +263,19 @@ def _sparse_bottom(L: sp.csr_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray
             return factor.solve(Y) if kind == "exact" else _conjugated(factor, est, Y)
 
         V, done = _lobpcg(L, V, precondition, tol, maxiter)
+        if done:
+            state["V"] = V
         return done, calls
 
     # 1. The factorization of an earlier IRLS iteration (the weights change little between iterations),
-    # kept while it converges about as fast as it did when fresh.
-    previous = cache.pop(key, None)
+    # kept while it converges as fast as it did at its best.
+    previous = state.pop("factor", None)
     if previous is not None:
-        done, calls = attempt(previous[0], previous[1], _MAXITER)
+        kind, factor, best = previous
+        done, calls = attempt(kind, factor, min(best, _PROBE) + _SLACK)
         if done:
-            if calls <= max(_REFRESH, 2 * previous[2]):
-                cache[key] = previous
+            if calls <= best + _SLACK:
+                state["factor"] = (kind, factor, min(best, calls))
             return V
     # 2. The scalar Laplacian seen through the estimated rotations: cheap, and exact when the edges agree.
     # After an exact factorization was needed, only probe it briefly: outliers may still have weight.
@@ -281,14 +284,14 @@ def _sparse_bottom(L: sp.csr_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray
     for _ in range(1 if probe else _RESTARTS):
         done, calls = attempt("scalar", scalar, _PROBE if probe else _MAXITER)
         if done:
-            cache[key] = ("scalar", scalar, calls)
+            state["factor"] = ("scalar", scalar, calls)
             return V
         est = _blocks_to_rotations(V)  # a better estimate makes a better preconditioner
     # 3. Frustrated graphs (outliers with weight) are far from L_s ⊗ I: precondition with L itself.
     exact = factor_spd(L + shift * sp.eye(3 * n))
     done, calls = attempt("exact", exact, 4 * _MAXITER)
     if done:
-        cache[key] = ("exact", exact, calls)
+        state["factor"] = ("exact", exact, calls)
         return V
     OPinv = LinearOperator(L.shape, matvec=exact.solve, matmat=exact.solve, dtype=float)
     return eigsh(L, k=3, sigma=-shift, which="LM", OPinv=OPinv)[1]
@@ -315,5 +318,6 @@ def spanning_tree_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray,
 
 def rotation_residuals(R: np.ndarray, i: np.ndarray, j: np.ndarray, R_ij: np.ndarray) -> np.ndarray:
     """Angle (radians) of ``R_ijᵀ R_iᵀ R_j`` for every edge: how far the poses disagree with it."""
-    E = np.swapaxes(R_ij, 1, 2) @ np.swapaxes(R[i], 1, 2) @ R[j]
-    return rotation_angle(E)
+    # trace(R_ijᵀ R_iᵀ R_j) = Σ (R_i R_ij) ∘ R_j: one batched product instead of two.
+    c = (np.einsum("eab,eab->e", R[i] @ R_ij, R[j]) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
