@@ -24,7 +24,8 @@ through the placed scans — and each edge's vote (``credibility``) is 1 plus at
   agree they belong — the failure growing and IRLS share, which no single-scan move repairs.
 
 Each connected part of the graph is grown from its own seed (identity). Cost: one pass over the triangles
-(vectorised) and, per placed scan, one small dense comparison for each unplaced partner.
+(vectorised) and, per placed scan, one vectorised comparison of the proposals of all its unplaced partners
+(scores summed in edge order, so ties between placements do not depend on the BLAS).
 """
 
 from __future__ import annotations
@@ -120,34 +121,51 @@ def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float
 
     max_trans2 = max_trans ** 2
 
-    def evaluate(s: int) -> None:
-        k = start[s] + np.flatnonzero(placed[others[start[s]:start[s + 1]]])
-        if len(k) == 0:
-            return
-        P = poses[others[k]] @ rel[k]
-        c = c_inc[k]
-        R = P[:, :3, :3].reshape(len(k), 9)
+    def evaluate(scans: np.ndarray) -> None:
+        """Push each scan of ``scans`` (unplaced, each with a placed partner) with its best placement."""
+        # Every scan's incidence rows to placed partners, one segment a scan, then every pair of rows
+        # within a segment: all the scans' proposals compared at once.
+        counts = start[scans + 1] - start[scans]
+        rows = np.repeat(start[scans] - (np.cumsum(counts) - counts), counts) + np.arange(counts.sum())
+        seg = np.repeat(np.arange(len(scans)), counts)
+        to_placed = placed[others[rows]]
+        rows, seg = rows[to_placed], seg[to_placed]
+        size = np.bincount(seg, minlength=len(scans))
+        first = np.cumsum(size) - size
+        P = poses[others[rows]] @ rel[rows]
+        R = P[:, :3, :3].reshape(len(rows), 9)
         t = P[:, :3, 3]
+        span = size[seg]
+        p = np.repeat(np.arange(len(rows)), span)
+        q = np.repeat(first[seg] - (np.cumsum(span) - span), span) + np.arange(len(p))
         # cos of the angle between two proposals: (trace(R_aᵀ R_b) − 1) / 2, the trace as a flat dot product.
-        agree = ((R @ R.T - 1.0) / 2.0 >= cos_tol) & (((t[:, None] - t[None]) ** 2).sum(axis=-1) <= max_trans2)
-        score = agree @ c
-        best = int(np.argmax(score))
-        rival = score[~agree[best]].max(initial=0.0)
+        agree = (((np.einsum("ij,ij->i", R[p], R[q]) - 1.0) / 2.0 >= cos_tol)
+                 & (((t[p] - t[q]) ** 2).sum(axis=-1) <= max_trans2))
+        score = np.bincount(p, agree * c_inc[rows][q], len(rows))
+        top = np.flatnonzero(score == np.maximum.reduceat(score, first)[seg])
+        best = top[np.unique(seg[top], return_index=True)[1]]  # the first best row of each scan
+        with_best = p == best[seg[p]]
+        rival = np.zeros(len(scans))
+        np.maximum.at(rival, seg[p[with_best & ~agree]], score[q[with_best & ~agree]])
+        agreeing = np.bincount(seg[p[with_best]], agree[with_best], len(scans))
         # Tiers: a placement two placed partners agree on (a loop through the placed scans), then one
         # edge on a consistent triangle, then a lone edge; within a tier, the least ambiguous first.
-        tier = 0 if agree[best].sum() >= 2 else (1 if looped[k[best]] else 2)
-        version[s] += 1
-        heapq.heappush(heap, (tier, -(score[best] - rival), int(version[s]), s))
-        best_pose[s] = P[best]
+        tier = np.where(agreeing >= 2, 0, np.where(looped[rows[best]], 1, 2))
+        margin = score[best] - rival
+        version[scans] += 1
+        best_pose[scans] = P[best]
+        for s, k, m, v in zip(scans.tolist(), tier.tolist(), margin.tolist(), version[scans].tolist()):
+            heapq.heappush(heap, (k, -m, v, s))
 
     best_pose = np.tile(np.eye(4), (n, 1, 1))
 
     def place(s: int, pose: np.ndarray) -> None:
         poses[s] = pose
         placed[s] = True
-        for a in set(others[start[s]:start[s + 1]].tolist()):
-            if not placed[a]:
-                evaluate(a)
+        partners = np.unique(others[start[s]:start[s + 1]])
+        partners = partners[~placed[partners]]
+        if len(partners):
+            evaluate(partners)
 
     node_cred = np.bincount(ends, c_inc, n)
     while not placed.all():
