@@ -117,11 +117,13 @@ def laplacian_map(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, dense: bo
 
 
 def connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                         laplacian=None) -> sp.csr_matrix:
+                         laplacian=None) -> sp.csc_matrix:
     """Sparse 3n×3n weighted connection Laplacian of edges ``(i, j, R_ij, w)``; ``laplacian``: their
     ``laplacian_map`` if already built."""
     K, indices, indptr = laplacian_map(n, i, j, R) if laplacian is None else laplacian
-    return sp.csr_matrix((K @ w, indices, indptr), shape=(3 * n, 3 * n))
+    # The CSR arrays read as CSC give the transpose, L itself: scipy's CSC product with the 3 columns
+    # LOBPCG iterates is 1.5× faster than CSR's (15,000 × 15,000: 0.9 against 1.4 ms), and splu takes CSC.
+    return sp.csc_matrix((K @ w, indices, indptr), shape=(3 * n, 3 * n))
 
 
 def factor_spd(A: sp.spmatrix):
@@ -221,7 +223,7 @@ def _blocks_to_rotations(V: np.ndarray) -> np.ndarray:
     return project_to_so3(np.swapaxes(blocks, 1, 2))
 
 
-def _lobpcg(L: sp.csr_matrix, V: np.ndarray, precondition, tol: float, maxiter: int) -> tuple[np.ndarray, bool]:
+def _lobpcg(L: sp.csc_matrix, V: np.ndarray, precondition, tol: float, maxiter: int) -> tuple[np.ndarray, bool]:
     M = LinearOperator(L.shape, matvec=precondition, matmat=precondition, dtype=float)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # non-convergence is detected below from the residual
@@ -236,7 +238,7 @@ def _conjugated(factor, est: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return (np.swapaxes(est, 1, 2) @ Z).reshape(3 * n, k)
 
 
-def _sparse_bottom(L: sp.csr_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
+def _sparse_bottom(L: sp.csc_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
                    init: np.ndarray | None, state: dict, tol: float) -> np.ndarray:
     """Bottom eigenvectors by preconditioned LOBPCG. ``state`` (kept by the caller across IRLS iterations for
     this part) holds the last eigenvectors (``"V"``, the start when ``init`` is given: closer to the new ones
