@@ -26,6 +26,8 @@ from sghr_gtsam.io.scans import write_scan
 from sghr_gtsam.se3 import make_T
 
 KINDS = ("room", "object")
+"""The kinds of one mesh scanned from around it; ``SCENE_KINDS`` adds the buildings (``synthetic_building``)."""
+SCENE_KINDS = (*KINDS, "building", "hotel")
 
 
 @dataclass
@@ -33,7 +35,7 @@ class SyntheticScene:
     """Scans in their own sensor frames and their ground-truth poses ``T_i`` (scene frame, metres)."""
 
     names: list[str]  # "scan_00.ply", ...: the file names ``write_scene`` gives with its default format
-    scans: list[np.ndarray]  # (N_i, 3) float64
+    scans: Sequence[np.ndarray]  # (N_i, 3) float64; a building's are ray-cast when read (``synthetic_building``)
     poses: np.ndarray  # (N, 4, 4) T_i: p_world = T_i @ p_scan
     voxel: float  # a voxel size suited to the scene's point spacing
 
@@ -136,15 +138,33 @@ def _clutter(rng: np.random.Generator, size: float, base: np.ndarray) -> o3d.geo
     return mesh.translate(base - [0.0, 0.0, lowest])
 
 
-def _room(rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
-    """A 5 x 4 x 2.5 m room (corners at (+-2.5, +-2, 0..2.5)) with uneven walls, furniture against
+ROOM_SIZE = (5.0, 4.0, 2.5)
+"""Metres: ``_room``'s length (x), width (y) and height (z)."""
+DOOR_HEIGHT = 2.1
+
+
+def _room(rng: np.random.Generator, door: tuple[float, float] | None = None,
+          size: tuple[float, float, float] = ROOM_SIZE) -> o3d.geometry.TriangleMesh:
+    """A 5 x 4 x 2.5 m room (``size``; corners at (+-2.5, +-2, 0..2.5)) with uneven walls, furniture against
     them, a table with things on it in the middle, wall fixtures and clutter on the floor. Sizes,
-    shapes, placements and angles are random, so that no local shape repeats exactly."""
-    L, W, H = 5.0, 4.0, 2.5
+    shapes, placements and angles are random, so that no local shape repeats exactly.
+    ``door``: an opening from x = door[0] to door[1], ``DOOR_HEIGHT`` high, in the wall at y = -W/2, kept clear of
+    furniture, fixtures and clutter; None (a closed room) draws the same random numbers as before doors existed."""
+    L, W, H = size
     x, y, z = np.array([L, 0.0, 0.0]), np.array([0.0, W, 0.0]), np.array([0.0, 0.0, H])
     origin, far = np.array([-L / 2, -W / 2, 0.0]), np.array([L / 2, W / 2, H])
     mesh = o3d.geometry.TriangleMesh()
-    walls = ((origin, x, y), (far, -x, -y), (origin, x, z), (far, -x, -z), (origin, y, z), (far, -y, -z))
+    walls = [(origin, x, y), (far, -x, -y), (origin, x, z), (far, -x, -z), (origin, y, z), (far, -y, -z)]
+    if door is not None:  # the wall at y = -2 in three pieces around the opening
+        ex, ez = x / L, z / H
+        lo, hi = door[0] + L / 2, door[1] + L / 2
+        walls[2:3] = [(origin, lo * ex, z), (origin + hi * ex, (L - hi) * ex, z),
+                      (origin + lo * ex + DOOR_HEIGHT * ez, (hi - lo) * ex, (H - DOOR_HEIGHT) * ez)]
+
+    def blocks_door(wall: int, along: float, half_width: float) -> bool:
+        """Whether something ``half_width`` either side of ``along`` on ``wall`` stands in the doorway."""
+        return door is not None and wall == 3 and abs(along - sum(door) / 2) < (door[1] - door[0]) / 2 + half_width + 0.3
+
     for corner, a, b in walls:  # floor, ceiling, four walls
         mesh += _relief_wall(corner, a, b, rng)
     for wall in range(4):
@@ -155,6 +175,8 @@ def _room(rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
         # Two pieces of furniture, not quite flush with the wall, sometimes with a step on top.
         for s in (np.array([-0.5, 0.5]) + rng.uniform(-0.15, 0.15, 2)) * half_length:
             depth, width, height = rng.uniform(0.3, 0.55), rng.uniform(0.5, 1.0), rng.uniform(0.4, 2.0)
+            if blocks_door(wall, s, width / 2):
+                continue
             center = n * (dist - depth / 2 - 0.05) + t * s + [0.0, 0.0, height / 2]
             R = _rot_z(normal_angle + rng.uniform(-0.2, 0.2))
             mesh += _box((depth, width, height), center, R)
@@ -168,11 +190,16 @@ def _room(rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
         for _ in range(2):
             w, h = rng.uniform(0.3, 0.9), rng.uniform(0.2, 0.6)
             along, up = rng.uniform(-0.8, 0.8) * half_length, rng.uniform(1.5, 2.2)
+            if blocks_door(wall, along, w / 2):
+                continue
             mesh += _box((0.06, w, h), n * (dist - 0.03) + t * along + [0.0, 0.0, up], _rot_z(normal_angle))
         # Things on the floor between the furniture and the sensors' loop.
         for _ in range(2):
-            base = n * (dist - rng.uniform(0.7, 0.85)) + t * rng.uniform(-0.7, 0.7) * half_length
-            mesh += _clutter(rng, rng.uniform(0.2, 0.35), base)
+            inset, along = rng.uniform(0.7, 0.85), rng.uniform(-0.7, 0.7) * half_length
+            base = n * (dist - inset) + t * along
+            size = rng.uniform(0.2, 0.35)
+            if not blocks_door(wall, along, size):
+                mesh += _clutter(rng, size, base)
 
     # A table (random size and angle, four legs) with things on it.
     tx, ty, th = rng.uniform(0.8, 1.2), rng.uniform(0.6, 0.9), rng.uniform(0.7, 0.8)
@@ -267,12 +294,18 @@ def _scan(
 
 def make_scene(kind: str = "room", n_scans: int = 6, seed: int = 0, noise: float = 0.003) -> SyntheticScene:
     """Generate a scene of ``kind`` ("room": ~5 m furnished room, voxel 5 cm; "object": ~1 m bumpy
-    object, voxel 2 cm) seen by ``n_scans`` sensors, with Gaussian range noise of std ``noise`` metres.
-    About 5-15k points a scan; well under a second for 6 scans; deterministic for a given seed."""
-    if kind not in KINDS:
-        raise ValueError(f"unknown scene kind {kind!r} (choose from {', '.join(KINDS)})")
+    object, voxel 2 cm; "building": rooms along corridors growing with ``n_scans``, at least 9; "hotel": the
+    building with every room the same, ``synthetic_building``) seen by ``n_scans`` sensors, with Gaussian range
+    noise of std ``noise`` metres. About 5-15k points a scan; well under a second for 6 scans; deterministic for a
+    given seed."""
+    if kind not in SCENE_KINDS:
+        raise ValueError(f"unknown scene kind {kind!r} (choose from {', '.join(SCENE_KINDS)})")
     if n_scans < 2:
         raise ValueError("a scene needs at least 2 scans")
+    if kind not in KINDS:
+        from .synthetic_building import make_building  # it builds on this module's geometry
+
+        return make_building(n_scans, seed, noise, identical_rooms=kind == "hotel")
     rng = np.random.default_rng(seed)
     if kind == "room":
         mesh, sensor, voxel = _room(rng), _room_sensors(n_scans, rng), 0.05
