@@ -232,18 +232,37 @@ def run(
     _close(result, out, cfg.record)
 
 
+_SCENE_KINDS = ("room", "object", "building", "hotel")  # synthetic.SCENE_KINDS, spelled out as _METHOD_NAMES are
+_ONE_ROOM = 12  # --kind auto: the most scans it generates as one room
+_DEMO_ROWS = 40  # the most scans the demo lists one by one
+
+
+def _scene_kind(kind: str, scans: int) -> str:
+    if kind == "auto":
+        return "room" if scans <= _ONE_ROOM else "building"
+    if kind not in _SCENE_KINDS:
+        raise InputError(f"--kind must be auto or one of {', '.join(_SCENE_KINDS)}; got {kind!r}")
+    return kind
+
+
 @app.command()
 def demo(
     out: Path = typer.Option(Path("results/demo"), "--out", help="Where the generated scene and the results go."),
     scans: int = typer.Option(8, help="Number of generated scans."),
+    kind: str = typer.Option("auto", help="Generated scene: room (one furnished room scanned from around its "
+                             "table), object (a lumpy object seen from around it), building (furnished rooms along "
+                             "corridors, growing with --scans so that each scan overlaps a bounded number of others; "
+                             "at least 9 scans), hotel (the building with every room the same: scans that fit "
+                             f"several places) or auto (room up to {_ONE_ROOM} scans, building above).",
+                             show_default=True),
     seed: int = typer.Option(0, help="Seed of the generated scene and of the run."),
     workers: Optional[int] = typer.Option(None, help="Processes for the parallel stages." + _default("every core")),
     ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS",
                                       help=_RAY_HELP + _default("none: local processes")),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars and no stage messages."),
 ) -> None:
-    """Generate a small room scanned from several stations (known poses), register it, print the errors."""
-    from .evaluate import scan_errors
+    """Generate a scene scanned from several stations (known poses), register it, print the errors."""
+    from .evaluate import scan_errors, whole_model_errors
     from .io.poses import read_poses
     from .io.results import staged_results
     from .pipeline import run as run_pipeline
@@ -256,9 +275,14 @@ def demo(
             raise InputError(f"--scans must be at least 2 (a registration needs two scans); got {scans}")
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out} is an existing file, not a folder")
+        scene_kind = _scene_kind(kind, scans)
+        try:
+            scene = make_scene(kind=scene_kind, n_scans=scans, seed=seed)
+        except ValueError as e:  # too few scans for the kind
+            raise InputError(f"--scans {scans}: {e}") from None
         scene_dir = out / "scene"
         with staged_results(scene_dir) as stage:  # replaced as a whole: no scan of an earlier, larger demo stays
-            write_scene(make_scene(kind="room", n_scans=scans, seed=seed), stage)
+            write_scene(scene, stage)  # a building's scans are made one at a time as they are written
         return scene_dir
 
     scene_dir = _guard(generate)
@@ -266,10 +290,22 @@ def demo(
     gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
     gt = gt[[gt_names.index(n) for n in result.names]]
     err = scan_errors(result.names, result.poses, gt)
+    flags = {name: flag for flag, names in reversed(result.flags.items()) for name in names}
+    good = err.within(5.0, 0.2)
+    listed = [k for k, name in enumerate(result.names)
+              if len(result.names) <= _DEMO_ROWS or name in flags or not good[k]]
     typer.echo(f"{'scan':<16}{'rot err [deg]':>15}{'trans err [m]':>15}")
-    for k, name in enumerate(result.names):
-        flag = next((f"  ({flag})" for flag, names in result.flags.items() if name in names), "")
+    for k in listed:
+        name = result.names[k]
+        flag = f"  ({flags[name]})" if name in flags else ""
         typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
+    if len(listed) < len(result.names):
+        typer.echo(f"({len(result.names) - len(listed)} more scans within 5° / 0.2 m of GT relative to "
+                   f"{result.names[0]}, none flagged)")
+    placed = [k for k, name in enumerate(result.names) if name not in result.unregistered]
+    whole = whole_model_errors([result.names[k] for k in placed], result.poses[placed], gt[placed])
+    typer.echo(f"{int(whole.within(5.0, 0.2).sum())} of {len(result.names)} scans within 5° / 0.2 m of GT after one "
+               f"rigid alignment of the placed scans (ATE {whole.ate_rmse:.3f} m)")
     _close(result, out / "results", cfg.record)
 
 

@@ -163,7 +163,8 @@ def _room(rng: np.random.Generator, door: tuple[float, float] | None = None,
 
     def blocks_door(wall: int, along: float, half_width: float) -> bool:
         """Whether something ``half_width`` either side of ``along`` on ``wall`` stands in the doorway."""
-        return door is not None and wall == 3 and abs(along - sum(door) / 2) < (door[1] - door[0]) / 2 + half_width + 0.3
+        return (door is not None and wall == 3
+                and abs(along - sum(door) / 2) < (door[1] - door[0]) / 2 + half_width + 0.3)
 
     for corner, a, b in walls:  # floor, ceiling, four walls
         mesh += _relief_wall(corner, a, b, rng)

@@ -59,7 +59,7 @@ ROOM_VIEWS = (3, 8, 5)  # views from a room's ellipse: fewest, most, preferred
 MARGIN = 0.15  # relief and clutter reach this far outside a cell's walls
 VIEW = _Sensor(np.zeros((0, 3)), np.zeros((0, 3)), fov_deg=(120.0, 80.0), grid=(150, 100), max_roll=0.4)
 _LAYOUT, _ROOM, _SEGMENT, _SPINE, _SCAN = range(5)  # seed tags: each random stream is a function of (seed, tag, ...)
-_MESHES_KEPT = 48  # cell meshes kept between neighbourhoods (about 1 MB each)
+_MESHES_KEPT = 24  # cell meshes kept between neighbourhoods (0.3-0.7 MB each): a branch's rooms are built once
 
 View = Callable[[int, np.ndarray, np.ndarray, np.ndarray, float], None]
 
@@ -246,12 +246,14 @@ def _room_views(rng: np.random.Generator, cell: int, room: Cell, count: int, vie
 
 
 def _views_across(rng: np.random.Generator, cell: int, segment: Cell, view: View) -> None:
-    """Stations ``STATION`` apart along the segment, each with a view across to either wall."""
-    for k in range(_stations(segment.length)):
-        x = segment.start + (k + 0.5) * STATION
+    """Stations about ``STATION`` apart, evenly along the segment (and so across segments of one length), each with
+    a view across to either wall."""
+    stations = _stations(segment.length)
+    for k in range(stations):
+        x = segment.start + (k + 0.5) * segment.length / stations
         for side in (1.0, -1.0):
-            eye = np.array([x + rng.uniform(-0.3, 0.3), -side * rng.uniform(0.0, 0.4), rng.uniform(1.2, 1.7)])
-            yaw = side * np.pi / 2 + np.radians(rng.uniform(-15, 15))
+            eye = np.array([x + rng.uniform(-0.2, 0.2), -side * rng.uniform(0.0, 0.4), rng.uniform(1.2, 1.7)])
+            yaw = side * np.pi / 2 + np.radians(rng.uniform(-10, 10))
             view(cell, segment.frame, eye, eye + [4 * np.cos(yaw), 4 * np.sin(yaw), rng.uniform(-0.8, -0.2)], 0.3)
 
 

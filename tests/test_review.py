@@ -160,6 +160,13 @@ def test_help_lists_every_choice_of_the_modules():
     for name in (*KERNELS, *NOISE_MODELS, *BASELINES):
         assert re.search(rf"\b{name}\b", text), name
     assert cli._METHOD_NAMES == tuple(METHODS) and set(cli._BASELINE_NAMES) == set(BASELINES)
+    from sghr_gtsam.synthetic import SCENE_KINDS
+
+    assert cli._SCENE_KINDS == SCENE_KINDS
+    text = _help("demo")
+    for name in ("auto", *SCENE_KINDS):
+        assert re.search(rf"\b{name}\b", text), name
+    assert f"room up to {cli._ONE_ROOM} scans, building above" in text
 
 
 @pytest.fixture(scope="module")
