@@ -85,10 +85,12 @@ def _tree_memory(proc: psutil.Process, cpu: dict[int, float]) -> tuple[float, fl
     return rss, pss
 
 
-def _run(scene: Path, out: Path) -> dict:
-    """One run under ``/usr/bin/time -v``, its tree's memory sampled; peaks in GB."""
+def measured_run(scene: Path, out: Path, *options: str) -> dict:
+    """One ``run`` of ``scene`` into ``out`` (with ``options``) under ``/usr/bin/time -v``, its tree's memory
+    sampled; peaks in GB, wall and CPU seconds, and from its report.json the scans, those registered, the pairs
+    and the seconds of each stage (``benchmarks/bench_scale.py`` measures with it too)."""
     cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out),
-           "--no-record", "--quiet"]
+           "--no-record", "--quiet", *options]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     started = time.perf_counter()
     with tempfile.TemporaryFile("w+") as err:
@@ -127,14 +129,15 @@ def main() -> None:
     rows = []
     try:
         points = _write_scene(work / "one_large", 6, [big] + [None] * 5, seed=0)
-        rows.append((f"1 scan of {big / 1e6:g} M + 5 of ~10 k", 6, points, _run(work / "one_large", work / "out_a")))
+        rows.append((f"1 scan of {big / 1e6:g} M + 5 of ~10 k", 6, points,
+                     measured_run(work / "one_large", work / "out_a")))
         _write_scene(work / "many", many, [per_scan] * many, seed=1)
         for n in sweep:
             scene = work / "many" if n == many else work / f"many_{n}"
             if n != many:
                 _subset(work / "many", scene, n)
             label = f"{n} scans of {per_scan / 1e6:g} M"
-            rows.append((label, n, n * per_scan, _run(scene, work / f"out_{n}")))
+            rows.append((label, n, n * per_scan, measured_run(scene, work / f"out_{n}")))
     finally:
         if not args.keep:
             shutil.rmtree(work, ignore_errors=True)

@@ -1,0 +1,126 @@
+"""Scale (issue 15): generated buildings of N scans end to end; how the seconds grow with N·k, the memory, and how
+many scans land on GT.
+
+    python benchmarks/bench_scale.py [--scans 100 500 2000] [--kind building] [--workers 2] [--workdir DIR] [--keep]
+
+For each N: ``synthetic.make_scene(kind, N)`` written scan by scan (``synthetic_building``: rooms along corridors,
+each scan overlapping a bounded number of others), then one ``python -m sghr_gtsam run SCENE --out OUT --workers W
+--no-record --quiet`` measured as ``benchmarks/bench_memory.py`` measures (``/usr/bin/time -v`` for the largest
+process, the process tree's RSS and PSS sampled every 0.2 s, CPU seconds of every process). From OUT/report.json:
+the seconds of each stage and the pairs. Against GT: scans placed, scans within 5° / 0.2 m after one rigid
+alignment (of the positions of the scans placed without a flag, applied to every placed scan), unflagged scans
+outside that (placed wrongly as if certain), ATE rmse and median rotation error of the unflagged ones, and the flags.
+Then a log-log fit of the total seconds against N·k (the exponent: 1 is linear) and, for a multi-machine plan, the
+cost of a pair (pairwise seconds × workers / pairs registered by the pairwise stage) and the data volumes (scan files,
+OUT/cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench_memory import measured_run  # noqa: E402
+from sghr_gtsam.evaluate import align_rigid  # noqa: E402
+from sghr_gtsam.io.poses import read_poses  # noqa: E402
+from sghr_gtsam.result import FLAGS  # noqa: E402
+from sghr_gtsam.se3 import relative_errors  # noqa: E402
+from sghr_gtsam.synthetic import make_scene, write_scene  # noqa: E402
+
+MAX_DEG, MAX_TRANS = 5.0, 0.2
+STAGES = ("features", "global_graph", "pairwise", "sync", "refine", "loops", "retry", "write")
+
+
+def _bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def _score(scene: Path, out: Path, report: dict) -> dict:
+    """The run's poses against GT (module doc)."""
+    gt_names, gt = read_poses(scene / "gt_poses.txt")
+    names, poses = read_poses(out / "poses.txt")
+    gt = gt[[gt_names.index(n) for n in names]]
+    placed = np.array([n not in set(report["unregistered"]) for n in names])
+    flagged = set().union(*(report[flag] for flag in FLAGS if flag != "unregistered"))
+    certain = placed & np.array([n not in flagged for n in names])
+    A = align_rigid(poses[certain, :3, 3], gt[certain, :3, 3])
+    rot, trans = relative_errors(A[None] @ poses, gt)
+    within = (rot <= MAX_DEG) & (trans <= MAX_TRANS)
+    return {"placed": int(placed.sum()), "within": int((within & placed).sum()),
+            "wrong_unflagged": int((certain & ~within).sum()),
+            "ate": float(np.sqrt(np.mean(trans[certain] ** 2))), "median_deg": float(np.median(rot[certain])),
+            "flags": {flag: len(report[flag]) for flag in FLAGS if flag != "unregistered"}}
+
+
+def _case(n: int, args: argparse.Namespace, work: Path) -> dict:
+    scene, out = work / f"scene_{n}", work / f"out_{n}"
+    started = time.perf_counter()
+    write_scene(make_scene(args.kind, n, seed=args.seed), scene)
+    generated = time.perf_counter() - started
+    run = measured_run(scene, out, "--workers", str(args.workers))
+    report = json.loads((out / "report.json").read_text())
+    # The pairwise stage's (top-k) pairs: the cache's pair registrations but the retry stage's.
+    stage_pairs = sum(report["cache"]["pairs"].values()) - report["front_end"]["retry_tried"]
+    row = {"n": n, "k": report["parameters"]["k"], "generate_s": generated, **run, **_score(scene, out, report),
+           "stage_pairs": stage_pairs, "pair_s": run["seconds"]["pairwise"] * args.workers / max(stage_pairs, 1),
+           "scan_mb": _bytes(scene) / 1e6, "cache_mb": _bytes(out / "cache") / 1e6}
+    if not args.keep:
+        shutil.rmtree(scene)
+        shutil.rmtree(out)
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scans", type=int, nargs="+", default=[100, 500, 2000])
+    ap.add_argument("--kind", default="building", help="synthetic.make_scene kind")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workdir", type=Path, default=None, help="where scenes and runs go (default: a temporary folder)")
+    ap.add_argument("--keep", action="store_true", help="keep the scenes and the runs' results")
+    args = ap.parse_args()
+    work = Path(tempfile.mkdtemp(dir=args.workdir, prefix="bench_scale-"))
+    print(f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.kind}, seed {args.seed}, "
+          f"{args.workers} workers")
+    try:
+        rows = [_case(n, args, work) for n in args.scans]
+    finally:
+        if not args.keep:
+            shutil.rmtree(work, ignore_errors=True)
+    print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}" + (f"; kept in {work}" if args.keep else ""))
+    print()
+    header = (["scans", "k", "generate s", "run wall s", "CPU s", *STAGES, "top-k pairs", "pairs registered", "placed",
+               f"within {MAX_DEG:g}°/{MAX_TRANS:g} m", "unflagged wrong", "unverified", "contested", "underdetermined",
+               "ATE m", "median °", "largest process GB", "all processes PSS GB", "s a pair × worker", "scans MB",
+               "cache MB"])
+    print("| " + " | ".join(header) + " |\n" + "|---" * len(header) + "|")
+    for r in rows:
+        stages = " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in STAGES)
+        flags = " | ".join(str(r["flags"][f]) for f in ("unverified", "contested", "underdetermined"))
+        print(f"| {r['n']} | {r['k']} | {r['generate_s']:.1f} | {r['wall']:.0f} | {r['cpu']:.0f} | {stages} | "
+              f"{r['stage_pairs']} | {r['pairs']} | {r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%}) | "
+              f"{r['within']} | {r['wrong_unflagged']} | {flags} | {r['ate']:.3f} | {r['median_deg']:.2f} | "
+              f"{r['max_process_gb']:.2f} | {r['tree_pss_gb']:.2f} | {r['pair_s']:.3f} | {r['scan_mb']:.0f} | "
+              f"{r['cache_mb']:.0f} |")
+    if len(rows) > 1:  # seconds = c · (N·k)^e: e from a least-squares line through the logs
+        nk = np.array([r["n"] * r["k"] for r in rows], float)
+        print(f"\nfitted exponent e of seconds ∝ (N·k)^e over N·k = {', '.join(f'{x:g}' for x in nk)}:")
+        series = {"run wall": [r["wall"] for r in rows], "CPU": [r["cpu"] for r in rows],
+                  **{stage: [r["seconds"].get(stage, 0.0) for r in rows] for stage in ("total", *STAGES)}}
+        for label, seconds in series.items():
+            if min(seconds) >= 0.1:  # a stage that did (almost) nothing somewhere has no exponent
+                print(f"- {label}: {np.polyfit(np.log(nk), np.log(seconds), 1)[0]:.2f}")
+
+if __name__ == "__main__":
+    main()
