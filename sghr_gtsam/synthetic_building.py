@@ -6,8 +6,8 @@ whose rooms are all one room.
 rooms on both sides, about sqrt(R / 2) a side for R rooms in all; branch b runs along y = b · ``BRANCH_PITCH``. With
 more than one branch, a *spine* corridor as wide runs along y at x < 0 and joins them, so the floor grows in both
 directions with N. A room is ``synthetic._room`` (4–5 × 3.4–4 × 2.5 m, furniture and clutter of its own) with a
-doorway 1.2–1.6 m wide through the ``WALL`` between it and the corridor; rooms stand ``GAP`` apart. Walls have a
-thickness so that no surface is seen from both sides: scans on either side of a wall share no points. Corridor
+doorway 1.2–1.6 m wide through the ``WALL`` between it and the corridor; rooms stand at least ``GAP`` apart. Walls
+have a thickness, so that no surface is seen from both sides (a wall's two faces would count as overlap). Corridor
 and spine segments have uneven walls, floor and ceiling, cabinets, things on the floor and panels on the walls,
 random in every segment. The hotel (``identical_rooms``): every room is the same room, doorway included (turned
 to face its corridor); only the corridors differ.
@@ -57,6 +57,7 @@ ROOM_SHRINK = (0.8, 0.85)  # a room's length and width: at least these fractions
 MAX_RANGE = 6.0
 ROOM_VIEWS = (3, 8, 5)  # views from a room's ellipse: fewest, most, preferred
 MARGIN = 0.15  # relief and clutter reach this far outside a cell's walls
+# Every view's field and rays (``_scan`` reads nothing else of a ``_Sensor``: the poses are the building's).
 VIEW = _Sensor(np.zeros((0, 3)), np.zeros((0, 3)), fov_deg=(120.0, 80.0), grid=(150, 100), max_roll=0.4)
 _LAYOUT, _ROOM, _SEGMENT, _SPINE, _SCAN = range(5)  # seed tags: each random stream is a function of (seed, tag, ...)
 _MESHES_KEPT = 24  # cell meshes kept between neighbourhoods (0.3-0.7 MB each): a branch's rooms are built once
@@ -95,7 +96,7 @@ class Building:
     cells: list[Cell]
     poses: np.ndarray  # (N, 4, 4)
     cell_of_scan: np.ndarray  # (N,)
-    rooms_at: dict[tuple[int, int, int], Cell] = field(default_factory=dict)  # (branch, segment, side) -> room
+    rooms_at: dict[tuple[int, int, int], Cell] = field(init=False)  # (branch, segment, side) -> room
 
     def __post_init__(self) -> None:
         self.rooms_at = {(c.branch, c.index, c.side): c for c in self.cells if c.kind == "room"}
