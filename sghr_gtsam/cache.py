@@ -113,7 +113,7 @@ def _decode_features(a: dict[str, np.ndarray]):
 
     fpfh = a.get("fpfh")
     keypoints, descriptors = (a["points"], fpfh) if fpfh is not None else (a["keypoints"], a["descriptors"])
-    return ScanFeatures.from_arrays(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
+    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
 
 
 def _encode_pyramid(p) -> dict[str, np.ndarray]:
@@ -166,6 +166,20 @@ _CODECS: dict[str, tuple[Callable, Callable]] = {
 }
 
 
+def entry_path(folder: str | Path, kind: str, key: str) -> Path:
+    """Where the result of ``kind`` named ``key`` lives under ``folder``."""
+    return Path(folder) / kind / f"{key}.npz"
+
+
+def read_entry(path: Path, kind: str) -> Any:
+    """The result of ``kind`` stored at ``path``, ``MISS`` when there is none; raises when it cannot be read."""
+    if not path.is_file():
+        return MISS
+    with np.load(path, allow_pickle=False) as archive:
+        arrays = {name: archive[name] for name in archive.files}  # reading each checks its CRC
+    return _CODECS[kind][1](arrays)
+
+
 class Cache:
     """The cache in ``folder`` (created on the first write) and what this run took from it: ``counts[kind]`` the
     results ``cached`` (read back) and ``computed``, ``unreadable`` the entries that could not be read."""
@@ -181,7 +195,7 @@ class Cache:
         return {**self.counts, "unreadable": self.unreadable}
 
     def _path(self, kind: str, key: str) -> Path:
-        return self.folder / kind / f"{key}.npz"
+        return entry_path(self.folder, kind, key)
 
     def _remove_stale(self) -> None:
         """Temporary files of writes a killed run left (``io.atomic``'s hidden names)."""
@@ -197,13 +211,10 @@ class Cache:
 
     def load(self, kind: str, key: str | None) -> Any:
         """The stored result, or ``MISS`` (also when its file cannot be read)."""
-        path = None if key is None else self._path(kind, key)
-        if path is None or not path.is_file():
+        if key is None:
             return MISS
         try:
-            with np.load(path, allow_pickle=False) as archive:
-                arrays = {name: archive[name] for name in archive.files}  # reading each checks its CRC
-            return _CODECS[kind][1](arrays)
+            return read_entry(self._path(kind, key), kind)
         except Exception:  # noqa: BLE001 - a damaged entry is recomputed, whatever broke while reading it
             self.unreadable += 1
             return MISS
@@ -215,23 +226,29 @@ class Cache:
                 np.savez(f, **arrays)
 
     def map(self, kind: str, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
-            workers: int | None, on_result: Callable[[int, Any], None] | None = None, ray: str | None = None) -> list:
-        """``executor.parallel_map(fn, shared, tasks, workers, on_result, ray)`` for the tasks whose ``keys`` miss the
-        cache, each result stored as it arrives; the others read back. ``on_result`` is told of the cached
-        results first, then of the computed ones as they arrive."""
+            workers: int | None, on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,
+            keep: Callable[[Any], Any] | None = None) -> list:
+        """``executor.parallel_map(fn, shared, tasks, workers, on_result, ray, keep)`` for the tasks whose ``keys``
+        miss the cache, each result stored as it arrives; the others read back. ``on_result`` is told of the
+        cached results first, then of the computed ones as they arrive; ``keep(result)`` is what the list holds
+        (default: the result)."""
         results: list = [MISS] * len(tasks)
+        todo = []
         for k, key in enumerate(keys):
-            results[k] = self.load(kind, key)
-            if results[k] is not MISS and on_result is not None:
-                on_result(k, results[k])
-        todo = [k for k, r in enumerate(results) if r is MISS]
+            result = self.load(kind, key)
+            if result is MISS:
+                todo.append(k)
+                continue
+            if on_result is not None:
+                on_result(k, result)
+            results[k] = result if keep is None else keep(result)
 
         def arrived(m: int, result: Any) -> None:
             self.store(kind, keys[todo[m]], result)
             if on_result is not None:
                 on_result(todo[m], result)
 
-        for k, result in zip(todo, parallel_map(fn, shared, [tasks[k] for k in todo], workers, arrived, ray)):
+        for k, result in zip(todo, parallel_map(fn, shared, [tasks[k] for k in todo], workers, arrived, ray, keep)):
             results[k] = result
         self.counts[kind]["cached"] += len(tasks) - len(todo)
         self.counts[kind]["computed"] += len(todo)
@@ -244,8 +261,9 @@ MISS = object()
 
 def cached_map(cache: Cache | None, kind: str, fn: Callable, shared: Any, tasks: Sequence,
                keys: Sequence[str | None], workers: int | None,
-               on_result: Callable[[int, Any], None] | None = None, ray: str | None = None) -> list:
+               on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,
+               keep: Callable[[Any], Any] | None = None) -> list:
     """``cache.map(...)``, or ``executor.parallel_map`` of every task without a cache."""
     if cache is None:
-        return parallel_map(fn, shared, tasks, workers, on_result, ray)
-    return cache.map(kind, fn, shared, tasks, keys, workers, on_result, ray)
+        return parallel_map(fn, shared, tasks, workers, on_result, ray, keep)
+    return cache.map(kind, fn, shared, tasks, keys, workers, on_result, ray, keep)

@@ -81,26 +81,23 @@ def _call(fn: Callable[[Any, T], R], task: T) -> R:
 
 
 def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None = None,
-                 on_result: Callable[[int, R], None] | None = None, ray: str | None = None) -> list[R]:
+                 on_result: Callable[[int, R], None] | None = None, ray: str | None = None,
+                 keep: Callable[[R], Any] | None = None) -> list:
     """``[fn(shared, t) for t in tasks]`` over ``workers`` processes (None: every core; 1: in this process), or
     on the Ray cluster ``ray`` (``Config.ray``) over ``workers`` of its CPUs (None: all).
 
     ``fn`` must be a module-level function; ``shared`` and the results must pickle. ``on_result(k, result)``
-    is called in this process, in task order, as results arrive (progress, recording).
+    is called in this process, in task order, as results arrive (progress, recording, storing). ``keep``: the
+    list holds ``keep(result)`` instead of each result (what a stage keeps of results stored elsewhere).
     """
     if ray is not None:
         from .executor_ray import ray_map
 
-        return ray_map(fn, shared, tasks, workers, ray, on_result)
+        return ray_map(fn, shared, tasks, workers, ray, on_result, keep)
     workers = default_workers() if workers is None else workers
     workers = min(workers, len(tasks))
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
-        results = []
-        for k, task in enumerate(tasks):
-            results.append(fn(shared, task))
-            if on_result is not None:
-                on_result(k, results[-1])
-        return results
+        return [arrived(k, fn(shared, task), on_result, keep) for k, task in enumerate(tasks)]
     context = multiprocessing.get_context("forkserver")
     _ensure_server([fn.__module__])
     started = context.Value("i", 0)
@@ -111,12 +108,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             # of Python < 3.12 then fails on them with a traceback on stderr.
             with _main_not_rerun(fn), _signals_held():
                 futures = [pool.submit(_call, fn, task) for task in tasks]  # starts the workers
-            results = []
-            for k, future in enumerate(futures):
-                results.append(future.result())
-                if on_result is not None:
-                    on_result(k, results[-1])
-            return results
+            return [arrived(k, future.result(), on_result, keep) for k, future in enumerate(futures)]
         except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
             # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
             # process table is private, but there is no public way to end its workers before Python 3.14.
@@ -132,6 +124,13 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             if results_pipe is not None:
                 results_pipe._writer.close()
             raise
+
+
+def arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep: Callable[[R], Any] | None) -> Any:
+    """What a backend does with task ``k``'s result as it arrives, in task order: tell ``on_result``, keep it."""
+    if on_result is not None:
+        on_result(k, result)
+    return result if keep is None else keep(result)
 
 
 @contextmanager

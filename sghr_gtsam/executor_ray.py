@@ -25,6 +25,7 @@ from typing import Any, TypeVar
 import ray
 from ray.exceptions import RayTaskError
 
+from .executor import arrived
 from .types import InputError
 
 T = TypeVar("T")
@@ -130,9 +131,10 @@ def _disconnect() -> None:
 
 
 def ray_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None, address: str,
-            on_result: Callable[[int, R], None] | None = None) -> list[R]:
+            on_result: Callable[[int, R], None] | None = None, keep: Callable[[R], Any] | None = None) -> list:
     """``executor.parallel_map`` over the Ray cluster at ``address`` (``Config.ray``) on ``workers`` CPUs (None:
     every CPU of the cluster; 'local': of this machine)."""
+
     if not tasks:
         return []
     cluster = _connect(address, workers)
@@ -166,8 +168,7 @@ def ray_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers:
             done[k] = True
             submit(actor)
             while reported < len(tasks) and done[reported]:
-                if on_result is not None:
-                    on_result(reported, results[reported])
+                results[reported] = arrived(reported, results[reported], on_result, keep)
                 reported += 1
     except BaseException as e:  # Ctrl-C, SIGTERM, a failed task: end the actors instead of finishing the tasks
         _disconnect()

@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from . import local_frame
-from .cache import Cache, cached_map, pyramid_key, scan_key
+from .cache import Cache, pyramid_key, scan_key
 from .config import Config
 from .executor import start_server
-from .features.local import ScanFeatures, scan_features, voxel_from_spans
+from .features.local import scan_features, voxel_from_spans
 from .features.netvlad import (
     DEFAULT_HEAD,
     codebook_features,
@@ -38,6 +38,7 @@ from .registration.refine import scan_pyramid
 from .registration.retry import weak_scans
 from .result import RunResult
 from .se3 import inv_T, transform_points
+from .store import Attribute, Store, Stored
 from .sync import contested, synchronize, unverified
 from .types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
 
@@ -114,9 +115,10 @@ def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
     return S
 
 
-def _global_features(features: list[ScanFeatures], config: Config) -> tuple[np.ndarray, str]:
-    """Unit global features (N, D) of the scans and what made them."""
-    descriptors = [f.descriptors for f in features]
+def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
+    """Unit global features (N, D) of the scans (``counts``: their descriptors), read one at a time, and what made
+    them."""
+    descriptors = Attribute(features, "descriptors")
     dim = descriptors[0].shape[1]
     kind = f"{dim}-d " + ("FPFH" if features[0].fpfh is not None else "given descriptors")
     if config.overlap_head or config.global_feature == "learned":
@@ -129,7 +131,7 @@ def _global_features(features: list[ScanFeatures], config: Config) -> tuple[np.n
         return F, f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
-    F, clusters = codebook_features(descriptors, seed=config.seed)
+    F, clusters = codebook_features(descriptors, seed=config.seed, counts=counts)
     return F, f"unsupervised VLAD codebook ({clusters} clusters of {kind}, k-means on this scene)"
 
 
@@ -179,14 +181,18 @@ def _also_recorded(log: Log, recorder: Recorder) -> Log:
 
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
              log: Log = print, skipped: dict[str, str] | None = None,
-             scores: np.ndarray | None = None, progress: Progress = QUIET, cache: Cache | None = None) -> RunResult:
+             scores: np.ndarray | None = None, progress: Progress = QUIET, cache: Cache | None = None,
+             store: Store | None = None) -> RunResult:
     """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe.
 
     ``scores``: an (N, N) symmetric matrix of overlap scores to choose the top-k graph from instead of the
     global features (e.g. ground-truth overlaps or another method's), with their values as ``s`` in ``w⁰``.
     ``cache``: features, pyramids and pair registrations are read from it where it holds them and stored in it as
     they are computed (``cache.Cache``; ``run`` passes ``OUT/cache``). No stage holds every scan's points at once:
-    the checks use their ``ScanStats`` and each parallel task reads its scan.
+    the checks use their ``ScanStats`` and each parallel task reads its scan; no process holds every scan's
+    features and grids either: they go to ``store`` (``store.Store``; default ``Store(cache)``: the cache's folder,
+    or without one a temporary folder removed when the result is garbage collected) and are read back one scan at a
+    time where they are needed, ``RunResult.features`` too.
     """
     config.validate()
     if len(scans) < 2:
@@ -209,29 +215,42 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     centres = local_frame.centres(np.array([st.median for st in stats]), voxel)
     scans = [replace(s, centre=c, stats=st) for s, c, st in zip(scans, centres, stats)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
+    owned, store = store is None, store or Store(cache)
+    try:
+        return _register(scans, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress, cache)
+    except BaseException:
+        if owned:  # a store it made goes with a failed run; the caller's is the caller's
+            store.close()
+        raise
 
-    # Each task reads its scan where it runs: full-resolution points live only in the scans in flight.
+
+def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,
+              recorder: Recorder | None, log: Log, skipped: dict[str, str], timer: _Timer, scores: np.ndarray | None,
+              progress: Progress, cache: Cache | None) -> RunResult:
+    """``register`` from the features on: ``scans`` checked and centred (at ``centres``)."""
+    # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
+    # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
     keys = [scan_key(s, voxel, config) for s in scans]
+    radii = (voxel, config.normal_radius, config.fpfh_radius)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        features = cached_map(cache, "features", scan_features, (voxel, config.normal_radius, config.fpfh_radius),
-                              scans, keys, config.workers, tick, config.ray)
-    for s, f, key in zip(scans, features, keys):
-        if isinstance(f, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
-            skipped[s.name] = f
-            log(f"skipped {s.name}: {f}")
-        else:
-            f.key = key  # the cache names the pairs by their scans' keys
-    usable = [k for k, f in enumerate(features) if not isinstance(f, str)]
-    scans, centres, features = [scans[k] for k in usable], centres[usable], [features[k] for k in usable]
+        counts = store.map("features", scan_features, radii, scans, keys, config.workers, tick, config.ray,
+                           keep=lambda f: f if isinstance(f, str) else len(f.descriptors))
+    for s, count in zip(scans, counts):
+        if isinstance(count, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
+            skipped[s.name] = count
+            log(f"skipped {s.name}: {count}")
+    usable = [k for k, count in enumerate(counts) if not isinstance(count, str)]
+    scans, centres, counts = [scans[k] for k in usable], centres[usable], [counts[k] for k in usable]
     if len(scans) < 2:
         raise _too_few(scans, skipped)
+    features = store.sequence("features", [keys[k] for k in usable], _again(scan_features, radii, scans))
     names = [s.name for s in scans]
     if recorder:
-        recorder.log_scans(names, [f.points for f in features])
+        recorder.log_scans(names, Attribute(features, "points"))
 
     with timer.stage("global_graph"):
         if scores is None:
-            F, feature_kind = _global_features(features, config)
+            F, feature_kind = _global_features(features, counts, config)
             top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
             scores, feature_kind = _given_scores(scores, len(scans)), "overlap scores given by the caller"
@@ -262,9 +281,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     for _ in range(config.rounds):
         changed = 0
         if (config.refine or config.loops) and pyramids is None:
+            grid_keys = [pyramid_key(key) for key in features.keys]
             with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
-                pyramids = cached_map(cache, "pyramids", scan_pyramid, voxel, scans,
-                                      [pyramid_key(f.key) for f in features], config.workers, tick, config.ray)
+                store.map("pyramids", scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
+                          keep=lambda p: None)
+            pyramids = store.sequence("pyramids", grid_keys, _again(scan_pyramid, voxel, scans))
         if config.refine:
             with timer.stage("refine"):
                 changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress, cache)
@@ -325,6 +346,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     return run
 
 
+def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:
+    """``k -> fn(shared, tasks[k])``: how the store makes a stage's item k again (``store.Store.sequence``)."""
+    return lambda k: fn(shared, tasks[k])
+
+
 def _underdetermined(run: RunResult, anchor: int) -> list[str]:
     """The registered scans (but the world one) whose pose is not fixed in some direction
     (``information.underdetermined``; the stiffened covariances only when a kept edge leaves a direction free)."""
@@ -336,7 +362,7 @@ def _underdetermined(run: RunResult, anchor: int) -> list[str]:
             stiffened = pose_covariances(run, stiffen=STIFFEN)
         except RuntimeError:  # indeterminate (see above): the spreads alone decide
             pass
-    flagged = underdetermined(run.covariances, [f.points for f in run.features], run.voxel, others, stiffened)
+    flagged = underdetermined(run.covariances, Attribute(run.features, "points"), run.voxel, others, stiffened)
     return [run.names[k] for k in np.flatnonzero(flagged)]
 
 
@@ -356,13 +382,50 @@ def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None, pr
 
 
 def merged_cloud(result: RunResult) -> np.ndarray:
-    """All registered scans under their poses, voxel-downsampled once more where they overlap."""
-    import open3d as o3d
+    """All registered scans under their poses, voxel-downsampled once more where they overlap: one point per
+    occupied cell of the voxel grid, the mean of the scans' points in it. Reads one scan at a time and holds the
+    merged grid (the scene's size, not the scans' count)."""
+    merged = _VoxelMeans(result.voxel)
+    for k in result.registered:
+        merged.add(transform_points(result.poses[k], result.features[k].points + result.centres[k]))
+    return merged.points()
 
-    parts = [transform_points(result.poses[k], result.features[k].points + result.centres[k])
-             for k in result.registered]
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(parts)))
-    return np.asarray(pcd.voxel_down_sample(result.voxel).points)
+
+class _VoxelMeans:
+    """Points gathered batch by batch into the cells of a voxel grid: per occupied cell the mean of its points."""
+
+    _BATCH = 2_000_000  # points gathered before they are merged into the cells
+
+    def __init__(self, voxel: float) -> None:
+        self.voxel = voxel
+        self._cells = np.zeros((0, 3), dtype=np.int64)
+        self._sums = np.zeros((0, 3))
+        self._counts = np.zeros(0)
+        self._pending: list[np.ndarray] = []
+
+    def add(self, points: np.ndarray) -> None:
+        self._pending.append(points)
+        if sum(map(len, self._pending)) >= self._BATCH:
+            self._merge()
+
+    def points(self) -> np.ndarray:
+        self._merge()
+        return self._sums / self._counts[:, None]
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        new = np.concatenate(self._pending)
+        self._pending = []
+        cells = np.concatenate([self._cells, np.floor(new / self.voxel).astype(np.int64)])
+        sums = np.concatenate([self._sums, new])
+        counts = np.concatenate([self._counts, np.ones(len(new))])
+        order = np.lexsort(cells.T[::-1])
+        cells = cells[order]
+        starts = np.concatenate([[0], np.flatnonzero(np.any(cells[1:] != cells[:-1], axis=1)) + 1])
+        self._cells = cells[starts]
+        self._sums = np.add.reduceat(sums[order], starts)
+        self._counts = np.add.reduceat(counts[order], starts)
 
 
 def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
@@ -380,13 +443,17 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     with timer.stage("load"):
         scans, skipped = load_scene(scene_dir, config, log)
     with staged_results(out) as stage:
-        recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight) if config.record else None
+        cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
+        store = Store(cache, scratch=stage)  # without a cache, removed before the swap (and with the stage)
         try:
-            cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
-            result = register(scans, config, recorder, log, skipped, progress=progress, cache=cache)
+            recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight) if config.record else None
+            try:
+                result = register(scans, config, recorder, log, skipped, progress=progress, cache=cache, store=store)
+            finally:
+                if recorder:
+                    recorder.close()
+            result.timings = {**timer.seconds, **result.timings}
+            write_results(stage, result, config, started, merged_cloud(result))
         finally:
-            if recorder:
-                recorder.close()
-        result.timings = {**timer.seconds, **result.timings}
-        write_results(stage, result, config, started, merged_cloud(result))
+            store.close()
     return result

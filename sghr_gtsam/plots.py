@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import io
 from functools import cache
+from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -30,7 +31,7 @@ if TYPE_CHECKING:
     from .types import SyncResult
 
 RASTER_WIDTH = 400
-"""The top view is drawn as an image this many pixels wide (``_raster``): every point of the voxelised scans
+"""The top view is drawn as an image this many pixels wide (``_Raster``): every point of the voxelised scans
 at the cost of one image, where a scatter of 60,000 points took 0.8 s to draw."""
 
 KEPT_COLOUR = "#1a1a1a"
@@ -58,30 +59,53 @@ def _figure_class() -> type:
     return InlineFigure
 
 
-def _view_axes(points: np.ndarray) -> np.ndarray:
-    """(3, 2): the two principal axes of largest extent, the top view's x and y."""
-    centred = points - points.mean(0)
-    _, _, vt = np.linalg.svd(centred[:: max(1, len(centred) // 20_000)], full_matrices=False)
-    return vt[:2].T
+def _view_axes(clouds: Iterable[np.ndarray]) -> np.ndarray:
+    """(3, 2): the two principal axes of largest extent of the points of ``clouds`` (each read once), the top
+    view's x and y."""
+    count, total, scatter, origin = 0, np.zeros(3), np.zeros((3, 3)), None
+    for P in clouds:
+        origin = P[0] if origin is None else origin  # sums about a point of the scene keep their digits
+        Q = P - origin
+        count, total, scatter = count + len(Q), total + Q.sum(0), scatter + Q.T @ Q
+    mean = total / count
+    _, vectors = np.linalg.eigh(scatter / count - np.outer(mean, mean))
+    return vectors[:, ::-1][:, :2]
 
 
-def _raster(xy: np.ndarray, rgb: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, list[float]]:
-    """(H, W, 4) RGBA image of the points ``xy`` coloured ``rgb`` and its extent [x0, x1, y0, y1]. A pixel takes
-    the colour of one of its points (drawn in random order) and an opacity that grows with their number, so that
-    walls, which stand across the view, show above floors and ceilings, which spread over it."""
-    lo, hi = xy.min(0), xy.max(0)
-    span = np.maximum(hi - lo, 1e-12)
-    pixel = span[0] / RASTER_WIDTH
-    shape = (int(np.ceil(span[1] / pixel)) + 1, RASTER_WIDTH + 1)
-    col, row = ((xy - lo) / pixel).astype(int).T
-    image = np.zeros((*shape, 4))
-    order = rng.permutation(len(xy))
-    image[row[order], col[order], :3] = rgb[order]
-    count = np.zeros(shape)
-    np.add.at(count, (row, col), 1.0)
-    full = max(np.percentile(count[count > 0], 90), 1.0)
-    image[..., 3] = np.where(count > 0, np.clip(count / full, 0.25, 1.0), 0.0)
-    return image, [lo[0], lo[0] + shape[1] * pixel, lo[1], lo[1] + shape[0] * pixel]
+class _Raster:
+    """An (H, W, 4) RGBA image of points drawn scan by scan over the extent [x0, x1, y0, y1] of ``lo``-``hi``. A pixel
+    takes the colour of one of its points (each drawn with a random priority, the highest wins) and an opacity that
+    grows with their number, so that walls, which stand across the view, show above floors and ceilings, which
+    spread over it."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, rng: np.random.Generator) -> None:
+        span = np.maximum(hi - lo, 1e-12)
+        self.lo, self.pixel, self.rng = lo, span[0] / RASTER_WIDTH, rng
+        self.shape = (int(np.ceil(span[1] / self.pixel)) + 1, RASTER_WIDTH + 1)
+        self.extent = [lo[0], lo[0] + self.shape[1] * self.pixel, lo[1], lo[1] + self.shape[0] * self.pixel]
+        self._rgb = np.zeros((self.shape[0] * self.shape[1], 3))
+        self._priority = np.full(self.shape[0] * self.shape[1], -1.0)
+        self._count = np.zeros(self.shape[0] * self.shape[1])
+
+    def add(self, xy: np.ndarray, rgb: np.ndarray) -> None:
+        """Points ``xy`` (P, 2) of one colour ``rgb``."""
+        col, row = ((xy - self.lo) / self.pixel).astype(int).T  # within the image: lo-hi bound every scan's xy
+        cell = row * self.shape[1] + col
+        priority = self.rng.random(len(cell))
+        top = np.full_like(self._priority, -1.0)
+        np.maximum.at(top, cell, priority)
+        wins = (priority == top[cell]) & (priority > self._priority[cell])
+        self._priority[cell[wins]] = priority[wins]
+        self._rgb[cell[wins]] = rgb
+        np.add.at(self._count, cell, 1.0)
+
+    def image(self) -> np.ndarray:
+        count = self._count.reshape(self.shape)
+        image = np.zeros((*self.shape, 4))
+        image[..., :3] = self._rgb.reshape(*self.shape, 3)
+        full = max(np.percentile(count[count > 0], 90), 1.0)
+        image[..., 3] = np.where(count > 0, np.clip(count / full, 0.25, 1.0), 0.0)
+        return image
 
 
 def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Figure":
@@ -97,14 +121,21 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     placed = result.registered
     n = len(result.names)
     colours = scan_colours(n) / 255.0
-    cloud = np.concatenate([transform_points(result.poses[k], result.features[k].points) for k in placed])
-    label = np.concatenate([np.full(len(result.features[k].points), k) for k in placed])
-    axes = _view_axes(cloud)
-    xy = cloud @ axes
+
+    def world(k: int) -> np.ndarray:  # read anew at each pass: no pass holds every scan's points
+        return transform_points(result.poses[k], result.features[k].points)
+
+    axes = _view_axes(world(k) for k in placed)
     centres = np.zeros((n, 2))
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for k in placed:
-        centres[k] = transform_points(result.poses[k], result.features[k].points.mean(0, keepdims=True))[0] @ axes
-    image, extent = _raster(xy, colours[label], np.random.default_rng(0))
+        xy = world(k) @ axes
+        centres[k] = xy.mean(0)
+        lo, hi = np.minimum(lo, xy.min(0)), np.maximum(hi, xy.max(0))
+    raster = _Raster(lo, hi, np.random.default_rng(0))
+    for k in placed:
+        raster.add(world(k) @ axes, colours[k])
+    image, extent = raster.image(), raster.extent
 
     fig = _figure_class()(figsize=(11, 5), dpi=90)
     fig.subplots_adjust(left=0.01, right=0.98, bottom=0.11, top=0.93, wspace=0.12)

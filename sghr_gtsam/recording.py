@@ -27,6 +27,7 @@ weight and metric series in tabs, and the text log. Layout of the data:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -122,18 +123,23 @@ class Recorder:
     def log_message(self, text: str) -> None:
         self.rec.log("log", rr.TextLog(text))
 
-    def log_scans(self, names: list[str], points: list[np.ndarray]) -> None:
-        """The (voxelised) scans, each in its own frame with its axes; poses come with every iteration."""
+    def log_scans(self, names: list[str], points: Sequence[np.ndarray]) -> None:
+        """The (voxelised) scans, each in its own frame with its axes; poses come with every iteration.
+        ``points[k]`` is read once, one scan at a time."""
         self._names = list(names)
         self._paths = [f"world/scans/{rr.escape_entity_path_part(name)}" for name in names]
-        self._centres = np.array([p.mean(0) if len(p) else np.zeros(3) for p in points])
-        self._boxes = [(p.min(0), p.max(0)) if len(p) else (np.zeros(3), np.zeros(3)) for p in points]
         self._colours = scan_colours(len(names))
-        sizes = [np.linalg.norm(hi - lo) for lo, hi in self._boxes]
-        axes = rr.TransformAxes3D(0.1 * float(np.median(sizes)) or 1.0)
+        centres, self._boxes = [], []
         for path, P, colour in zip(self._paths, points, self._colours):
+            centres.append(P.mean(0) if len(P) else np.zeros(3))
+            self._boxes.append((P.min(0), P.max(0)) if len(P) else (np.zeros(3), np.zeros(3)))
             self.rec.log(path, rr.Points3D(P.astype(np.float32), colors=colour, radii=rr.Radius.ui_points(1.5)),
-                         axes, static=True)
+                         static=True)
+        self._centres = np.array(centres).reshape(-1, 3)
+        sizes = [np.linalg.norm(hi - lo) for lo, hi in self._boxes]
+        axes = rr.TransformAxes3D(0.1 * float(np.median(sizes)) or 1.0)  # sized by all the scans: logged after them
+        for path in self._paths:
+            self.rec.log(path, axes, static=True)
         self._log_nodes({})
 
     def _log_nodes(self, marks: dict[str, str]) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import resource
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,7 +37,10 @@ class RunResult:
     sync: SyncResult
     unregistered: list[str]
     skipped: dict[str, str]
-    features: list[ScanFeatures]
+    features: Sequence[ScanFeatures]
+    """Scan k's voxel-grid features at ``features[k]``, in its centred frame. From ``pipeline.register``: read from
+    the run's store on access, one scan at a time (``store.Stored``; computed again from the scan when the store's
+    temporary folder is gone)."""
     timings: dict[str, float] = field(default_factory=dict)
     global_feature: str = ""
     unverified: list[str] = field(default_factory=list)

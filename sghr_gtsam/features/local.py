@@ -6,7 +6,7 @@ the pairwise stage only matches, solves and refines."""
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
@@ -28,6 +28,10 @@ COV_NEIGHBORS = 20
 # YOHO keypoints on the kitchen lie 0.33-0.35 voxels (median; all < 0.9) from the 4.1 cm grid;
 # keypoints in another frame or unit lie metres away.
 KEYPOINT_MAX_DISTANCE = 2.0
+# Memory per point of the search structures (measured: 200k points): a GICP cloud with its covariances (and
+# normals) and its k-d tree; a scipy k-d tree on D-d descriptors copies them as float64 (8·D) and adds this.
+GICP_BYTES = 230
+TREE_BYTES = 35
 
 
 @dataclass(eq=False)
@@ -37,10 +41,10 @@ class ScanFeatures:
     ``points`` (M, 3) float64 voxel-grid centroids; ``normals`` (M, 3) unit normals oriented towards
     the scan's origin; ``voxel`` the grid size. Matching: ``keypoints`` (K, 3) float64 and their
     ``descriptors`` (K, D) float32, which are ``points`` and ``fpfh`` (M, 33) unless they were given
-    (then ``fpfh`` is None: not computed). Search structures built once for all pairs:
+    (then ``fpfh`` is None: not computed). Search structures, built from the arrays on first use in whichever
+    process uses them (they are neither stored nor pickled: a task that only reads the points builds none):
     ``descriptor_tree`` (k-d tree on ``descriptors``), ``cloud`` (``points`` with GICP covariances,
-    small_gicp) and its k-d tree ``cloud_tree``. ``key``: what made them, as the resume cache names them
-    (``cache.scan_key``: the scan's content and centre, the voxel and radii); empty when not known.
+    small_gicp) and its k-d tree ``cloud_tree``.
     """
 
     points: np.ndarray
@@ -49,30 +53,47 @@ class ScanFeatures:
     voxel: float
     keypoints: np.ndarray
     descriptors: np.ndarray
-    descriptor_tree: cKDTree = field(repr=False)
-    cloud: small_gicp.PointCloud = field(repr=False)
-    cloud_tree: small_gicp.KdTree = field(repr=False)
-    key: str = ""
 
-    @classmethod
-    def from_arrays(cls, points: np.ndarray, normals: np.ndarray, fpfh: np.ndarray | None, voxel: float,
-                    keypoints: np.ndarray, descriptors: np.ndarray) -> "ScanFeatures":
-        """Features from their arrays, the search structures built as ``compute_features`` builds them (the resume
-        cache stores the arrays only)."""
-        return cls(points, normals, fpfh, float(voxel), keypoints, descriptors, cKDTree(descriptors),
-                   *_gicp_cloud(points))
+    def __post_init__(self) -> None:
+        self._tree: cKDTree | None = None
+        self._gicp: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
 
     def __len__(self) -> int:
         return len(self.points)
 
-    # Pickling (to worker processes, sghr_gtsam.executor): small_gicp's cloud and tree cannot be pickled,
-    # so they are rebuilt from the grid on arrival, exactly as compute_features built them.
+    @property
+    def descriptor_tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = cKDTree(self.descriptors)
+        return self._tree
+
+    @property
+    def cloud(self) -> small_gicp.PointCloud:
+        return self._built_gicp()[0]
+
+    @property
+    def cloud_tree(self) -> small_gicp.KdTree:
+        return self._built_gicp()[1]
+
+    def _built_gicp(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+        if self._gicp is None:
+            self._gicp = _gicp_cloud(self.points)
+        return self._gicp
+
+    @property
+    def nbytes(self) -> int:
+        """Memory it holds: its arrays and the search structures built so far (``TREE_BYTES``, ``GICP_BYTES``)."""
+        arrays = sum(a.nbytes for a in (self.points, self.normals, self.fpfh, self.keypoints, self.descriptors)
+                     if a is not None)
+        tree = 0 if self._tree is None else len(self.descriptors) * (8 * self.descriptors.shape[1] + TREE_BYTES)
+        return arrays + tree + (0 if self._gicp is None else len(self.points) * GICP_BYTES)
+
     def __getstate__(self) -> dict:
-        return {k: v for k, v in self.__dict__.items() if k not in ("cloud", "cloud_tree")}
+        return {k: v for k, v in self.__dict__.items() if k not in ("_tree", "_gicp")}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
-        self.cloud, self.cloud_tree = _gicp_cloud(self.points)
+        self.__post_init__()
 
 
 def query_threads() -> int:
@@ -96,7 +117,8 @@ def compute_features(
     given: Keypoints | None = None,
     sensor: np.ndarray | None = None,
 ) -> ScanFeatures:
-    """Voxel grid, normals, GICP covariances and FPFH of one scan; radii in voxels (as in ``Config``).
+    """Voxel grid, normals and FPFH of one scan (its GICP covariances on first use); radii in voxels (as in
+    ``Config``).
     With ``given`` keypoints and descriptors no FPFH is computed and pairs are matched on those;
     ``InputError`` when the keypoints do not lie on the scan (another frame or unit).
 
@@ -122,32 +144,20 @@ def compute_features(
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(normal_radius * voxel, NORMAL_MAX_NN))
     pcd.orient_normals_towards_camera_location(np.zeros(3) if sensor is None else np.asarray(sensor, dtype=float))
     grid = np.asarray(pcd.points)
-    cloud, cloud_tree = _gicp_cloud(grid)
 
     if given is None:
         fpfh = o3d.pipelines.registration.compute_fpfh_feature(
             pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
         )
         fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
-        keypoints, descriptors = grid, fpfh
-    else:
-        fpfh, keypoints, descriptors = None, given.points, given.descriptors
-        _, sq_dist = cloud_tree.batch_nearest_neighbor_search(keypoints, GICP_THREADS)
-        off = float(np.sqrt(np.median(sq_dist))) / voxel
-        if off > KEYPOINT_MAX_DISTANCE:
-            raise InputError(f"keypoints lie {off:.3g} voxels from the scan's points (median; at most "
-                             f"{KEYPOINT_MAX_DISTANCE:g}): are they in the scan's own frame and units?")
-    return ScanFeatures(
-        points=grid,
-        normals=np.asarray(pcd.normals),
-        fpfh=fpfh,
-        voxel=float(voxel),
-        keypoints=keypoints,
-        descriptors=descriptors,
-        descriptor_tree=cKDTree(descriptors),
-        cloud=cloud,
-        cloud_tree=cloud_tree,
-    )
+        return ScanFeatures(grid, np.asarray(pcd.normals), fpfh, float(voxel), grid, fpfh)
+    features = ScanFeatures(grid, np.asarray(pcd.normals), None, float(voxel), given.points, given.descriptors)
+    _, sq_dist = features.cloud_tree.batch_nearest_neighbor_search(given.points, GICP_THREADS)
+    off = float(np.sqrt(np.median(sq_dist))) / voxel
+    if off > KEYPOINT_MAX_DISTANCE:
+        raise InputError(f"keypoints lie {off:.3g} voxels from the scan's points (median; at most "
+                         f"{KEYPOINT_MAX_DISTANCE:g}): are they in the scan's own frame and units?")
+    return features
 
 
 def scan_features(shared: tuple[float, float, float], scan: Scan) -> ScanFeatures | str:

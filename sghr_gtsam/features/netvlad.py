@@ -11,6 +11,7 @@ which keeps it off the default run (seconds of import).
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,14 +75,17 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
     return head
 
 
-def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: int = 20000,
-                    iters: int = 25, seed: int = 0) -> np.ndarray:
-    """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors."""
+def kmeans_codebook(descriptors: Sequence[np.ndarray], clusters: int = 64, samples: int = 20000,
+                    iters: int = 25, seed: int = 0, counts: Sequence[int] | None = None) -> np.ndarray:
+    """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors.
+
+    ``descriptors[k]`` (P_k, D) is read one scan at a time, for its sampled rows only; ``counts``: the P_k when
+    known (otherwise each scan is read once more, for its length). The sample is the same as from the scans'
+    concatenation."""
     rng = np.random.default_rng(seed)
-    X = np.concatenate(descriptors)
-    if len(X) > samples:
-        X = X[rng.choice(len(X), samples, replace=False)]
-    X = X.astype(np.float32)
+    counts = [len(d) for d in descriptors] if counts is None else list(counts)
+    total = int(sum(counts))
+    X = _rows(descriptors, counts, rng.choice(total, samples, replace=False) if total > samples else np.arange(total))
     X /= np.linalg.norm(X, axis=1, keepdims=True) + 1e-12
     clusters = min(clusters, len(X))
     C = X[rng.choice(len(X), clusters, replace=False)]
@@ -95,10 +99,27 @@ def kmeans_codebook(descriptors: list[np.ndarray], clusters: int = 64, samples: 
     return C
 
 
-def global_features(head: VladHead, descriptors: list[np.ndarray], max_points: int = 5000,
+def _rows(descriptors: Sequence[np.ndarray], counts: list[int], picks: np.ndarray) -> np.ndarray:
+    """Rows ``picks`` of the descriptors' concatenation, in that order, as float32; each scan with a pick read
+    once."""
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    scan = np.searchsorted(starts, picks, side="right") - 1
+    order = np.argsort(scan, kind="stable")
+    X = None
+    for group in np.split(order, np.flatnonzero(np.diff(scan[order])) + 1):
+        k = int(scan[group[0]])
+        rows = np.asarray(descriptors[k])[picks[group] - starts[k]]
+        if X is None:
+            X = np.empty((len(picks), rows.shape[1]), dtype=np.float32)
+        X[group] = rows
+    return X
+
+
+def global_features(head: VladHead, descriptors: Iterable[np.ndarray], max_points: int = 5000,
                     seed: int = 0) -> np.ndarray:
-    """Unit global feature (N, K·D) of each scan's descriptors (P_i, D); at most ``max_points`` per scan
-    (the paper samples 5000 keypoints), sampled with a fixed seed so reruns give identical scores."""
+    """Unit global feature (N, K·D) of each scan's descriptors (P_i, D), read one scan at a time; at most
+    ``max_points`` per scan (the paper samples 5000 keypoints), sampled with a fixed seed so reruns give identical
+    scores."""
     rng = np.random.default_rng(seed)
     out = []
     for d in descriptors:
@@ -108,10 +129,12 @@ def global_features(head: VladHead, descriptors: list[np.ndarray], max_points: i
     return np.stack(out)
 
 
-def codebook_features(descriptors: list[np.ndarray], seed: int = 0) -> tuple[np.ndarray, int]:
+def codebook_features(descriptors: Sequence[np.ndarray], seed: int = 0,
+                      counts: Sequence[int] | None = None) -> tuple[np.ndarray, int]:
     """The unsupervised global feature: a NetVLAD initialised from a k-means codebook of these scans' own
-    descriptors (``kmeans_codebook``, ``from_codebook``); the (N, K·D) unit features and the cluster count."""
-    codebook = kmeans_codebook(descriptors, seed=seed)
+    descriptors (``kmeans_codebook``, ``from_codebook``); the (N, K·D) unit features and the cluster count.
+    ``descriptors[k]`` is read one scan at a time (``counts``: as in ``kmeans_codebook``)."""
+    codebook = kmeans_codebook(descriptors, seed=seed, counts=counts)
     return global_features(VladHead.from_codebook(codebook), descriptors, seed=seed), len(codebook)
 
 

@@ -10,14 +10,14 @@ import numpy as np
 
 from ..cache import Cache
 from ..config import Config
-from ..features.local import ScanFeatures
 from ..progress import QUIET, Progress
 from ..se3 import inv_T
+from ..store import Attribute, Stored
 from ..types import SyncResult
 from .batch import register_edges
 from .edges import EdgeSet
 from .loops import predicted_overlap, propose_loops
-from .refine import Pyramid, confirms, register_from_guesses
+from .refine import confirms, register_from_guesses
 from .retry import retry_pairs, weak_scans
 
 
@@ -52,7 +52,7 @@ def _guesses(poses: np.ndarray, ij: np.ndarray) -> np.ndarray:
     return inv_T(poses[ij[:, 0]]) @ poses[ij[:, 1]]
 
 
-def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
+def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncResult,
                  voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET,
                  cache: Cache | None = None) -> int:
     """Re-register every kept edge of the largest part not refined yet by multi-scale ICP from the
@@ -76,7 +76,7 @@ def refine_edges(features: list[ScanFeatures], pyramids: list[Pyramid], edges: E
     return changed
 
 
-def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: EdgeSet, sync: SyncResult,
+def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncResult,
                 voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET,
                 cache: Cache | None = None) -> int:
     """Register the pairs of the largest part that overlap under the synchronized poses but have no kept edge,
@@ -84,7 +84,7 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
     synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
     as loop edges (a rejected edge's registration is replaced). Each pair is tried once a run."""
     n = len(features)
-    overlap = predicted_overlap([f.points for f in features], sync.poses, sync.component == 0, voxel)
+    overlap = predicted_overlap(Attribute(features, "points"), sync.poses, sync.component == 0, voxel)
     kept = np.zeros((n, n), dtype=bool)
     ij_kept = edges.ij[_kept(edges, sync)]
     kept[ij_kept[:, 0], ij_kept[:, 1]] = kept[ij_kept[:, 1], ij_kept[:, 0]] = True
@@ -116,7 +116,7 @@ def close_loops(features: list[ScanFeatures], pyramids: list[Pyramid], edges: Ed
     return closed
 
 
-def retry_weak(features: list[ScanFeatures], scores: np.ndarray, edges: EdgeSet, sync: SyncResult,
+def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncResult,
                unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport,
                progress: Progress = QUIET, cache: Cache | None = None) -> int:
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates

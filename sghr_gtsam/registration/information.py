@@ -31,6 +31,7 @@ the point-to-point one (with its σ̂ from the full 3-d residuals) is 3-15× ove
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -225,7 +226,7 @@ STIFFEN = 100.0
 stiffer: a spread those bounds set shrinks by √STIFFEN = 10, one the measurements set does not move."""
 
 
-def underdetermined(covariances: np.ndarray, points: list[np.ndarray], voxel: float, registered: list[int],
+def underdetermined(covariances: np.ndarray, points: Sequence[np.ndarray], voxel: float, registered: list[int],
                     stiffened: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the ``registered`` scans whose pose is not fixed in some direction.
 
@@ -235,10 +236,10 @@ def underdetermined(covariances: np.ndarray, points: list[np.ndarray], voxel: fl
     rather than by measurements: ``stiffened`` holds the covariances with every kept edge's ``loose`` part
     ``STIFFEN`` times stiffer, and a spread that shrinks by more than ``STIFFEN^¼`` (the geometric middle of no
     change and ``√STIFFEN``) is one no measurement fixes. ``covariances``: (N, 6, 6) as
-    ``gtsam_api.pose_covariances``; ``points[k]``: scan k's points in its own frame."""
+    ``gtsam_api.pose_covariances``; ``points[k]``: scan k's points in its own frame, read once."""
     flagged = np.zeros(len(covariances), dtype=bool)
     for k in registered:
-        spread = pose_spread(covariances[k], points[k])
-        flagged[k] = spread > voxel or (stiffened is not None
-                                        and spread > STIFFEN**0.25 * pose_spread(stiffened[k], points[k]))
+        q = points[k]
+        spread = pose_spread(covariances[k], q)
+        flagged[k] = spread > voxel or (stiffened is not None and spread > STIFFEN**0.25 * pose_spread(stiffened[k], q))
     return flagged

@@ -8,6 +8,8 @@ result confirms the guess (``refine.confirms``)."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy import sparse
 
@@ -18,9 +20,10 @@ CELL = 2.0
 true overlap visible, fine enough that two walls a metre apart do not overlap."""
 MIN_OVERLAP = 0.3
 """Predicted overlap above which a pair is worth an ICP: 3DMatch's own threshold for a benchmark pair."""
-def predicted_overlap(points: list[np.ndarray], poses: np.ndarray, placed: np.ndarray, voxel: float) -> np.ndarray:
+def predicted_overlap(points: Sequence[np.ndarray], poses: np.ndarray, placed: np.ndarray, voxel: float) -> np.ndarray:
     """(N, N) overlap of every pair of placed scans (``placed``: (N,) bool) under ``poses``: cells shared over
-    the smaller scan's cells; 0 for pairs with an unplaced scan and on the diagonal."""
+    the smaller scan's cells; 0 for pairs with an unplaced scan and on the diagonal. ``points[k]`` is read once,
+    one scan at a time."""
     n = len(points)
     rows, keys = [], []
     for k in np.flatnonzero(placed):

@@ -19,10 +19,11 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
-from ..cache import Cache, cached_map, refined_key
+from ..cache import Cache, refined_key
 from ..config import Config
-from ..features.local import COV_NEIGHBORS, GICP_THREADS, ScanFeatures
+from ..features.local import COV_NEIGHBORS, GICP_BYTES, GICP_THREADS, ScanFeatures
 from ..se3 import inv_T, rotation_angle
+from ..store import Stored, pair_map
 from ..types import Scan
 from .information import registration_information
 from .pairwise import PairResult, score_pair
@@ -71,6 +72,11 @@ class Pyramid:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self._levels = {}
+
+    @property
+    def nbytes(self) -> int:
+        """Memory it holds: its grids and the levels built so far (``features.local.GICP_BYTES`` a point)."""
+        return sum(g.nbytes for g in self.grids) + sum(len(self.grids[k]) * GICP_BYTES for k in self._levels)
 
     def level(self, k: int) -> Level:
         if k not in self._levels:
@@ -147,23 +153,23 @@ def confirms(result: PairResult, converged: bool, guess: np.ndarray, voxel: floa
                 and np.linalg.norm(move[:3, 3]) <= MAX_MOVE_VOXELS * voxel)
 
 
-def _refine_task(shared: tuple, task: tuple) -> tuple[PairResult, bool]:
+def _refine_task(shared: tuple[Stored, Stored, float, float], task: tuple) -> tuple[PairResult, bool]:
     features, pyramids, voxel, icp_distance = shared
     a, b, T_init, matches = task
     return refine_pair(features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance, matches)
 
 
-def register_from_guesses(features: list[ScanFeatures], pyramids: list[Pyramid], ij: np.ndarray,
-                          guesses: np.ndarray, voxel: float, config: Config, matches: list | None = None,
+def register_from_guesses(features: Stored, pyramids: Stored, ij: np.ndarray, guesses: np.ndarray, voxel: float,
+                          config: Config, matches: list | None = None,
                           on_result: Callable[[int, object], None] | None = None,
                           cache: Cache | None = None) -> tuple[list[PairResult], np.ndarray]:
-    """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), over the executor's
-    processes (``config.workers``, ``config.ray``), with each pair's earlier descriptor ``matches`` where known
-    (None: found anew): the results and whether each converged. ``on_result`` as in ``parallel_map`` (progress);
-    ``cache``: results stored and reused (``cache.Cache``)."""
+    """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), on the scans' stored
+    ``features`` and ``pyramids``, over the executor's processes (``config.workers``, ``config.ray``), with each
+    pair's earlier descriptor ``matches`` where known (None: found anew): the results and whether each converged.
+    ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored and reused (``cache.Cache``)."""
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
-    keys = [refined_key(features[a].key, features[b].key, T, config.icp_distance) for a, b, T, _ in tasks]
-    out = cached_map(cache, "refined", _refine_task, (features, pyramids, voxel, config.icp_distance), tasks, keys,
-                     config.workers, on_result, config.ray)
+    keys = [refined_key(features.keys[a], features.keys[b], T, config.icp_distance) for a, b, T, _ in tasks]
+    out = pair_map(cache, "refined", _refine_task, (features, pyramids, voxel, config.icp_distance), ij, tasks, keys,
+                   config.workers, on_result, config.ray)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)
