@@ -1,8 +1,9 @@
 """One way to run a stage's independent tasks over processes: ``parallel_map(fn, shared, tasks, workers, ray=...)``.
 
 Every parallel stage (pairwise registration, refinement, loop closure, retries) calls it. A task is
-``fn(shared, task)``; ``shared`` is the stage's read-only state (the scans' features), sent once to each
-worker; tasks and results cross process boundaries one by one. Results come back in the tasks' order and
+``fn(shared, task)``; ``shared`` is the stage's read-only state, sent once to each worker: parameters and the
+scans' features and grids as ``store.Stored`` handles (a folder and keys; the arrays are read from the folder where
+a task needs them); tasks and results cross process boundaries one by one. Results come back in the tasks' order and
 every task is a pure function of its inputs, so a run gives the same result for any number of workers. With
 ``ray`` (``Config.ray``) the same call runs on a Ray cluster instead (``executor_ray``).
 

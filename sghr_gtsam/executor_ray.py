@@ -2,14 +2,20 @@
 
 The cluster's workers are actors kept for the life of this process, as the fork server is: each imports the tasks'
 modules once, takes one core of its node and one thread in its native pools, as a pool worker does. A stage's
-``shared`` state goes into the object store once; each actor reads it at its first task of the stage and keeps it
-(its scans' search trees are rebuilt on reading: per task, that would cost more than the task). Each actor has at
-most two tasks (one running, the next waiting), so that it never idles for a round trip and no task waits
-behind a long one while another actor is free. Results come back in the tasks' order; a failed task, Ctrl-C or
-SIGTERM ends the connection and its actors (the next stage connects anew) and raises as the process pool does.
+``shared`` state goes into the object store once; each actor reads it at its first task of the stage and keeps it.
+That state holds no arrays: the scans' features and grids travel as ``store.Stored`` handles, read by each actor
+from the run's store folder through its own memory of the last items (``store.LRU_BYTES``, kept across stages).
+Each actor has at most two tasks (one running, the next waiting), so that it never idles for a round trip and no
+task waits behind a long one while another actor is free. Results come back in the tasks' order; a failed task,
+Ctrl-C or SIGTERM ends the connection and its actors (the next stage connects anew) and raises as the process pool
+does.
 
 On a cluster of several machines, every node needs this project and its dependencies installed, at the same
-version as the caller.
+version as the caller, and must see the scans (the tasks read them by path) and the run's store folder (the resume
+cache ``OUT/cache``, or without one a temporary folder in the run's staging folder beside ``OUT``) at the same
+paths: a shared filesystem. Shipping the arrays through Ray's object store instead would hold every scan's features
+in the head node's object store (spilled to its disk), gaining nothing over a shared folder that the scans need
+anyway; an actor that does not see the folder ends the run with one line saying so (``store``).
 """
 
 from __future__ import annotations

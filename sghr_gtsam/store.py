@@ -12,7 +12,8 @@ In the process that runs the pipeline, an entry that is missing or cannot be rea
 (and written back while the store is open): ``RunResult.features`` keeps working after a run's temporary folder is
 removed. A worker has no scans: it raises ``InputError`` instead. On a Ray cluster of several machines the workers
 read the folder where the pipeline wrote it, so it (like the scans) must be on a filesystem every node mounts at
-the same path; a worker that does not see it says so.
+the same path (``pipeline.register`` without a cache: give it ``store=Store(None, scratch=<such a folder>)``); a
+worker that does not see it says so.
 """
 
 from __future__ import annotations
