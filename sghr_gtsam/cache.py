@@ -8,7 +8,8 @@ closures). A key is a digest of everything that made the result: the scan's poin
 keypoints and its centre, the parameters (voxel, radii, matcher, ICP distance, seed, the guess), the source of the
 modules that compute them and the versions of the libraries they call; a change to any of them misses. An entry
 that cannot be read (truncated, damaged) is computed again and overwritten. Nothing removes old entries: delete
-the folder to reclaim its space.
+the folder to reclaim its space. During a run the features and grids are read back from these files where a task
+needs them (``store``; a run without a cache writes the same files into a temporary folder).
 """
 
 from __future__ import annotations
