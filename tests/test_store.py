@@ -6,6 +6,7 @@ the same run holding every scan's features and grids in memory."""
 from __future__ import annotations
 
 import gc
+import importlib.util
 import pickle
 import re
 from dataclasses import dataclass
@@ -17,6 +18,7 @@ import pytest
 from sghr_gtsam import pipeline, store
 from sghr_gtsam.cache import Cache, entry_path, pyramid_key, scan_key
 from sghr_gtsam.config import Config
+from sghr_gtsam.executor import parallel_map
 from sghr_gtsam.features.local import scan_features
 from sghr_gtsam.pipeline import register, run
 from sghr_gtsam.registration.refine import scan_pyramid
@@ -134,6 +136,22 @@ def test_a_worker_that_does_not_see_the_folder_says_so(room, tmp_path):
     with pytest.raises(InputError, match="does not exist on .*: on a Ray cluster of several machines the output "
                                          "folder must be on a filesystem every node mounts at the same path$"):
         elsewhere[0]
+
+
+def _points(features: Stored, k: int) -> np.ndarray:
+    return features[k].points
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="the optional extra ray is not installed")
+def test_a_ray_worker_that_does_not_see_the_store_ends_the_run_with_one_line(tmp_path):
+    import ray
+
+    elsewhere = Stored(str(tmp_path / "not-on-this-node"), "features", ("0" * 64,))
+    try:
+        with pytest.raises(InputError, match="does not exist on .*: on a Ray cluster of several machines"):
+            parallel_map(_points, elsewhere, [0], 1, ray="local")
+    finally:
+        ray.shutdown()
 
 
 def test_a_temporary_store_goes_with_its_last_user(room, tmp_path):
