@@ -90,6 +90,8 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None, help="where scenes and runs go (default: a temporary folder)")
     ap.add_argument("--keep", action="store_true", help="keep the scenes and the runs' results")
     args = ap.parse_args()
+    if args.workdir:
+        args.workdir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(dir=args.workdir, prefix="bench_scale-"))
     print(f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.kind}, seed {args.seed}, "
           f"{args.workers} workers")
