@@ -1,6 +1,7 @@
 """Resume after SIGKILL on a large generated scene (issue 15): how much work a killed run loses.
 
     python benchmarks/bench_resume.py [--scans 500] [--kind building] [--kill-at 0.5] [--workers 2] [--workdir DIR]
+    python benchmarks/bench_resume.py --scene SCENE --reference OUT --kill-at 0.2   # a kept bench_scale run
 
 Writes a generated scene (``synthetic.make_scene``), runs ``python -m sghr_gtsam run`` on it once uninterrupted
 (the reference, into an empty folder), then again into another folder and kills that run's whole process group with
@@ -58,14 +59,23 @@ def main() -> None:
     ap.add_argument("--kill-at", type=float, default=0.5, help="fraction of the pairs finished when the run is killed")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--workdir", type=Path, default=None, help="where the scene and runs go (default: a temporary folder)")
+    ap.add_argument("--scene", type=Path, help="an existing scene folder instead of generating one")
+    ap.add_argument("--reference", type=Path, help="with --scene: a finished run of it made with this benchmark's "
+                    "command and a fresh cache (bench_scale.py --keep writes one), instead of running it again")
     args = ap.parse_args()
+    if args.reference and not args.scene:
+        ap.error("--reference needs --scene")
+    if args.workdir:
+        args.workdir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(dir=args.workdir, prefix="bench_resume-"))
     print(f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     try:
-        scene = work / "scene"
-        write_scene(make_scene(kind=args.kind, n_scans=args.scans, seed=args.seed), scene)
-        reference_s = _timed(_cli(scene, work / "ref", args.workers))  # a fresh cache: every result computed
-        total = json.loads((work / "ref" / "report.json").read_text())["cache"]["pairs"]["computed"]
+        scene = args.scene or work / "scene"
+        if not args.scene:
+            write_scene(make_scene(kind=args.kind, n_scans=args.scans, seed=args.seed), scene)
+        ref = args.reference or work / "ref"
+        reference_s = float("nan") if args.reference else _timed(_cli(scene, ref, args.workers))  # fresh cache
+        total = json.loads((ref / "report.json").read_text())["cache"]["pairs"]["computed"]
 
         out = work / "out"
         pairs = out / CACHE / "pairs"
@@ -82,7 +92,7 @@ def main() -> None:
         done = _entries(pairs)
         resumed_s = _timed(_cli(scene, out, args.workers))
         cache = json.loads((out / "report.json").read_text())["cache"]
-        same = (out / "poses.txt").read_bytes() == (work / "ref" / "poses.txt").read_bytes()
+        same = (out / "poses.txt").read_bytes() == (ref / "poses.txt").read_bytes()
     finally:
         shutil.rmtree(work, ignore_errors=True)
     computed = cache["pairs"]["computed"]
@@ -91,7 +101,7 @@ def main() -> None:
     print("| scans | pair registrations | finished before the kill | computed by the resumed run | computed "
           "again | reference s | killed after s | resumed s | poses identical |")
     print("|---|---|---|---|---|---|---|---|---|")
-    print(f"| {args.scans} | {total} | {done} | {computed} | {again} ({again / total:.1%}) | {reference_s:.0f} | "
+    print(f"| {len(list(scene.glob('*.ply')))} | {total} | {done} | {computed} | {again} ({again / total:.1%}) | {reference_s:.0f} | "
           f"{killed_s:.0f} | {resumed_s:.0f} | {'yes' if same else '**no**'} |")
     print(f"\ncache of the resumed run: {json.dumps(cache)}")
 
