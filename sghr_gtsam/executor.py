@@ -109,7 +109,11 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             # of Python < 3.12 then fails on them with a traceback on stderr.
             with _main_not_rerun(fn), _signals_held():
                 futures = [pool.submit(_call, fn, task) for task in tasks]  # starts the workers
-            return [arrived(k, future.result(), on_result, keep) for k, future in enumerate(futures)]
+            results = []
+            for k in range(len(futures)):
+                future, futures[k] = futures[k], None  # a future holds its result: let it go once taken
+                results.append(arrived(k, future.result(), on_result, keep))
+            return results
         except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
             # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
             # process table is private, but there is no public way to end its workers before Python 3.14.

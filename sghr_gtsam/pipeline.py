@@ -394,7 +394,7 @@ def merged_cloud(result: RunResult) -> np.ndarray:
 class _VoxelMeans:
     """Points gathered batch by batch into the cells of a voxel grid: per occupied cell the mean of its points."""
 
-    _BATCH = 2_000_000  # points gathered before they are merged into the cells
+    _BATCH = 250_000  # points gathered before they are merged into the cells: a few MB at a time
 
     def __init__(self, voxel: float) -> None:
         self.voxel = voxel

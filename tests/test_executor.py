@@ -3,6 +3,7 @@ results in the tasks' order, raise a task's error in the caller, and a run's pos
 
 import importlib.util
 import time
+import weakref
 
 import numpy as np
 import pytest
@@ -49,6 +50,24 @@ def test_results_and_on_result_come_in_task_order(workers, ray):
     out = parallel_map(_square_late_first, 3, tasks, workers, lambda k, r: seen.append((k, r)), ray=ray)
     assert out == [3 * t * t for t in tasks]
     assert seen == list(enumerate(out))
+
+
+def _array(shared: None, x: int) -> np.ndarray:
+    return np.full(1000, x)
+
+
+@pytest.mark.parametrize("workers, ray", BACKENDS)
+def test_results_kept_as_keep_says_are_let_go_as_they_arrive(workers, ray):
+    """With ``keep`` the list holds what it returns; each result itself is gone by the time the next one arrives
+    (a stage whose results go to the store holds none of them)."""
+    seen, alive = [], []
+
+    def arrived(k, result):
+        alive.append(sum(ref() is not None for ref in seen))
+        seen.append(weakref.ref(result))
+
+    out = parallel_map(_array, None, list(range(12)), workers, arrived, ray=ray, keep=lambda a: int(a[0]))
+    assert out == list(range(12)) and alive == [0] * 12
 
 
 @pytest.mark.parametrize("workers, ray", BACKENDS)
