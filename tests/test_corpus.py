@@ -374,7 +374,7 @@ def _stop_mid_run(scene: Path, out: Path, signum: int) -> tuple[int, str]:
             for line in proc.stdout:
                 if line.startswith("features:"):  # the pairwise stage is starting
                     break
-            time.sleep(0.5)
+            time.sleep(0.1)  # at load 9 the run once ended before a signal sent 0.5 s after this line (exit 0)
             proc.send_signal(signum)  # to the run alone (a terminal's Ctrl-C reaches its workers too)
             code = proc.wait(timeout=120)
         finally:  # SIGKILL leaves the fork server and its workers behind: end them as a job scheduler would

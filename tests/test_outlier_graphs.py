@@ -93,16 +93,16 @@ def test_structured_outliers_repeat_one_wrong_placement(data_dir, ratio):
             assert shared, f"{scene}: outlier edge {e} shares its wrong placement with no other edge"
 
 
-# Digests of make_graph's arrays (i, j, T, weight, GT poses, outlier mask) recorded at commit 245048d, before
-# the corruption was split from the scene: the refactor must leave the real-scene graphs byte for byte as they
-# were (the published robustness tables depend on them). Recorded on the project's machine (numpy / scipy
-# float64 arithmetic; another BLAS could change last bits).
+# Digests of make_graph's arrays: the edges and the outlier mask exactly, the transforms, weights and GT poses
+# rounded to 1e-8 (the published robustness tables depend on these graphs). The byte-exact digests recorded at
+# 245048d stopped matching on a fresh install (numpy 2.4.6, scipy 1.17.1) at 455a186 too, where the code had not
+# changed: float64 last bits differ between builds, so they are compared rounded. Re-recorded at that install.
 _RECORDED = {
-    (SCENES[0], 0, 0.0, "random", False, "s*r"): "525132bbd6c68b5372d37cc90dd95fd2",
-    (SCENES[1], 1, 0.3, "random", False, "s*r"): "5eb7aa5bddcc6a3f78347a741247197c",
-    (SCENES[3], 2, 0.6, "structured", False, "s*r"): "21541d979d66aca9a60299b4afa058da",
-    (SCENES[7], 3, 0.5, "structured", True, "r"): "a57e2924c0eed3400fcd198bb4aa5ac8",
-    (SCENES[5], 4, 0.7, "random", True, "s"): "f70adace3e3d4d121c471f0a440c4c20",
+    (SCENES[0], 0, 0.0, "random", False, "s*r"): "683a81bac0988fc12a0e73dca4a266ab",
+    (SCENES[1], 1, 0.3, "random", False, "s*r"): "27cf2de647bd107fe20de12183c92f5c",
+    (SCENES[3], 2, 0.6, "structured", False, "s*r"): "2e19416b30080bffa4ffe2f746ee3dd7",
+    (SCENES[7], 3, 0.5, "structured", True, "r"): "0c1e6e110fba99f9c4ee42cd4df9a803",
+    (SCENES[5], 4, 0.7, "random", True, "s"): "83caca9a25e4380edddaaab3dfad17e8",
 }
 
 
@@ -110,7 +110,10 @@ _RECORDED = {
 def test_real_scene_graphs_are_as_recorded(data_dir, case):
     scene, seed, ratio, kind, noisy, weight = case
     graph, P, out = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy, root=data_dir, weight=weight)
+    assert out.mean() == pytest.approx(ratio, abs=0.01)
     digest = hashlib.sha256()
-    for a in (graph.i, graph.j, graph.T, graph.weight, P, out):
+    for a in (graph.i, graph.j, out):
         digest.update(np.ascontiguousarray(a).tobytes())
+    for a in (graph.T, graph.weight, P):
+        digest.update(np.ascontiguousarray(np.round(a, 8) + 0.0).tobytes())  # + 0.0: no negative zeros
     assert digest.hexdigest()[:32] == _RECORDED[case]
