@@ -437,6 +437,14 @@ def test_demo_with_one_scan_or_a_file_as_out_is_one_line_error(tmp_path):
     assert not (tmp_path / "d").exists() and (tmp_path / "file").read_text() == "x"
 
 
+def test_demo_with_an_unknown_kind_or_too_small_a_building_is_one_line_error(tmp_path):
+    code, lines = _cli("demo", "--kind", "garden", "--out", tmp_path / "d")
+    assert code == 2 and lines == ["error: --kind must be auto or one of room, object, building, hotel; got 'garden'"]
+    code, lines = _cli("demo", "--kind", "hotel", "--scans", "5", "--out", tmp_path / "d")
+    assert code == 2 and lines == ["error: --scans 5: a building needs at least 9 scans, got 5"]
+    assert not (tmp_path / "d").exists()
+
+
 @pytest.mark.parametrize("case, needle", [
     ("corrupt", "cannot read cached scene"),
     ("incomplete", "no overlap array"),
