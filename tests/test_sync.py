@@ -110,7 +110,9 @@ def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common
                           T=(inv_T(S[graph.i]) @ graph.T @ S[graph.j])[shuffle], weight=graph.weight[shuffle])
         a = synchronize(graph, method=method, iters=10, polish="none", reweight="paper", min_weight=0.0)
         b = synchronize(moved, method=method, iters=10, polish="none", reweight="paper", min_weight=0.0)
-        np.testing.assert_allclose(gauge_free(b.poses[perm]), gauge_free(a.poses @ S), atol=atol)
+        # Translations carry the solver's tolerance relative to their size (seed 171, n = 158: 1.3e-4 on a 2.25 m
+        # translation, 5.7e-5 relative; hypothesis found it on 2026-11-25).
+        np.testing.assert_allclose(gauge_free(b.poses[perm]), gauge_free(a.poses @ S), atol=atol, rtol=rtol)
         np.testing.assert_allclose(b.weights[np.argsort(shuffle)], a.weights, rtol=rtol, atol=1e-12)
 
 
