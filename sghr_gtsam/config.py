@@ -139,7 +139,8 @@ class Config:
     cache: bool = True
     """Keep features, refinement grids and pair registrations in ``OUT/cache`` as they are computed, keyed by the
     scans' content and every parameter that made them, and reuse them: a run stopped in the middle and started
-    again redoes only what is missing (``sghr_gtsam.cache``). False: neither read nor written."""
+    again redoes only what is missing (``sghr_gtsam.cache``). False: neither read nor written (the run keeps its
+    features and grids in a temporary folder beside ``OUT`` while it runs: ``sghr_gtsam.store``)."""
 
     def validate(self) -> "Config":
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
