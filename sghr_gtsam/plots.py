@@ -123,7 +123,9 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     colours = scan_colours(n) / 255.0
 
     def world(k: int) -> np.ndarray:  # read anew at each pass: no pass holds every scan's points
-        return transform_points(result.poses[k], result.features[k].points)
+        # features are in the scans' centred frames, poses in their input frames (local_frame)
+        centre = 0.0 if result.centres is None else result.centres[k]
+        return transform_points(result.poses[k], result.features[k].points + centre)
 
     axes = _view_axes(world(k) for k in placed)
     centres = np.zeros((n, 2))

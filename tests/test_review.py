@@ -195,3 +195,23 @@ def test_quiet_run_prints_the_summary_and_how_to_open_the_recording(small_scene,
     assert re.search(r"^scans placed\s+3/3$", r.output, re.MULTILINE)
     assert r.output.rstrip().splitlines()[-1] == f"review the run: rerun {out / 'recording.rrd'}"
     assert (out / "recording.rrd").is_file() and (out / "summary.png").is_file()
+
+
+def test_summary_figure_places_georeferenced_scans_where_local_ones_are():
+    """The same room in local and in georeferenced coordinates (5,000 km off the origin: the pipeline registers
+    centred scans and hands the poses back in the input frames): its top view puts the scans' centres as far apart."""
+    from matplotlib.collections import PathCollection
+
+    from sghr_gtsam.pipeline import register
+    from sghr_gtsam.types import Scan
+
+    scene = make_scene(kind="room", n_scans=4, seed=0)
+    offset = np.array([4.1e5, 5.3e6, 120.0])
+    spreads = []
+    for shift in (np.zeros(3), offset):
+        scans = [Scan(n, P + shift) for n, P in zip(scene.names, scene.scans)]
+        result = register(scans, Config(workers=1, record=False), log=lambda m: None)
+        assert result.unregistered == []
+        dots = next(c for c in summary_figure(result).axes[0].collections if isinstance(c, PathCollection))
+        spreads.append(pdist(dots.get_offsets()))
+    np.testing.assert_allclose(spreads[1], spreads[0], atol=0.05)
