@@ -37,7 +37,7 @@ from .registration.information import STIFFEN, underdetermined
 from .registration.refine import scan_pyramid
 from .registration.retry import weak_scans
 from .result import RunResult
-from .se3 import inv_T, transform_points
+from .se3 import inv_T
 from .store import Attribute, Store, Stored
 from .sync import contested, synchronize, unverified
 from .types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
@@ -387,7 +387,7 @@ def merged_cloud(result: RunResult) -> np.ndarray:
     merged grid (the scene's size, not the scans' count)."""
     merged = _VoxelMeans(result.voxel)
     for k in result.registered:
-        merged.add(transform_points(result.poses[k], result.features[k].points + result.centres[k]))
+        merged.add(result.world_points(k))
     return merged.points()
 
 

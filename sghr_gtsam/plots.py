@@ -22,7 +22,6 @@ import numpy as np
 
 from .io.atomic import atomic_path
 from .palette import FLAG_COLOURS, REJECTED, scan_colours
-from .se3 import transform_points
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -122,11 +121,7 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     n = len(result.names)
     colours = scan_colours(n) / 255.0
 
-    def world(k: int) -> np.ndarray:  # read anew at each pass: no pass holds every scan's points
-        # features are in the scans' centred frames, poses in their input frames (local_frame)
-        centre = 0.0 if result.centres is None else result.centres[k]
-        return transform_points(result.poses[k], result.features[k].points + centre)
-
+    world = result.world_points  # read anew at each pass: no pass holds every scan's points
     axes = _view_axes(world(k) for k in placed)
     centres = np.zeros((n, 2))
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)

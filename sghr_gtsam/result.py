@@ -10,6 +10,7 @@ import numpy as np
 
 from .features.local import ScanFeatures
 from .registration.pairwise import PairResult
+from .se3 import transform_points
 from .types import PoseGraph, SyncResult
 
 
@@ -73,6 +74,12 @@ class RunResult:
     def registered(self) -> list[int]:
         bad = set(self.unregistered)
         return [k for k, n in enumerate(self.names) if n not in bad]
+
+    def world_points(self, k: int) -> np.ndarray:
+        """Scan k's voxel-grid points under its pose: ``features`` are in the centred frames, ``poses`` in the input
+        frames (``local_frame``)."""
+        centre = 0.0 if self.centres is None else self.centres[k]
+        return transform_points(self.poses[k], self.features[k].points + centre)
 
 
 
