@@ -140,14 +140,25 @@ def arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep:
 
 @contextmanager
 def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM wait while the workers start: one arriving while a worker's start-up data is being sent
-    cut it short, and the fork server printed a traceback."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    """SIGINT and SIGTERM wait while the workers start, then act as they would have. One arriving between a
+    worker's fork and the pool's note of its pid left a worker nobody ended: once this process had exited and its
+    semaphores were gone, the worker's start-up failed with a traceback on stderr (CI, 1 run in ~5). A thread mask
+    cannot hold them: a process-directed signal goes to any thread not blocking it (rerun's, TBB's, rich's), and
+    Python runs its handler in the main thread at once. So the handlers note the signal and it is raised again after."""
+    held = (signal.SIGINT, signal.SIGTERM)
+    arrived: list[int] = []
+    try:
+        saved = {s: signal.signal(s, lambda signum, frame: arrived.append(signum)) for s in held}
+    except ValueError:  # not the main thread: Python delivers no signal here
+        yield
+        return
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, held)
+        for s, handler in saved.items():
+            signal.signal(s, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+        for s in dict.fromkeys(arrived):
+            signal.raise_signal(s)
 
 
 @contextmanager

@@ -2,6 +2,9 @@
 results in the tasks' order, raise a task's error in the caller, and a run's poses do not depend on them."""
 
 import importlib.util
+import os
+import signal
+import threading
 import time
 import weakref
 
@@ -9,9 +12,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from sghr_gtsam.cli import app
+from sghr_gtsam import cli
+from sghr_gtsam.cli import _Stopped, app
 from sghr_gtsam.config import Config
-from sghr_gtsam.executor import parallel_map
+from sghr_gtsam.executor import _signals_held, parallel_map
 from sghr_gtsam.pipeline import run
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError
@@ -112,3 +116,26 @@ def test_poses_are_bit_identical_whatever_the_executor(room, in_process, tmp_pat
     np.testing.assert_array_equal(other.poses, in_process.poses)
     assert other.densify == in_process.densify
     assert other.densify["refine_tried"] > 0  # the refinement stage ran on the executor too
+
+
+@pytest.mark.parametrize("signum, stopped", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, _Stopped)])
+def test_a_signal_while_workers_start_acts_once_they_have(signum, stopped):
+    """A stop between a worker's fork and the pool's note of its pid left a worker nobody ended (a traceback on
+    stderr once the run had exited, CI). The signal must wait for the start-up even with another thread running,
+    as rerun's, TBB's and rich's are: the kernel hands a process-directed signal to a thread that accepts it."""
+    saved = signal.signal(signal.SIGTERM, cli._stop)
+    idle = threading.Event()
+    other = threading.Thread(target=idle.wait)
+    other.start()
+    steps = []
+    try:
+        with pytest.raises(stopped):
+            with _signals_held():
+                os.kill(os.getpid(), signum)
+                time.sleep(0.2)  # where Python would act on a signal that was not held
+                steps.append("workers started")
+    finally:
+        idle.set()
+        other.join()
+        signal.signal(signal.SIGTERM, saved)
+    assert steps == ["workers started"]
