@@ -91,6 +91,9 @@ class Config:
     retry: bool = True
     """Give scans left unregistered, unverified or on fewer than 2 kept edges global registration against
     their next k candidates by overlap score."""
+    free_space: bool = True
+    """Give weight 0 to registrations that put one scan's surfaces in the space the other saw empty
+    (``registration.visibility``; only scans seen from their frame's origin can be checked)."""
     rounds: int = 2
     """At most this many rounds of refine / loops / retry, each followed by synchronization; a round that
     changes nothing ends them."""

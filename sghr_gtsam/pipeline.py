@@ -171,6 +171,15 @@ def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, st
     return keep
 
 
+def _pose_graph(edges: EdgeSet, features: Stored, centres: np.ndarray, scores: np.ndarray, voxel: float,
+                config: Config, timer: _Timer) -> PoseGraph:
+    """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
+    if config.free_space:
+        with timer.stage("free_space"):
+            edges.check_free_space(features, voxel, centres)
+    return edges.pose_graph(len(features), scores, config.min_inliers, config.initial_weight)
+
+
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
     def both(message: str) -> None:
         log(message)
@@ -264,7 +273,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     edges = EdgeSet()
     with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
         edges.add(top_k, register_edges(features, top_k, voxel, config, tick, cache), "top-k")
-    graph = edges.pose_graph(n, scores, config.min_inliers, config.initial_weight)
+    graph = _pose_graph(edges, features, centres, scores, voxel, config, timer)
     log(f"pairwise: {graph.num_edges} pairs in {timer.seconds['pairwise']:.2f} s")
     if recorder:
         recorder.log_graph(graph, scores)
@@ -299,7 +308,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
         if not changed:
             break
         densify.rounds += 1
-        graph = edges.pose_graph(n, scores, config.min_inliers, config.initial_weight)
+        graph = _pose_graph(edges, features, centres, scores, voxel, config, timer)
         log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
             f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
         if recorder:
@@ -326,7 +335,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
-                    edge_origin=edges.origin, densify=densify.as_dict(), sync=result, unregistered=unregistered,
+                    edge_origin=edges.origin, edge_conflict=edges.conflict if config.free_space else None,
+                    densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=skipped, features=features, timings=timer.seconds,
                     global_feature=feature_kind, unverified=weak, contested=disputed,
                     cache=cache.report() if cache else None)

@@ -48,6 +48,9 @@ class RunResult:
     contested: list[str] = field(default_factory=list)
     edge_origin: list[str] = field(default_factory=list)
     """Per edge of ``graph``: how it entered (``registration.edges.ORIGINS``)."""
+    edge_conflict: np.ndarray | None = None
+    """(E,) per edge of ``graph``: the free space its transform contradicts (``registration.visibility``; weight 0
+    above ``visibility.CONFLICT``), NaN where not checked. None: no check."""
     densify: dict = field(default_factory=dict)
     """What refinement, loop closure and retries did (``registration.densify.DensifyReport``), and the
     scans they rescued (weak after the first synchronization, placed and verified at the end)."""

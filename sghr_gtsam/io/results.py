@@ -34,6 +34,7 @@ import numpy as np
 
 from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
 from ..plots import write_summary
+from ..registration.visibility import CONFLICT
 from ..result import peak_memory_mb
 from ..types import InputError, PoseGraph
 from .atomic import fsync_dir, atomic_write
@@ -54,11 +55,13 @@ CACHE = "cache"
 _LEGACY = ("recording.rrd.partial",)  # left by runs from before the swap
 
 EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status",
-                "origin"]
+                "origin", "free_space_conflict"]
 EDGE_STATUS = {
     "kept": "in graph.g2o: synchronization kept it and both scans are registered",
     "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
     "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
+    "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
+                    "(registration.visibility; graph_rejected.g2o)",
     "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
 }
 
@@ -68,12 +71,15 @@ def edge_status(result: "RunResult") -> list[str]:
     g = result.graph
     placed = np.zeros(len(result.names), dtype=bool)
     placed[result.registered] = True
-    return ["failed" if g.weight[e] <= 0 else "rejected" if result.sync.weights[e] <= 0
+    conflict = np.zeros(g.num_edges) if result.edge_conflict is None else np.nan_to_num(result.edge_conflict)
+    return [("contradicted" if conflict[e] > CONFLICT else "failed") if g.weight[e] <= 0
+            else "rejected" if result.sync.weights[e] <= 0
             else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
 
 
 def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
     g, s = result.graph, result.sync
+    conflict = np.full(g.num_edges, np.nan) if result.edge_conflict is None else result.edge_conflict
     with atomic_write(path, newline="") as f:
         w = csv.writer(f)
         w.writerow(EDGE_COLUMNS)
@@ -81,7 +87,8 @@ def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
             a, b = int(g.i[e]), int(g.j[e])
             w.writerow([a, b, f"{result.scores[a, b]:.6f}", result.pairs[e].inliers, f"{g.weight[e]:.6g}",
                         f"{s.weights[e]:.6g}", f"{s.residual_deg[e]:.4f}", status[e],
-                        result.edge_origin[e] if result.edge_origin else "top-k"])
+                        result.edge_origin[e] if result.edge_origin else "top-k",
+                        "" if np.isnan(conflict[e]) else f"{conflict[e]:.4f}"])
 
 
 def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:

@@ -69,7 +69,7 @@ def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncR
     for e, result, ok, guess in zip(todo, results, converged, guesses):
         edges.refined[e] = True
         if confirms(result, ok, guess, voxel, config.min_inliers):
-            edges.pairs[e] = result
+            edges.replace(e, result)
             changed += 1
     report.refine_tried += len(todo)
     report.refined += changed
@@ -110,7 +110,7 @@ def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncRe
             edges.add(np.array([[a, b]]), [result], "loop")
             edges.refined[-1] = True
         else:
-            edges.pairs[e], edges.origin[e], edges.refined[e] = result, "loop", True
+            edges.replace(e, result, "loop")
     report.loops_tried += len(ij)
     report.loops_closed += closed
     return closed

@@ -7,8 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..store import Stored
 from ..types import PoseGraph
 from .pairwise import PairResult
+from .visibility import CONFLICT, conflicts
 
 ORIGINS = ("top-k", "loop", "retry")
 """How an edge entered: the sparse graph (with its bridges), a loop closure, or a retry of a weak scan."""
@@ -17,18 +19,41 @@ ORIGINS = ("top-k", "loop", "retry")
 @dataclass
 class EdgeSet:
     """``ij`` (E, 2) scan pairs, ``pairs[e]`` the registration of ``ij[e]`` (``T_ij``), ``origin[e]`` one of
-    ``ORIGINS``, ``refined[e]`` whether ``pairs[e]`` comes from multi-scale refinement."""
+    ``ORIGINS``, ``refined[e]`` whether ``pairs[e]`` comes from multi-scale refinement, ``conflict[e]`` its
+    ``visibility.free_space_conflict`` (NaN: not checked, or a scan not seen from its origin)."""
 
     ij: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     pairs: list[PairResult] = field(default_factory=list)
     origin: list[str] = field(default_factory=list)
     refined: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    conflict: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    _checked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), repr=False)
 
     def add(self, ij: np.ndarray, pairs: list[PairResult], origin: str) -> None:
         self.ij = np.concatenate([self.ij, np.asarray(ij, dtype=np.int64).reshape(-1, 2)])
         self.pairs.extend(pairs)
         self.origin.extend([origin] * len(pairs))
         self.refined = np.concatenate([self.refined, np.zeros(len(pairs), dtype=bool)])
+        self.conflict = np.concatenate([self.conflict, np.full(len(pairs), np.nan)])
+        self._checked = np.concatenate([self._checked, np.zeros(len(pairs), dtype=bool)])
+
+    def replace(self, e: int, pair: PairResult, origin: str | None = None) -> None:
+        """Edge ``e`` takes the refined registration ``pair`` (and ``origin``), to be checked again."""
+        self.pairs[e], self.refined[e], self._checked[e] = pair, True, False
+        if origin is not None:
+            self.origin[e] = origin
+
+    def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray) -> None:
+        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``)."""
+        todo = np.flatnonzero(~self._checked)
+        if len(todo):
+            T = np.stack([self.pairs[e].T for e in todo])
+            self.conflict[todo] = conflicts(features, self.ij[todo], T, voxel, centres)
+            self._checked[todo] = True
+
+    def contradicted(self) -> np.ndarray:
+        """(E,) bool: edges whose transform puts one scan's surfaces where the other saw nothing (``CONFLICT``)."""
+        return np.nan_to_num(self.conflict, nan=0.0) > CONFLICT
 
     def contains(self, n: int) -> np.ndarray:
         """(n, n) bool: the pairs already registered, either way round."""
@@ -38,11 +63,12 @@ class EdgeSet:
 
     def pose_graph(self, n: int, scores: np.ndarray, min_inliers: int, initial_weight: str) -> PoseGraph:
         """The graph synchronization sees: ``w⁰ = s · r`` (or the ``initial_weight`` ablation), 0 for pairs
-        with fewer than ``min_inliers`` inliers (a failed pair is no measurement at all)."""
+        with fewer than ``min_inliers`` inliers (a failed pair is no measurement at all) and for ``contradicted``
+        ones (a transform the scans' free space rules out is none either)."""
         i, j = self.ij[:, 0].copy(), self.ij[:, 1].copy()
         s = scores[i, j]
         r = np.array([p.inliers for p in self.pairs], dtype=float)
-        r[r < min_inliers] = 0.0
+        r[(r < min_inliers) | self.contradicted()] = 0.0
         info = [p.information for p in self.pairs]
         return PoseGraph(
             n=n, i=i, j=j,
