@@ -39,7 +39,7 @@ from sghr_gtsam.se3 import relative_errors  # noqa: E402
 from sghr_gtsam.synthetic import make_scene, write_scene  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
-STAGES = ("features", "global_graph", "pairwise", "sync", "refine", "loops", "retry", "write")
+STAGES = ("features", "global_graph", "pairwise", "free_space", "sync", "refine", "loops", "retry", "write")
 
 
 def _bytes(folder: Path) -> int:
