@@ -173,11 +173,14 @@ def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, st
 
 
 def _pose_graph(edges: EdgeSet, features: Stored, centres: np.ndarray, scores: np.ndarray, voxel: float,
-                config: Config, timer: _Timer) -> PoseGraph:
+                config: Config, timer: _Timer, log: Log) -> PoseGraph:
     """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
     if config.free_space:
         with timer.stage("free_space"):
             edges.check_free_space(features, voxel, centres)
+        checked = int(np.isfinite(edges.conflict).sum())
+        log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations contradicted "
+            f"({len(edges.pairs) - checked} not checkable: scans not seen from their origins)")
     return edges.pose_graph(len(features), scores, config.min_inliers, config.initial_weight)
 
 
@@ -274,8 +277,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     edges = EdgeSet()
     with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
         edges.add(top_k, register_edges(features, top_k, voxel, config, tick, cache), "top-k")
-    graph = _pose_graph(edges, features, centres, scores, voxel, config, timer)
-    log(f"pairwise: {graph.num_edges} pairs in {timer.seconds['pairwise']:.2f} s")
+    log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
+    graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
     if recorder:
         recorder.log_graph(graph, scores)
     if not np.any(graph.weight > 0):
@@ -309,7 +312,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
         if not changed:
             break
         densify.rounds += 1
-        graph = _pose_graph(edges, features, centres, scores, voxel, config, timer)
+        graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
         log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
             f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
         if recorder:
