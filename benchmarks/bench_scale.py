@@ -8,8 +8,9 @@ each scan overlapping a bounded number of others), then one ``python -m sghr_gts
 --no-record --quiet`` measured as ``benchmarks/bench_memory.py`` measures (``/usr/bin/time -v`` for the largest
 process, the process tree's RSS and PSS sampled every 0.2 s, CPU seconds of every process). From OUT/report.json:
 the seconds of each stage and the pairs. Against GT: scans placed, scans within 5° / 0.2 m after one rigid
-alignment (of the positions of the scans placed without a flag, applied to every placed scan), unflagged scans
-outside that (placed wrongly as if certain), ATE rmse and median rotation error of the unflagged ones, and the flags.
+alignment (of the positions of the scans placed without a flag, applied to every placed scan; of every placed scan
+when fewer than 3 are unflagged), unflagged scans outside that (placed wrongly as if certain), ATE rmse and median
+rotation error of the scans aligned on, and the flags.
 Then a log-log fit of the total seconds against N·k (the exponent: 1 is linear) and, for a multi-machine plan, the
 cost of a pair (pairwise seconds × workers / pairs registered by the pairwise stage) and the data volumes (scan files,
 OUT/cache).
@@ -54,12 +55,13 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
     placed = np.array([n not in set(report["unregistered"]) for n in names])
     flagged = set().union(*(report[flag] for flag in FLAGS if flag != "unregistered"))
     certain = placed & np.array([n not in flagged for n in names])
-    A = align_rigid(poses[certain, :3, 3], gt[certain, :3, 3])
+    basis = certain if certain.sum() >= 3 else placed  # every placed scan flagged: align on all of them
+    A = align_rigid(poses[basis, :3, 3], gt[basis, :3, 3])
     rot, trans = relative_errors(A[None] @ poses, gt)
     within = (rot <= MAX_DEG) & (trans <= MAX_TRANS)
     return {"placed": int(placed.sum()), "within": int((within & placed).sum()),
             "wrong_unflagged": int((certain & ~within).sum()),
-            "ate": float(np.sqrt(np.mean(trans[certain] ** 2))), "median_deg": float(np.median(rot[certain])),
+            "ate": float(np.sqrt(np.mean(trans[basis] ** 2))), "median_deg": float(np.median(rot[basis])),
             "flags": {flag: len(report[flag]) for flag in FLAGS if flag != "unregistered"}}
 
 
