@@ -12,6 +12,7 @@ from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.io.g2o import read_g2o
 from sghr_gtsam.io.poses import read_kitti, read_poses
 from sghr_gtsam.pipeline import Scan, register, run
+from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.synthetic import make_scene, write_scene
 
@@ -54,6 +55,11 @@ def test_outputs_parse_back_to_the_result(room_run):
     assert len(rows) == result.graph.num_edges
     assert {int(r["i"]) for r in rows} | {int(r["j"]) for r in rows} <= set(range(len(result.names)))
     np.testing.assert_allclose([float(r["final_weight"]) for r in rows], result.sync.weights, rtol=1e-5)
+    # a generated room's scans are seen from their origins: every pair checked, the contradicted ones weigh nothing
+    conflict = np.array([float(r["free_space_conflict"]) for r in rows])
+    np.testing.assert_allclose(conflict, result.edge_conflict, atol=1e-4)
+    assert all((r["status"] == "contradicted") == (c > CONFLICT) for r, c in zip(rows, conflict))
+    assert all(float(r["initial_weight"]) == 0 for r, c in zip(rows, conflict) if c > CONFLICT)
 
     report = json.loads((out / "report.json").read_text())
     n = len(result.names)
