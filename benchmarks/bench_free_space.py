@@ -30,11 +30,9 @@ from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.io.scans import list_scans, load_scan  # noqa: E402
 from sghr_gtsam.registration.visibility import (  # noqa: E402
     CONFLICT,
-    MARGIN_VOXELS,
-    _cells,
-    _nearest,
+    SELF_HIDDEN,
     free_space_conflict,
-    seen_from_origin,
+    hidden_fraction,
 )
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
 
@@ -90,14 +88,9 @@ def _quantiles(x: np.ndarray) -> str:
 
 
 def _real_row(data: Path, folder: str, voxel: float) -> str:
-    hidden, seen = [], 0
-    for path in list_scans(data / folder):
-        g = _grid(path, voxel)
-        r, cell, _ = _cells(g)
-        hidden.append(np.mean(r > _nearest(g)[cell] + MARGIN_VOXELS * voxel))
-        seen += seen_from_origin(g, voxel)
-    h = np.array(hidden)
-    return f"| {folder} | {len(h)} | {h.min():.3f} / {np.median(h):.3f} / {h.max():.3f} | {seen} |"
+    h = np.array([hidden_fraction(_grid(path, voxel), voxel) for path in list_scans(data / folder)])
+    return (f"| {folder} | {len(h)} | {h.min():.3f} / {np.median(h):.3f} / {h.max():.3f} | "
+            f"{int((h <= SELF_HIDDEN).sum())} |")
 
 
 def main() -> None:

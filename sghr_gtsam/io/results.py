@@ -34,7 +34,7 @@ import numpy as np
 
 from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
 from ..plots import write_summary
-from ..registration.visibility import CONFLICT
+from ..registration.visibility import contradicted
 from ..result import peak_memory_mb
 from ..types import InputError, PoseGraph
 from .atomic import fsync_dir, atomic_write
@@ -71,8 +71,8 @@ def edge_status(result: "RunResult") -> list[str]:
     g = result.graph
     placed = np.zeros(len(result.names), dtype=bool)
     placed[result.registered] = True
-    conflict = np.zeros(g.num_edges) if result.edge_conflict is None else np.nan_to_num(result.edge_conflict)
-    return [("contradicted" if conflict[e] > CONFLICT else "failed") if g.weight[e] <= 0
+    ruled_out = np.zeros(g.num_edges, dtype=bool) if result.edge_conflict is None else contradicted(result.edge_conflict)
+    return [("contradicted" if ruled_out[e] else "failed") if g.weight[e] <= 0
             else "rejected" if result.sync.weights[e] <= 0
             else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
 

@@ -10,7 +10,7 @@ import numpy as np
 from ..store import Stored
 from ..types import PoseGraph
 from .pairwise import PairResult
-from .visibility import CONFLICT, conflicts
+from .visibility import conflicts, contradicted
 
 ORIGINS = ("top-k", "loop", "retry")
 """How an edge entered: the sparse graph (with its bridges), a loop closure, or a retry of a weak scan."""
@@ -52,8 +52,9 @@ class EdgeSet:
             self._checked[todo] = True
 
     def contradicted(self) -> np.ndarray:
-        """(E,) bool: edges whose transform puts one scan's surfaces where the other saw nothing (``CONFLICT``)."""
-        return np.nan_to_num(self.conflict, nan=0.0) > CONFLICT
+        """(E,) bool: edges whose transform puts one scan's surfaces where the other saw nothing
+        (``visibility.contradicted``)."""
+        return contradicted(self.conflict)
 
     def contains(self, n: int) -> np.ndarray:
         """(n, n) bool: the pairs already registered, either way round."""

@@ -42,26 +42,37 @@ def _cells(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     return r, row * cols + col, rows * cols
 
 
-def _nearest(P: np.ndarray) -> np.ndarray:
-    """The range image of ``P``: per cell the nearest point's range, inf where the scan saw nothing."""
-    r, cell, count = _cells(P)
+def _nearest(r: np.ndarray, cell: np.ndarray, count: int) -> np.ndarray:
+    """The range image of points at ranges ``r`` in cells ``cell`` (``_cells``): per cell the nearest point's
+    range, inf where the scan saw nothing."""
     image = np.full(count, np.inf)
     np.minimum.at(image, cell, r)
     return image
 
 
+def hidden_fraction(P: np.ndarray, voxel: float) -> float:
+    """The fraction of scan points ``P`` (n, 3) that lie behind the scan's own nearest point in their cell, seen
+    from the origin, by more than the margin (1 for no points)."""
+    if len(P) == 0:
+        return 1.0
+    r, cell, count = _cells(P)
+    return float(np.mean(r > _nearest(r, cell, count)[cell] + MARGIN_VOXELS * voxel))
+
+
 def seen_from_origin(P: np.ndarray, voxel: float) -> bool:
     """Whether scan points ``P`` (n, 3) look like one viewpoint's at the origin (``SELF_HIDDEN``)."""
-    if len(P) == 0:
-        return False
-    r, cell, _ = _cells(P)
-    return float(np.mean(r > _nearest(P)[cell] + MARGIN_VOXELS * voxel)) <= SELF_HIDDEN
+    return hidden_fraction(P, voxel) <= SELF_HIDDEN
+
+
+def contradicted(conflict: np.ndarray) -> np.ndarray:
+    """Which ``free_space_conflict`` values (NaN: not checked) rule their registration out (``CONFLICT``)."""
+    return np.nan_to_num(conflict, nan=0.0) > CONFLICT
 
 
 def _in_front(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, voxel: float) -> float:
     """Fraction of scan j's points, moved into scan i's frame by ``T_ij``, that lie in front of scan i's surface
     among those in cells scan i observed (0 with none)."""
-    image = _nearest(P_i)
+    image = _nearest(*_cells(P_i))
     r, cell, _ = _cells(P_j @ T_ij[:3, :3].T + T_ij[:3, 3])
     surface = image[cell]
     seen = np.isfinite(surface)
