@@ -1,7 +1,7 @@
 """Full 3DMatch test scenes end to end: scans placed, the paper's registration recall and the whole-model check.
 
-    python benchmarks/bench_3dmatch.py [--data ../shared/data] [--scenes home_at hotel_uc studyroom kitchen bunny]
-        [--set key=value ...] [--workers N] [--json rows.json]
+    python benchmarks/bench_3dmatch.py [--data ../shared/data] [--scenes home_at hotel_uc studyroom kitchen bunny
+        bunny_ring] [--set key=value ...] [--workers N] [--refit-gt] [--json rows.json]
 
 Each scene runs ``sghr_gtsam.pipeline.run`` in its own process (so peak memory is the scene's own) and is scored
 by ``sghr_gtsam.evaluate.score_run``: fragments placed / unregistered / unverified; registration recall by the
@@ -9,8 +9,11 @@ paper's protocol (gt.log pairs with |i − j| > 1, a pair with an unplaced fragm
 whole model: one rigid alignment of all placed scan positions to GT (as ``evo_ape --align``), then the scans
 within 5° / 0.2 m (bunny: 0.2° / 0.5 mm, aligned by whole poses: its sensor positions ring the object and
 leave a positions-only alignment's rotation loose), ATE rmse and rotation errors. ``doubted`` lists the placed scans
-outside the tolerance (fragment numbers), ``flagged`` those the run itself called unverified, contested or
-unregistered.
+outside the tolerance (fragment numbers), ``flagged`` those the run itself doubted (``RunResult.flags``), and
+``unflagged wrong`` the scans placed without a flag that one rigid alignment of those scans alone leaves outside
+the tolerance (a wrong model that looks right). ``bunny_ring`` is the bunny's six ring scans alone (45-90° apart).
+``--refit-gt`` also scores the 3DMatch scenes against their GT re-fitted to the scans (``data_tools.refit_gt``):
+the GT's own error, measured, beside the GT and never instead of it.
 ``--set`` overrides a ``Config`` field (parsed by the field's type, ``none`` for None) for ablations;
 ``--workers`` is passed to ``Config.workers`` when the installed Config has that field. Seconds per stage
 are the run's own timings; ``wall s`` is the whole child process, imports included.
@@ -32,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # data_tools
 GT_3DMATCH = "3dmatch-test-gt/3DMatch"
 
 
@@ -43,6 +47,7 @@ class Scene:
     max_deg: float = 5.0
     max_trans: float = 0.2
     align: str = "positions"  # object scans: "poses" (evaluate.align_poses)
+    scans: tuple[str, ...] = ()  # a subset of the folder's scans (all when empty)
 
 
 SCENES = {
@@ -54,6 +59,8 @@ SCENES = {
                        f"{GT_3DMATCH}/sun3d-mit_76_studyroom-76-1studyroom2"),
     "kitchen": Scene("kitchen", "kitchen/gt/gt_poses.txt", "kitchen/gt"),
     "bunny": Scene("bunny", "bunny/gt_poses.txt", None, 0.2, 0.0005, "poses"),
+    "bunny_ring": Scene("bunny", "bunny/gt_poses.txt", None, 0.3, 0.0006, "poses",
+                        tuple(f"bun{a:03d}.ply" for a in (0, 45, 90, 180, 270, 315))),
 }
 DEFAULT_SCENES = ["home_at", "hotel_uc", "studyroom"]
 
@@ -109,6 +116,9 @@ def scene_gt(data: Path, scene: Scene) -> dict:
     from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_poses
 
     gt_names, gt_poses = read_poses(data / scene.gt_poses)
+    if scene.scans:
+        keep = [gt_names.index(n) for n in scene.scans]
+        gt_names, gt_poses = [gt_names[k] for k in keep], gt_poses[keep]
     kw = {"gt_names": gt_names, "gt_poses": gt_poses, "max_deg": scene.max_deg, "max_trans": scene.max_trans,
           "align": scene.align}
     if scene.gt_dir:
@@ -117,13 +127,29 @@ def scene_gt(data: Path, scene: Scene) -> dict:
     return kw
 
 
+def unflagged_wrong(names: list[str], poses: np.ndarray, flags: dict[str, list[str]], gt: dict) -> list[str]:
+    """Scans placed without a flag that one rigid alignment of those scans alone to GT leaves outside the
+    tolerance (``gt``: ``scene_gt``'s keywords)."""
+    from sghr_gtsam.evaluate import whole_model_errors
+
+    doubted = set().union(*flags.values())
+    keep = [k for k, n in enumerate(names) if n not in doubted]
+    if len(keep) < 3:
+        return []
+    index = {n: k for k, n in enumerate(gt["gt_names"])}
+    whole = whole_model_errors([names[k] for k in keep], poses[keep],
+                               gt["gt_poses"][[index[names[k]] for k in keep]], gt["align"])
+    return whole.doubted(gt["max_deg"], gt["max_trans"])
+
+
 def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None,
-              contested: list[str] = ()) -> dict:
-    """One JSON-able row from a ``SceneScore``, the run's timings and its contested scans."""
+              flags: dict[str, list[str]], unflagged: list[str]) -> dict:
+    """One JSON-able row from a ``SceneScore``, the run's timings, its flags and its unflagged wrong scans."""
     w = score.whole
     return {
         "scene": name, "scans": score.scans, "placed": len(score.placed), "unregistered": score.unregistered,
-        "unverified": score.unverified, "contested": list(contested), "recall": score.recall.recall if score.recall else None,
+        "unverified": score.unverified, "flags": flags, "unflagged_wrong": unflagged,
+        "recall": score.recall.recall if score.recall else None,
         "within": score.within, "tolerance": [score.max_deg, score.max_trans], "ate_rmse": w.ate_rmse,
         "median_rot": float(np.median(w.rotation_deg)), "worst_rot": float(w.rotation_deg.max()),
         "worst_trans": float(w.translation.max()), "seconds": seconds, "wall": wall, "peak_mb": peak_mb,
@@ -138,11 +164,13 @@ def labels(names: list[str]) -> str:
 
 
 def print_table(rows: list[dict]) -> None:
+    from sghr_gtsam.result import FLAGS
+
     stages = list(dict.fromkeys(k for r in rows for k in r.get("seconds", {})))
     print("| scene | scans | placed | unregistered | unverified | RR (paper) | within tol | ATE rmse m | median rot ° "
           "| worst rot ° | " + " | ".join(f"{s} s" for s in stages) + " | wall s | peak MB | doubted (whole model) "
-          "| flagged by the run (unverified; contested; unregistered) |")
-    print("|---" * (15 + len(stages)) + "|")
+          "| unflagged wrong | flagged by the run (" + "; ".join(FLAGS) + ") |")
+    print("|---" * (16 + len(stages)) + "|")
     for r in rows:
         if "error" in r:
             print(f"| {r['scene']} | failed: {r['error']} |")
@@ -152,8 +180,19 @@ def print_table(rows: list[dict]) -> None:
               f"| {len(r['unverified'])} | {rr} | {r['within']}/{r['scans']} | {r['ate_rmse']:.4g} "
               f"| {r['median_rot']:.3g} | {r['worst_rot']:.3g} | "
               + " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages)
-              + f" | {r['wall']:.0f} | {r['peak_mb']:.0f} | {labels(r['doubted'])} "
-              f"| {labels(r['unverified'])}; {labels(r.get('contested', []))}; {labels(r['unregistered'])} |")
+              + f" | {r['wall']:.0f} | {r['peak_mb']:.0f} | {labels(r['doubted'])} | {labels(r['unflagged_wrong'])} "
+              f"| " + "; ".join(labels(r["flags"].get(f, [])) for f in FLAGS) + " |")
+    refit = [r for r in rows if "refit" in r]
+    if refit:
+        print("\nThe same runs against the GT re-fitted to the scans (data_tools.refit_gt):\n")
+        print("| scene | pairs re-fitted | ICP optimum from GT: rot median / 90 % ° | trans median / 90 % m "
+              "| re-fitted GT vs GT: within tol, ATE m | within tol | ATE rmse m | doubted | unflagged wrong |")
+        print("|---" * 9 + "|")
+        for r in refit:
+            f = r["refit"]
+            print(f"| {r['scene']} | {f['pairs']} | {f['rot'][0]:.2f} / {f['rot'][1]:.2f} | {f['trans'][0]:.3f} / "
+                  f"{f['trans'][1]:.3f} | {f['gt_within']}/{r['scans']}, {f['gt_ate']:.3f} | {f['within']}/{r['scans']} "
+                  f"| {f['ate_rmse']:.4g} | {labels(f['doubted'])} | {labels(f['unflagged_wrong'])} |")
 
 
 def child(scene_dir: str, overrides_json: str, workers: str) -> None:
@@ -165,25 +204,54 @@ def child(scene_dir: str, overrides_json: str, workers: str) -> None:
     with tempfile.TemporaryDirectory() as out:
         res = run(scene_dir, out, config, log=lambda m: print(m, file=sys.stderr))
     print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
-                      "unverified": res.unverified, "contested": res.contested, "timings": res.timings,
+                      "unverified": res.unverified, "flags": res.flags, "timings": res.timings,
                       "peak_mb": peak_memory_mb()}))
 
 
-def run_scene(data: Path, name: str, overrides: dict, workers: int | None) -> dict:
+def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False) -> dict:
     from sghr_gtsam.evaluate import score_run
 
     scene = SCENES[name]
-    started = time.perf_counter()
-    proc = subprocess.run([sys.executable, __file__, "--child", str(data / scene.folder), json.dumps(overrides),
-                           str(workers) if workers else "none"], capture_output=True, text=True, cwd=ROOT,
-                          check=False)
-    wall = time.perf_counter() - started
+    with tempfile.TemporaryDirectory() as subset:
+        folder = data / scene.folder
+        if scene.scans:  # the subset as a folder of links
+            for n in scene.scans:
+                (Path(subset) / n).symlink_to(folder / n)
+            folder = Path(subset)
+        started = time.perf_counter()
+        proc = subprocess.run([sys.executable, __file__, "--child", str(folder), json.dumps(overrides),
+                               str(workers) if workers else "none"], capture_output=True, text=True, cwd=ROOT,
+                              check=False)
+        wall = time.perf_counter() - started
     if proc.returncode:
         return {"scene": name, "error": (proc.stderr.strip().splitlines() or ["?"])[-1]}
     r = json.loads(proc.stdout.strip().splitlines()[-1])
-    score = score_run(r["names"], np.array(r["poses"]), unregistered=r["unregistered"], unverified=r["unverified"],
-                      **scene_gt(data, scene))
-    return score_row(name, score, r["timings"], wall, r["peak_mb"], r.get("contested", []))
+    names, poses = r["names"], np.array(r["poses"])
+    gt = scene_gt(data, scene)
+    score = score_run(names, poses, unregistered=r["unregistered"], unverified=r["unverified"], **gt)
+    row = score_row(name, score, r["timings"], wall, r["peak_mb"], r["flags"],
+                    unflagged_wrong(names, poses, r["flags"], gt))
+    if refit_gt and scene.gt_dir:
+        row["refit"] = refit_row(data, scene, names, poses, r, gt)
+    return row
+
+
+def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: dict, gt: dict) -> dict:
+    """The run scored against its scene's GT re-fitted to the scans (``data_tools.refit_gt``)."""
+    from data_tools.refit_gt import refit
+    from sghr_gtsam.evaluate import score_run, whole_model_errors
+    from sghr_gtsam.io.scans import load_scan
+
+    fit = refit([load_scan(data / scene.folder / n) for n in gt["gt_names"]], gt["gt_poses"], 0.025)
+    against = {**gt, "gt_poses": fit.poses, "gt_log": None, "gt_info": None}
+    score = score_run(names, poses, unregistered=r["unregistered"], unverified=r["unverified"], **against)
+    moved = whole_model_errors(gt["gt_names"], fit.poses, gt["gt_poses"], gt["align"])
+    rot, trans = fit.icp_move.T
+    return {"pairs": len(fit.pairs), "rot": [float(np.median(rot)), float(np.quantile(rot, 0.9))],
+            "trans": [float(np.median(trans)), float(np.quantile(trans, 0.9))],
+            "gt_within": int(moved.within(gt["max_deg"], gt["max_trans"]).sum()), "gt_ate": moved.ate_rmse,
+            "within": score.within, "ate_rmse": score.whole.ate_rmse, "doubted": score.doubted,
+            "unflagged_wrong": unflagged_wrong(names, poses, r["flags"], against)}
 
 
 def main() -> None:
@@ -197,6 +265,8 @@ def main() -> None:
                     help="override a Config field (repeatable)")
     ap.add_argument("--workers", type=int, help="Config.workers, when the installed Config has it")
     ap.add_argument("--json", type=Path, help="also write the raw rows (with per-scan errors) here")
+    ap.add_argument("--refit-gt", action="store_true",
+                    help="also score the 3DMatch scenes against their GT re-fitted to the scans (data_tools.refit_gt)")
     args = ap.parse_args()
     from sghr_gtsam.config import Config
     from sghr_gtsam.types import InputError
@@ -209,7 +279,7 @@ def main() -> None:
     rows = []
     for name in args.scenes:
         print(f"running {name} ...", file=sys.stderr, flush=True)
-        rows.append(run_scene(args.data, name, overrides, args.workers))
+        rows.append(run_scene(args.data, name, overrides, args.workers, args.refit_gt))
     print_table(rows)
     if args.json:
         from sghr_gtsam.io.atomic import atomic_write
