@@ -212,6 +212,78 @@ def test_a_look_alike_placement_is_right_or_contested(seed, weak, heavier):
     assert rot[:scan].max() < 5.0
     flagged = contested(graph, result) | unverified(graph, result) | (result.component != 0)
     assert flagged[scan] == (rot[scan] >= 5.0)
+    # No group of right scans is blamed for the dropped edges: they accuse the one scan at their other end. (A
+    # right partner may still be outweighed on its own, by its strong dropped edge.)
+    signed = np.where(result.weights > 0, graph.weight, -graph.weight)
+    outweighed = (np.bincount(graph.i, signed, 21) + np.bincount(graph.j, signed, 21)) < 0
+    assert not (contested(graph, result) & ~outweighed)[:scan].any()
+
+
+def _linked_clusters(seed: int, links: list[tuple[int, int, bool, float]]) -> tuple[PoseGraph, np.ndarray]:
+    """``_two_clusters`` with each link's own weight: (a, b, right?, w⁰)."""
+    graph, truth = _two_clusters([(a, b, ok) for a, b, ok, _ in links], seed)
+    weight = graph.weight.copy()
+    weight[-len(links):] = [w for *_, w in links]
+    return PoseGraph(n=graph.n, i=graph.i, j=graph.j, T=graph.T, weight=weight), truth
+
+
+@FAST
+@given(seed=st.integers(0, 10**6), weak=st.integers(3, 6), heavier=st.floats(1.2, 20.0))
+def test_a_group_placed_wrong_together_is_right_or_contested(seed, weak, heavier):
+    """studyroom's fragments 41-42 in miniature: ``weak`` light look-alike links, all agreeing, turn the 6-scan
+    cluster 180°; two right links ``heavier`` times their summed weight hold it where it is. No single scan is
+    outweighed (each keeps its strong edges inside the cluster), so only the group can be: whatever the polish
+    chooses, the cluster is right, or wrong and flagged."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.choice(15, weak + 2, replace=False), 15 + rng.permutation(6)
+    light = 2.0
+    links = ([(a[k], b[k % 6], False, light) for k in range(weak)]
+             + [(a[weak + k], b[(weak + k) % 6], True, heavier * weak * light / 2) for k in range(2)])
+    graph, truth = _linked_clusters(seed % 1000, links)
+    result = synchronize(graph)
+    rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
+    assert rot[:15].max() < 5.0
+    flagged = contested(graph, result) | unverified(graph, result) | (result.component != 0)
+    assert np.all(flagged[15:][rot[15:] >= 5.0])
+
+
+def test_dropped_links_that_disagree_do_not_add_up_against_a_group():
+    """The cluster held right by two links (w⁰ 60 in all) is not contested by five wrong links of twice that
+    weight in all when each would put it somewhere else: no two of them agree on one move."""
+    rng = np.random.default_rng(5)
+    wrong = [(int(rng.integers(15)), 15 + k, None, 24.0) for k in range(5)]
+    graph, truth = _linked_clusters(3, [(2, 16, True, 30.0), (7, 19, True, 30.0)]
+                                    + [(p, q, True, w) for p, q, _, w in wrong])
+    T = graph.T.copy()
+    for e in range(graph.num_edges - 5, graph.num_edges):  # each wrong link its own random placement
+        T[e] = T[e] @ make_T(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-2, 2, 3))
+    graph = PoseGraph(n=graph.n, i=graph.i, j=graph.j, T=T, weight=graph.weight)
+    result = synchronize(graph)
+    rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
+    assert rot.max() < 5.0 and np.all(result.weights[-5:] == 0)
+    assert not contested(graph, result)[15:].any()
+
+
+def test_dropped_edges_accuse_the_scan_at_their_far_end_not_the_group_they_leave():
+    """home_at's fragment 32 against the scans it was dropped from: scan 21, placed 90° off by three light
+    edges to the 6-scan cluster, has two strong right edges to that cluster dropped. They outweigh what holds
+    the cluster to the rest (three links of 30), but moving scan 21 costs far less: it alone is contested."""
+    graph, truth = _linked_clusters(3, [(2, 16, True, 30.0), (7, 19, True, 30.0), (11, 20, True, 30.0)])
+    rng = np.random.default_rng(0)
+    scan = truth[15] @ make_T(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-1, 1, 3))
+    wrong = scan @ make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [0.5, 0.0, 0.0])
+    truth = np.concatenate([truth, scan[None]])
+    partners, heavy = [15, 16, 17], [18, 19]
+    T = [inv_T(truth[p]) @ wrong for p in partners] + [inv_T(truth[p]) @ scan for p in heavy]
+    graph = PoseGraph(n=22, i=np.r_[graph.i, partners + heavy], j=np.r_[graph.j, [21] * 5],
+                      T=np.concatenate([graph.T, T]), weight=np.r_[graph.weight, [2.0] * 3, [150.0] * 2])
+    placed = truth.copy()
+    placed[21] = wrong
+    weights = graph.weight.copy()
+    weights[-2:] = 0.0
+    result = SyncResult(poses=placed, weights=weights, residual_deg=np.zeros(graph.num_edges),
+                        component=np.zeros(22, dtype=int))
+    np.testing.assert_array_equal(np.flatnonzero(contested(graph, result)), [21])
 
 
 @FAST

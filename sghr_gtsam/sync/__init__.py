@@ -23,6 +23,7 @@ from ..se3 import inv_T, project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import blocks
 from .consensus import consensus_placement, consistent_edges
+from .disputes import contested
 from .cycles import credibility, grow, kept_edges_at, replace_groups, triangle_support
 from .irls import REWEIGHTS, irls, kept_edges, solve_poses
 from .rotation import connected_components, rotation_residuals
@@ -273,21 +274,6 @@ def unverified(graph: PoseGraph, result: SyncResult) -> np.ndarray:
     # The largest block of the main part (ties: the one with the smallest node), as labels are ordered.
     core = label[np.flatnonzero(main)].min()
     return main & (label != core)
-
-
-def contested(graph: PoseGraph, result: SyncResult) -> np.ndarray:
-    """(N,) bool: nodes of the largest part whose edges the result dropped carry more initial weight ``w⁰``
-    than those it kept: the graph holds more registration evidence against the node's placement than for it.
-
-    The vote that placed it counted agreeing edges, and edges from scans that see the same place agree
-    without being independent: 3DMatch home_at fragment 32 sat 90° off on 8 weak edges from fragments
-    11-18 (``w⁰`` 117 in all) against 2 strong ones to fragments 23 and 31 (490). No right scan of that run
-    came above 0.68 of that ratio (docs/BENCHMARKS.md).
-    """
-    main = result.component == 0
-    signed = np.where(result.weights > 0, graph.weight, -graph.weight)
-    balance = np.bincount(graph.i, signed, graph.n) + np.bincount(graph.j, signed, graph.n)
-    return main & (balance < 0)
 
 
 def checked_graph(graph: PoseGraph) -> PoseGraph:
