@@ -231,6 +231,7 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
     score = score_run(names, poses, unregistered=r["unregistered"], unverified=r["unverified"], **gt)
     row = score_row(name, score, r["timings"], wall, r["peak_mb"], r["flags"],
                     unflagged_wrong(names, poses, r["flags"], gt))
+    row["poses"] = dict(zip(names, r["poses"]))  # for scoring against another reference later
     if refit_gt and scene.gt_dir:
         row["refit"] = refit_row(data, scene, names, poses, r, gt)
     return row
