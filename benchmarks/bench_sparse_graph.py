@@ -27,9 +27,9 @@ the most registered scans are within tolerance (the pipeline's anchor, unless it
 ``bench_pipeline.py``; kitchen registration recall (``evaluate.registration_recall``, 0.2 m) counted over
 *all* gt.log pairs among the 9 fragments, a pair with an unregistered scan counting as missed. Times are
 ``RunResult.timings`` (features + global graph + pairwise + sync; scans already loaded), wall clock; CPU s is
-the process CPU time of the run (all threads), less sensitive to other jobs on the machine. "unverified (of
-the misplaced)": scans the run flags as placed through a single unchecked registration (``sync.unverified``),
-and how many of the registered scans outside tolerance are among them. Random rows: the
+the process CPU time of the run (all threads), less sensitive to other jobs on the machine. "flagged (of
+the misplaced)": registered scans the run doubts (any of ``RunResult.flags``: unverified, contested,
+underdetermined), and how many of the registered scans outside tolerance are among them. Random rows: the
 mean over seeds of every column (errors are over each run's registered scans only), ranges in brackets.
 
 ``--sim-rooms R``: the real scenes have 9 and 10 scans, so "≤ 40 % of the pairs" means k = 2–3 there; the
@@ -115,6 +115,7 @@ def score_run(res: pipeline.RunResult, gt: np.ndarray, max_deg: float, max_t: fl
     best = max(((scan_errors(res.names, res.poses, gt, reference=r), r) for r in reg),
                key=lambda e: int(np.sum(e[0].within(max_deg, max_t)[reg])))[0]
     rot, trans = best.rotation_deg[reg], best.translation[reg]
+    doubted = set().union(*res.flags.values())
     row = {"pairs": res.graph.num_edges, "n": len(res.names), "registered": len(reg),
            "within": int(np.sum((rot <= max_deg) & (trans <= max_t))),
            "rot_mean": float(rot.mean()), "rot_max": float(rot.max()),
@@ -122,9 +123,8 @@ def score_run(res: pipeline.RunResult, gt: np.ndarray, max_deg: float, max_t: fl
            "total": sum(res.timings.get(s, 0.0) for s in ("features", "global_graph", "pairwise", "sync")),
            "pairwise": res.timings.get("pairwise", 0.0), "unregistered": res.unregistered,
            "misplaced": len(reg) - int(np.sum((rot <= max_deg) & (trans <= max_t))),
-           "flagged": len(res.unverified),
-           "caught": sum(res.names[k] in res.unverified for k, r, t in zip(reg, rot, trans)
-                         if r > max_deg or t > max_t)}
+           "flagged": sum(res.names[k] in doubted for k in reg),
+           "caught": sum(res.names[k] in doubted for k, r, t in zip(reg, rot, trans) if r > max_deg or t > max_t)}
     if scene.recall is not None:
         row["recalled"], row["recall_total"] = scene.recall(res), scene.recall_total
     return row
@@ -266,7 +266,7 @@ def bench_scene(scene: Scene, ks: list[int], seeds: int, exhaustive_learned: boo
     if has_recall:
         head.append("registration recall")
     head += ["rot. err. mean / worst (°)", f"trans. err. mean / worst ({unit})", "time s", "CPU s", "pairwise s",
-             "unverified (of the misplaced)", "unregistered (random: union over seeds)"]
+             "flagged (of the misplaced)", "unregistered (random: union over seeds)"]
     print("| " + " | ".join(head) + " |")
     print("|---|---|" + "---:|" * (len(head) - 3) + "---|")
     for line in lines:
@@ -302,7 +302,7 @@ def bench_steps(scene: Scene, k: int, rows: list[str]) -> None:
     print("| graph | k | global registrations (% of all pairs) | retry registered / tried | loops closed / tried "
           "(ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
           "| rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
-          "| unverified (of the misplaced) | unregistered |")
+          "| flagged (of the misplaced) | unregistered |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
     for row in rows:
         label, exhaustive, on = STEPS_PLAN[row]
