@@ -264,7 +264,7 @@ def demo(
     """Generate a scene scanned from several stations (known poses), register it, print the errors."""
     from .evaluate import scan_errors, whole_model_errors
     from .io.poses import read_poses
-    from .io.results import staged_results
+    from .io.atomic import staged_folder
     from .pipeline import run as run_pipeline
     from .synthetic import make_scene, write_scene
 
@@ -281,7 +281,7 @@ def demo(
         except ValueError as e:  # too few scans for the kind
             raise InputError(f"--scans {scans}: {e}") from None
         scene_dir = out / "scene"
-        with staged_results(scene_dir) as stage:  # replaced as a whole: no scan of an earlier, larger demo stays
+        with staged_folder(scene_dir) as stage:  # replaced as a whole: no scan of an earlier, larger demo stays
             write_scene(scene, stage)  # a building's scans are made one at a time as they are written
         return scene_dir
 

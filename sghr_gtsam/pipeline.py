@@ -25,7 +25,8 @@ from .features.netvlad import (
 from .graph import bridge_components, top_k_edges, top_k_graph
 from .gtsam_api import pose_covariances
 from .io.features import read_features
-from .io.results import CACHE, check_output_folder, staged_results, write_results
+from .io.atomic import staged_folder
+from .io.results import CACHE, check_output_folder, write_results
 from .io.scans import check_memory, finite_points, list_scans, load_scan
 from .merged import merged_cloud
 from .progress import QUIET, Progress
@@ -398,7 +399,7 @@ def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None, pr
 def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
         progress: Progress = QUIET) -> RunResult:
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``, which is replaced as a
-    whole when the run completes (``io.results.staged_results``): stopped or failed, it leaves ``out_dir`` as it
+    whole when the run completes (``io.atomic.staged_folder``): stopped or failed, it leaves ``out_dir`` as it
     was. ``out_dir`` must be new, empty or an earlier run's results (``InputError`` otherwise). ``progress``
     observes the long stages (``progress.TerminalProgress`` draws bars)."""
     config.validate()
@@ -409,7 +410,7 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
     timer = _Timer()
     with timer.stage("load"):
         scans, skipped = load_scene(scene_dir, config, log)
-    with staged_results(out) as stage:
+    with staged_folder(out, carry=CACHE) as stage:
         cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
         store = Store(cache, scratch=stage)  # without a cache, removed before the swap (and with the stage)
         try:

@@ -26,7 +26,8 @@ from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.gtsam_api import pose_covariances
 from sghr_gtsam.io.g2o import read_g2o, write_g2o
-from sghr_gtsam.io.results import CACHE, RESULT_FILES, staged_results
+from sghr_gtsam.io.atomic import staged_folder
+from sghr_gtsam.io.results import CACHE, RESULT_FILES
 from sghr_gtsam.io.scans import load_scan, write_scan
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
@@ -397,7 +398,7 @@ def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, cod
     if signum == signal.SIGKILL:  # nothing could clean up: the next run removes the staging folder
         stale = [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp-")]
         assert len(stale) == 1
-        with staged_results(out) as stage:
+        with staged_folder(out, carry=CACHE) as stage:
             assert not stale[0].exists()
             (stage / "poses.txt").write_text("new\n")
         assert [p.name for p in out.iterdir() if p.name != CACHE] == ["poses.txt"]
@@ -414,11 +415,11 @@ def test_swap_keeps_the_resume_cache(tmp_path):
     (out / "cache").mkdir()
     (out / "cache" / "scan.npz").write_text("cached")
     with pytest.raises(RuntimeError):
-        with staged_results(out) as stage:
+        with staged_folder(out, carry=CACHE) as stage:
             (stage / "poses.txt").write_text("half")
             raise RuntimeError
     assert (out / "cache" / "scan.npz").read_text() == "cached" and (out / "poses.txt").read_text() == OLD["poses.txt"]
-    with staged_results(out) as stage:
+    with staged_folder(out, carry=CACHE) as stage:
         (stage / "poses.txt").write_text("new\n")
     assert sorted(p.name for p in out.iterdir()) == ["cache", "poses.txt"]
     assert (out / "cache" / "scan.npz").read_text() == "cached"

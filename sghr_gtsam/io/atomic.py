@@ -1,11 +1,14 @@
-"""Atomic file output: a reader never sees a half-written file, and a failed write leaves the old
+"""Atomic output: a reader never sees a half-written file, and a failed write leaves the old
 file (or nothing) in place. The temporary file lives in the target's folder so that ``os.replace``
-is a same-filesystem rename."""
+is a same-filesystem rename. A folder of files is replaced the same way, as a set (``staged_folder``)."""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
+import re
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -86,3 +89,81 @@ def atomic_write(
     with atomic_path(path) as tmp:
         with open(tmp, mode, encoding=encoding, newline=newline) as f:
             yield f
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _remove_stale(out: Path, carry: str | None) -> None:
+    """Remove what stopped runs left beside ``out``: staging folders (their ``carry`` subfolder, if ``out`` has none,
+    goes back into ``out``) and, when the swap's fallback was stopped between its two renames, restore the previous results."""
+    pattern = re.compile(rf"^\.{re.escape(out.name)}\.(tmp|old)-(\d+)-")
+    if not out.parent.is_dir():
+        return
+    for path in sorted(out.parent.iterdir()):
+        match = pattern.match(path.name)
+        if not match or not path.is_dir() or _alive(int(match.group(2))) and int(match.group(2)) != os.getpid():
+            continue
+        if match.group(1) == "old" and not out.exists():
+            os.rename(path, out)
+            continue
+        if carry and (path / carry).is_dir() and out.is_dir() and not (out / carry).exists():
+            os.rename(path / carry, out / carry)
+        shutil.rmtree(path, ignore_errors=True)
+
+
+_RENAME_EXCHANGE = 2
+_AT_FDCWD = -100
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where that is not available."""
+    renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
+    if renameat2 is None:
+        return False
+    return renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
+
+
+def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
+    """Make the finished ``stage`` folder ``out``, carrying ``out``'s ``carry`` subfolder over; the old folder is
+    removed."""
+    fsync_dir(stage)
+    if not out.exists():
+        os.rename(stage, out)
+    else:
+        if carry and (out / carry).is_dir() and not (stage / carry).exists():
+            os.rename(out / carry, stage / carry)
+        if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
+            old = stage.with_name(stage.name.replace(".tmp-", ".old-", 1))
+            os.rename(out, old)
+            os.rename(stage, out)
+            stage = old
+        shutil.rmtree(stage, ignore_errors=True)  # the old folder, now at the staging name
+    fsync_dir(out.parent)
+
+
+@contextlib.contextmanager
+def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
+    """A new folder beside ``out`` to write a folder's files into; swapped in as ``out`` when the block completes,
+    removed when it raises (also on KeyboardInterrupt), so a stop at any point leaves ``out`` as it was. ``carry``:
+    a subfolder of ``out`` written in place during the block (a resume cache) and kept across the swap. Stale
+    folders of stopped runs are removed first."""
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        _remove_stale(out, carry)
+        stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-{os.getpid()}-"))
+    except OSError as e:
+        raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
+    try:
+        yield stage
+        _swap_in(stage, out, carry)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise

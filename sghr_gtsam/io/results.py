@@ -8,7 +8,7 @@ edges the result rests on (kept by synchronization, both ends registered) with t
 graph_rejected.g2o holds the other registered pairs as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to
 be optimized). edges.csv lists every pair with its ``status`` (``EDGE_STATUS``).
 
-The folder is replaced as a whole (``staged_results``): a run writes into a temporary folder beside it and swaps it
+The folder is replaced as a whole (``io.atomic.staged_folder``): a run writes into a temporary folder beside it and swaps it
 in at the end, so a run stopped at any point (SIGINT, SIGTERM, SIGKILL, a failure) leaves the previous results
 complete and untouched, and a finished one leaves no file of an older run (an old recording beside a run made
 with ``--no-record``). ``OUT/cache`` is the exception: the resume cache, written during the run in place and
@@ -16,16 +16,9 @@ carried across the swap."""
 
 from __future__ import annotations
 
-import contextlib
 import csv
-import ctypes
 import json
-import os
-import re
-import shutil
-import tempfile
 import time
-from collections.abc import Iterator
 from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -37,7 +30,7 @@ from ..plots import write_summary
 from ..registration.visibility import contradicted
 from ..result import peak_memory_mb
 from ..types import InputError, PoseGraph
-from .atomic import fsync_dir, atomic_write
+from .atomic import atomic_write
 from .g2o import write_g2o
 from .poses import write_kitti, write_poses, write_tum
 from .scans import write_ply
@@ -173,7 +166,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         json.dump(report, f, indent=2)
 
 
-# --- the results folder as a set -------------------------------------------------------------------------------
+# --- what may be replaced ------------------------------------------------------------------------------------
 
 
 def check_output_folder(out: Path, scene_dir: Path) -> None:
@@ -195,78 +188,3 @@ def check_output_folder(out: Path, scene_dir: Path) -> None:
             shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
             raise InputError(f"output folder {out} holds files that are not a run's results ({shown}): the new "
                              f"results replace the folder as a whole, so choose a new or empty one")
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
-
-
-def _remove_stale(out: Path) -> None:
-    """Remove what stopped runs left beside ``out``: staging folders (their cache, if ``out`` has none, goes back
-    into ``out``) and, when the swap's fallback was stopped between its two renames, restore the previous results."""
-    pattern = re.compile(rf"^\.{re.escape(out.name)}\.(tmp|old)-(\d+)-")
-    if not out.parent.is_dir():
-        return
-    for path in sorted(out.parent.iterdir()):
-        match = pattern.match(path.name)
-        if not match or not path.is_dir() or _alive(int(match.group(2))) and int(match.group(2)) != os.getpid():
-            continue
-        if match.group(1) == "old" and not out.exists():
-            os.rename(path, out)
-            continue
-        if (path / CACHE).is_dir() and out.is_dir() and not (out / CACHE).exists():
-            os.rename(path / CACHE, out / CACHE)
-        shutil.rmtree(path, ignore_errors=True)
-
-
-_RENAME_EXCHANGE = 2
-_AT_FDCWD = -100
-
-
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap two folders in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where that is not available."""
-    renameat2 = getattr(ctypes.CDLL(None, use_errno=True), "renameat2", None)
-    if renameat2 is None:
-        return False
-    return renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
-
-
-def _swap_in(stage: Path, out: Path) -> None:
-    """Make the finished ``stage`` folder ``out``, carrying ``out``'s cache over; the old results are removed."""
-    fsync_dir(stage)
-    if not out.exists():
-        os.rename(stage, out)
-    else:
-        if (out / CACHE).is_dir() and not (stage / CACHE).exists():
-            os.rename(out / CACHE, stage / CACHE)
-        if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
-            old = stage.with_name(stage.name.replace(".tmp-", ".old-", 1))
-            os.rename(out, old)
-            os.rename(stage, out)
-            stage = old
-        shutil.rmtree(stage, ignore_errors=True)  # the old results, now at the staging name
-    fsync_dir(out.parent)
-
-
-@contextlib.contextmanager
-def staged_results(out: Path) -> Iterator[Path]:
-    """A new folder beside ``out`` to write a run's results into; swapped in as ``out`` when the block completes,
-    removed when it raises (also on KeyboardInterrupt). Stale folders of stopped runs are removed first."""
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        _remove_stale(out)
-        stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-{os.getpid()}-"))
-    except OSError as e:
-        raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
-    try:
-        yield stage
-        _swap_in(stage, out)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
