@@ -38,6 +38,7 @@ from .registration.edges import EdgeSet
 from .registration.information import STIFFEN, underdetermined
 from .registration.refine import scan_pyramid
 from .registration.retry import weak_scans
+from .registration.visibility import contradicted_placements
 from .result import RunResult
 from .se3 import inv_T
 from .store import Attribute, Store, Stored
@@ -322,7 +323,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
             result = _synchronize(graph, config, recorder, progress, f"synchronization (round {densify.rounds})")
 
     # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
-    main = np.flatnonzero(result.component == 0)
+    main_part = result.component == 0
+    main = np.flatnonzero(main_part)
     poses = inv_T(result.poses[main[0]])[None] @ result.poses
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     for name in unregistered:
@@ -339,11 +341,18 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
+    clashing = []
+    if config.free_space:
+        with timer.stage("free_space"):
+            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(features, poses, main_part, voxel,
+                                                                                 centres))]
+    for name in clashing:
+        log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
                     edge_origin=edges.origin, edge_conflict=edges.conflict if config.free_space else None,
                     densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=skipped, features=features, timings=timer.seconds,
-                    global_feature=feature_kind, unverified=weak, contested=disputed,
+                    global_feature=feature_kind, unverified=weak, contested=disputed, contradicted=clashing,
                     cache=cache.report() if cache else None)
     with timer.stage("covariances"):
         try:

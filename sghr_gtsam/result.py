@@ -16,6 +16,7 @@ from .types import PoseGraph, SyncResult
 
 FLAGS = {"unregistered": "", "unverified": "pose rests on one unchecked registration",
          "contested": "dropped registrations outweigh the kept ones",
+         "contradicted": "placed where other scans saw empty space",
          "underdetermined": "not fixed to a voxel in some direction"}
 """Each way a run can doubt a scan (a ``RunResult`` field naming the scans), in the order they are reported,
 with what it means in a line."""
@@ -27,7 +28,9 @@ class RunResult:
     first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
     ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``); scans in
     ``contested`` have one against which the graph holds more registration evidence than for it
-    (``sync.contested``); scans in ``underdetermined`` have one their edges leave free in some direction."""
+    (``sync.contested``); scans in ``contradicted`` have one that puts them where other scans saw empty space, or
+    them seeing empty space where others are (``registration.visibility.contradicted_placements``); scans in
+    ``underdetermined`` have one their edges leave free in some direction."""
 
     names: list[str]
     poses: np.ndarray
@@ -46,6 +49,7 @@ class RunResult:
     global_feature: str = ""
     unverified: list[str] = field(default_factory=list)
     contested: list[str] = field(default_factory=list)
+    contradicted: list[str] = field(default_factory=list)
     edge_origin: list[str] = field(default_factory=list)
     """Per edge of ``graph``: how it entered (``registration.edges.ORIGINS``)."""
     edge_conflict: np.ndarray | None = None

@@ -11,7 +11,13 @@ from sghr_gtsam.io.poses import read_poses
 from sghr_gtsam.io.scans import load_scan
 from sghr_gtsam.registration.edges import EdgeSet
 from sghr_gtsam.registration.pairwise import PairResult
-from sghr_gtsam.registration.visibility import CONFLICT, free_space_conflict, seen_from_origin
+from sghr_gtsam.registration.visibility import (
+    CONFLICT,
+    contradicted_scans,
+    free_space_conflict,
+    placement_conflicts,
+    seen_from_origin,
+)
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.synthetic import make_scene
 
@@ -53,6 +59,42 @@ def test_a_scan_moved_into_the_room_another_saw_empty_is_contradicted(room, k, s
     T = np.eye(4)
     T[:3, 3] = inv_T(room.poses[k])[:3, :3] @ (shift * np.array([np.cos(heading), np.sin(heading), 0.0]))
     assert free_space_conflict(grid, grid, T, room.voxel) > CONFLICT
+
+
+def test_a_model_with_one_scan_placed_wrong_blames_that_scan_alone(room):
+    """Under the true poses no pair of the room's scans conflicts; with scan 2 turned 150° about its own vertical,
+    its walls cut through what the others saw empty: it conflicts with several of them, they only with it, and it
+    alone is blamed."""
+    grids = [_grid(P, room.voxel) for P in room.scans]
+    checked = np.ones(len(grids), dtype=bool)
+    assert not placement_conflicts(grids, room.poses, checked, room.voxel).any()
+    wrong = room.poses.copy()
+    c, s = np.cos(np.radians(150)), np.sin(np.radians(150))
+    turn = np.eye(4)
+    turn[:2, :2] = [[c, -s], [s, c]]
+    wrong[2] = wrong[2] @ turn
+    clash = placement_conflicts(grids, wrong, checked, room.voxel)
+    assert clash[2].sum() >= 2 and not np.delete(np.delete(clash, 2, 0), 2, 1).any()
+    np.testing.assert_array_equal(np.flatnonzero(contradicted_scans(clash)), [2])
+    checked[2] = False  # a scan that cannot say is neither tested nor blamed
+    assert not placement_conflicts(grids, wrong, checked, room.voxel).any()
+
+
+@given(st.integers(3, 12), st.integers(0, 10**6))
+def test_blame_falls_on_the_scans_in_conflict_with_many(n, seed):
+    """A star of conflicts blames its centre; a single conflicting pair blames no one; the scans blamed leave no
+    scan in conflict with two or more unblamed ones."""
+    rng = np.random.default_rng(seed)
+    star = np.zeros((n, n), dtype=bool)
+    star[0, 1:] = star[1:, 0] = True
+    np.testing.assert_array_equal(np.flatnonzero(contradicted_scans(star)), [0])
+    pair = np.zeros((n, n), dtype=bool)
+    pair[1, 2] = pair[2, 1] = True
+    assert not contradicted_scans(pair).any()
+    clash = np.triu(rng.random((n, n)) < 0.3, 1)
+    clash |= clash.T
+    blamed = contradicted_scans(clash)
+    assert (clash[np.ix_(~blamed, ~blamed)].sum(axis=1) < 2).all()
 
 
 def test_contradicted_edges_weigh_nothing(room):

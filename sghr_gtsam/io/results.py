@@ -142,6 +142,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "unregistered": result.unregistered,
         "unverified": result.unverified,
         "contested": result.contested,
+        "contradicted": result.contradicted,
         "underdetermined": result.underdetermined,
         "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p
                              in zip(result.graph.i, result.graph.j, result.pairs) if p.free],
