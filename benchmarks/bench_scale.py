@@ -105,13 +105,13 @@ def main() -> None:
     print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}" + (f"; kept in {work}" if args.keep else ""))
     print()
     header = (["scans", "k", "generate s", "run wall s", "CPU s", *STAGES, "top-k pairs", "pairs registered", "placed",
-               f"within {MAX_DEG:g}°/{MAX_TRANS:g} m", "unflagged wrong", "unverified", "contested", "underdetermined",
-               "ATE m", "median °", "largest process GB", "all processes PSS GB", "s a pair × worker", "scans MB",
+               f"within {MAX_DEG:g}°/{MAX_TRANS:g} m", "unflagged wrong", "unverified", "contested", "contradicted",
+               "underdetermined", "ATE m", "median °", "largest process GB", "all processes PSS GB", "s a pair × worker", "scans MB",
                "cache MB"])
     print("| " + " | ".join(header) + " |\n" + "|---" * len(header) + "|")
     for r in rows:
         stages = " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in STAGES)
-        flags = " | ".join(str(r["flags"][f]) for f in ("unverified", "contested", "underdetermined"))
+        flags = " | ".join(str(r["flags"][f]) for f in ("unverified", "contested", "contradicted", "underdetermined"))
         print(f"| {r['n']} | {r['k']} | {r['generate_s']:.1f} | {r['wall']:.0f} | {r['cpu']:.0f} | {stages} | "
               f"{r['stage_pairs']} | {r['pairs']} | {r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%}) | "
               f"{r['within']} | {r['wrong_unflagged']} | {flags} | {r['ate']:.3f} | {r['median_deg']:.2f} | "
