@@ -136,15 +136,18 @@ def placement_conflicts(points: Sequence[np.ndarray], poses: np.ndarray, checked
     meet are not tested; each scan's range image is built once."""
     n = len(poses)
     index = np.flatnonzero(checked)
-    world = {k: points[k] @ poses[k][:3, :3].T + poses[k][:3, 3] for k in index}
-    lo = np.array([world[k].min(axis=0) for k in index]).reshape(-1, 3)
-    hi = np.array([world[k].max(axis=0) for k in index]).reshape(-1, 3)
+    boxes = np.zeros((len(index), 2, 3))
+    for x, k in enumerate(index):  # one scan at a time: no pass holds every scan's points
+        world = points[k] @ poses[k][:3, :3].T + poses[k][:3, 3]
+        boxes[x] = world.min(axis=0), world.max(axis=0)
+    lo, hi = boxes[:, 0], boxes[:, 1]
     meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
     clash = np.zeros((n, n), dtype=bool)
     for x, a in enumerate(index):
-        image, to_a = _image(points[a]), np.linalg.inv(poses[a])
+        image = _image(points[a])
         for b in index[meet[x] & (index != a)]:
-            clash[a, b] = _in_front_of(image, world[b] @ to_a[:3, :3].T + to_a[:3, 3], voxel, MIN_IN_VIEW) > CONFLICT
+            T_ab = np.linalg.solve(poses[a], poses[b])
+            clash[a, b] = _in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel, MIN_IN_VIEW) > CONFLICT
     return clash | clash.T
 
 
