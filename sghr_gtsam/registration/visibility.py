@@ -112,7 +112,12 @@ def viewpoints(points: Sequence[np.ndarray], voxel: float, centres: np.ndarray) 
     """(N,) bool: which scans (``points[k]`` in scan k's frame, read once each) can say where there is nothing:
     seen from their frame's origin (``seen_from_origin``) and not centred by the pipeline (``centres`` (N, 3),
     ``local_frame.centres``: a centred scan lies far from its input frame's origin, which is no viewpoint)."""
-    return np.array([not np.any(c) and seen_from_origin(P, voxel) for P, c in zip(points, centres)], dtype=bool)
+    return np.array([_viewpoint(P, c, voxel) for P, c in zip(points, centres)], dtype=bool)
+
+
+def _viewpoint(P: np.ndarray, centre: np.ndarray, voxel: float) -> bool:
+    """``viewpoints`` of one scan (points ``P``, centred by ``centre``)."""
+    return not np.any(centre) and seen_from_origin(P, voxel)
 
 
 def conflicts(features: Stored, ij: np.ndarray, T: np.ndarray, voxel: float, centres: np.ndarray) -> np.ndarray:
@@ -122,7 +127,7 @@ def conflicts(features: Stored, ij: np.ndarray, T: np.ndarray, voxel: float, cen
 
     def seen(k: int) -> bool:
         if k not in viewpoint:
-            viewpoint[k] = bool(viewpoints([features[k].points], voxel, centres[k:k + 1])[0])
+            viewpoint[k] = _viewpoint(features[k].points, centres[k], voxel)
         return viewpoint[k]
 
     out = np.full(len(ij), np.nan)

@@ -75,7 +75,8 @@ def _contested_groups(graph: PoseGraph, result: SyncResult, flagged: np.ndarray)
             continue
         group = np.zeros(graph.n, dtype=bool)
         group[members[a]] = True
-        flagged |= group if _outweighed(graph, result.poses, group, inside, kept, tolerance) else False
+        if _outweighed(graph, result.poses, group, inside, kept, tolerance):
+            flagged |= group
     return flagged
 
 
