@@ -11,7 +11,8 @@ within 5° / 0.2 m (bunny: 0.2° / 0.5 mm, aligned by whole poses: its sensor po
 leave a positions-only alignment's rotation loose), ATE rmse and rotation errors. ``doubted`` lists the placed scans
 outside the tolerance (fragment numbers), ``flagged`` those the run itself doubted (``RunResult.flags``), and
 ``unflagged wrong`` the scans placed without a flag that one rigid alignment of those scans alone leaves outside
-the tolerance (a wrong model that looks right). ``bunny_ring`` is the bunny's six ring scans alone (45-90° apart).
+the tolerance (``SceneScore.unflagged_wrong``: a wrong model that looks right). ``bunny_ring`` is the bunny's six
+ring scans alone (45-90° apart).
 ``--refit-gt`` also scores the 3DMatch scenes against their GT re-fitted to the scans (``data_tools.refit_gt``):
 the GT's own error, measured, beside the GT and never instead of it.
 ``--set`` overrides a ``Config`` field (parsed by the field's type, ``none`` for None) for ablations;
@@ -127,28 +128,13 @@ def scene_gt(data: Path, scene: Scene) -> dict:
     return kw
 
 
-def unflagged_wrong(names: list[str], poses: np.ndarray, flags: dict[str, list[str]], gt: dict) -> list[str]:
-    """Scans placed without a flag that one rigid alignment of those scans alone to GT leaves outside the
-    tolerance (``gt``: ``scene_gt``'s keywords)."""
-    from sghr_gtsam.evaluate import whole_model_errors
-
-    doubted = set().union(*flags.values())
-    keep = [k for k, n in enumerate(names) if n not in doubted]
-    if len(keep) < 3:
-        return []
-    index = {n: k for k, n in enumerate(gt["gt_names"])}
-    whole = whole_model_errors([names[k] for k in keep], poses[keep],
-                               gt["gt_poses"][[index[names[k]] for k in keep]], gt["align"])
-    return whole.doubted(gt["max_deg"], gt["max_trans"])
-
-
 def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None,
-              flags: dict[str, list[str]], unflagged: list[str]) -> dict:
-    """One JSON-able row from a ``SceneScore``, the run's timings, its flags and its unflagged wrong scans."""
+              flags: dict[str, list[str]]) -> dict:
+    """One JSON-able row from a ``SceneScore``, the run's timings and its flags."""
     w = score.whole
     return {
         "scene": name, "scans": score.scans, "placed": len(score.placed), "unregistered": score.unregistered,
-        "unverified": score.unverified, "flags": flags, "unflagged_wrong": unflagged,
+        "unverified": flags.get("unverified", []), "flags": flags, "unflagged_wrong": score.unflagged_wrong,
         "recall": score.recall.recall if score.recall else None,
         "within": score.within, "tolerance": [score.max_deg, score.max_trans], "ate_rmse": w.ate_rmse,
         "median_rot": float(np.median(w.rotation_deg)), "worst_rot": float(w.rotation_deg.max()),
@@ -204,7 +190,7 @@ def child(scene_dir: str, overrides_json: str, workers: str) -> None:
     with tempfile.TemporaryDirectory() as out:
         res = run(scene_dir, out, config, log=lambda m: print(m, file=sys.stderr))
     print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
-                      "unverified": res.unverified, "flags": res.flags, "timings": res.timings,
+                      "flags": res.flags, "timings": res.timings,
                       "peak_mb": peak_memory_mb()}))
 
 
@@ -228,9 +214,8 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     names, poses = r["names"], np.array(r["poses"])
     gt = scene_gt(data, scene)
-    score = score_run(names, poses, unregistered=r["unregistered"], unverified=r["unverified"], **gt)
-    row = score_row(name, score, r["timings"], wall, r["peak_mb"], r["flags"],
-                    unflagged_wrong(names, poses, r["flags"], gt))
+    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set().union(*r["flags"].values()), **gt)
+    row = score_row(name, score, r["timings"], wall, r["peak_mb"], r["flags"])
     row["poses"] = dict(zip(names, r["poses"]))  # for scoring against another reference later
     if refit_gt and scene.gt_dir:
         row["refit"] = refit_row(data, scene, names, poses, r, gt)
@@ -245,14 +230,15 @@ def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: 
 
     fit = refit([load_scan(data / scene.folder / n) for n in gt["gt_names"]], gt["gt_poses"], 0.025)
     against = {**gt, "gt_poses": fit.poses, "gt_log": None, "gt_info": None}
-    score = score_run(names, poses, unregistered=r["unregistered"], unverified=r["unverified"], **against)
+    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set().union(*r["flags"].values()),
+                      **against)
     moved = whole_model_errors(gt["gt_names"], fit.poses, gt["gt_poses"], gt["align"])
     rot, trans = fit.icp_move.T
     return {"pairs": len(fit.pairs), "rot": [float(np.median(rot)), float(np.quantile(rot, 0.9))],
             "trans": [float(np.median(trans)), float(np.quantile(trans, 0.9))],
             "gt_within": int(moved.within(gt["max_deg"], gt["max_trans"]).sum()), "gt_ate": moved.ate_rmse,
             "within": score.within, "ate_rmse": score.whole.ate_rmse, "doubted": score.doubted,
-            "unflagged_wrong": unflagged_wrong(names, poses, r["flags"], against)}
+            "unflagged_wrong": score.unflagged_wrong}
 
 
 def main() -> None:

@@ -7,10 +7,10 @@ For each N: ``synthetic.make_scene(kind, N)`` written scan by scan (``synthetic_
 each scan overlapping a bounded number of others), then one ``python -m sghr_gtsam run SCENE --out OUT --workers W
 --no-record --quiet`` measured as ``benchmarks/bench_memory.py`` measures (``/usr/bin/time -v`` for the largest
 process, the process tree's RSS and PSS sampled every 0.2 s, CPU seconds of every process). From OUT/report.json:
-the seconds of each stage and the pairs. Against GT: scans placed, scans within 5° / 0.2 m after one rigid
-alignment (of the positions of the scans placed without a flag, applied to every placed scan; of every placed scan
-when fewer than 3 are unflagged), unflagged scans outside that (placed wrongly as if certain), ATE rmse and median
-rotation error of the scans aligned on, and the flags.
+the seconds of each stage and the pairs. Against GT (``evaluate.score_run``): scans placed, scans within 5° / 0.2 m
+after one rigid alignment fitted to the positions of the scans placed without a flag (``SceneScore.certain``; to every
+placed scan when fewer than 3 are unflagged), unflagged scans outside that (``SceneScore.unflagged_wrong``: placed
+wrongly as if certain), ATE rmse and median rotation error of the scans aligned on, and the flags.
 Then a log-log fit of the total seconds against N·k (the exponent: 1 is linear) and, for a multi-machine plan, the
 cost of a pair (pairwise seconds × workers / pairs registered by the pairwise stage) and the data volumes (scan files,
 OUT/cache).
@@ -33,10 +33,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench_memory import measured_run  # noqa: E402
-from sghr_gtsam.evaluate import align_rigid  # noqa: E402
+from sghr_gtsam.evaluate import score_run  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.result import FLAGS  # noqa: E402
-from sghr_gtsam.se3 import relative_errors  # noqa: E402
 from sghr_gtsam.synthetic import make_scene, write_scene  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
@@ -53,17 +52,13 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
     """The run's poses against GT (module doc)."""
     gt_names, gt = read_poses(scene / "gt_poses.txt")
     names, poses = read_poses(out / "poses.txt")
-    gt = gt[[gt_names.index(n) for n in names]]
-    placed = np.array([n not in set(report["unregistered"]) for n in names])
-    flagged = set().union(*(report[flag] for flag in DOUBTS))
-    certain = placed & np.array([n not in flagged for n in names])
-    basis = certain if certain.sum() >= 3 else placed  # every placed scan flagged: align on all of them
-    A = align_rigid(poses[basis, :3, 3], gt[basis, :3, 3])
-    rot, trans = relative_errors(A[None] @ poses, gt)
-    within = (rot <= MAX_DEG) & (trans <= MAX_TRANS)
-    return {"placed": int(placed.sum()), "within": int((within & placed).sum()),
-            "wrong_unflagged": int((certain & ~within).sum()),
-            "ate": float(np.sqrt(np.mean(trans[basis] ** 2))), "median_deg": float(np.median(rot[basis])),
+    score = score_run(names, poses, gt_names, gt, unregistered=report["unregistered"],
+                      flagged={n for flag in DOUBTS for n in report[flag]}, max_deg=MAX_DEG, max_trans=MAX_TRANS)
+    whole = score.certain or score.whole  # every placed scan flagged: aligned on all of them
+    basis = np.array([n not in set(score.flagged) for n in score.placed]) if score.certain else slice(None)
+    return {"placed": len(score.placed), "within": int(whole.within(MAX_DEG, MAX_TRANS).sum()),
+            "wrong_unflagged": len(score.unflagged_wrong), "ate": float(np.sqrt(np.mean(whole.translation[basis] ** 2))),
+            "median_deg": float(np.median(whole.rotation_deg[basis])),
             "flags": {flag: len(report[flag]) for flag in DOUBTS}}
 
 

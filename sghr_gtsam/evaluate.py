@@ -4,6 +4,7 @@ whole-model check (one rigid alignment of all scan positions to GT, then every s
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -148,15 +149,16 @@ def align_poses(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray,
-                       align: str = "positions") -> WholeModelErrors:
+                       align: str = "positions", fit: np.ndarray | None = None) -> WholeModelErrors:
     """Align ``poses`` (N, 4, 4) to ``gt_poses`` (same order) by their positions (``align_rigid``, as
     ``evo_ape --align``) or by whole poses (``align_poses``), then per scan the rotation error (degrees) and
-    position error of ``A @ T_i`` against ``T_i^gt``."""
+    position error of ``A @ T_i`` against ``T_i^gt``. ``fit``: (N,) bool, the scans the alignment is fitted to
+    (default all)."""
     poses, gt_poses = np.asarray(poses, float), np.asarray(gt_poses, float)
     if align not in ALIGNMENTS:
         raise InputError(f"align must be one of {', '.join(ALIGNMENTS)}; got {align!r}")
-    A = (align_rigid(poses[:, :3, 3], gt_poses[:, :3, 3]) if align == "positions"
-         else align_poses(poses, gt_poses))
+    src, dst = (poses, gt_poses) if fit is None else (poses[fit], gt_poses[fit])
+    A = align_rigid(src[:, :3, 3], dst[:, :3, 3]) if align == "positions" else align_poses(src, dst)
     rot, trans = relative_errors(A[None] @ poses, gt_poses)
     return WholeModelErrors(list(names), rot, trans, A)
 
@@ -165,15 +167,18 @@ def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray
 class SceneScore:
     """A run scored against a scene's GT: how many scans were placed, the paper's registration recall
     (unplaced fragments count as failed; None without a gt.log) and the whole-model errors of the placed
-    scans. ``doubted`` are the placed scans outside the tolerance, ``unverified`` those the run itself
-    flagged; scans in GT the run never loaded count as unregistered."""
+    scans. ``doubted`` are the placed scans outside the tolerance, ``flagged`` those the run itself doubted (any
+    of ``RunResult.flags``); scans in GT the run never loaded count as unregistered. ``certain`` are the placed
+    scans' errors under the alignment fitted to the unflagged ones alone, the model a user who trusts the flags
+    keeps (None with fewer than 3 unflagged: no alignment to judge them by)."""
 
     scans: int
     placed: list[str]
     unregistered: list[str]
-    unverified: list[str]
+    flagged: list[str]
     recall: RecallResult | None
     whole: WholeModelErrors
+    certain: WholeModelErrors | None
     max_deg: float
     max_trans: float
 
@@ -185,14 +190,24 @@ class SceneScore:
     def doubted(self) -> list[str]:
         return self.whole.doubted(self.max_deg, self.max_trans)
 
+    @property
+    def unflagged_wrong(self) -> list[str]:
+        """Scans placed without a flag that are wrong even when only such scans are aligned to GT: a wrong model
+        that looks right."""
+        if self.certain is None:
+            return []
+        flagged = set(self.flagged)
+        return [n for n in self.certain.doubted(self.max_deg, self.max_trans) if n not in flagged]
+
 
 def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses: np.ndarray, *,
-              unregistered: list[str] = (), unverified: list[str] = (), gt_log: dict | None = None,
+              unregistered: list[str] = (), flagged: Iterable[str] = (), gt_log: dict | None = None,
               gt_info: dict | None = None, max_deg: float = 5.0, max_trans: float = 0.2,
               align: str = "positions") -> SceneScore:
-    """Score estimated ``poses`` of ``names`` (scans in ``unregistered`` have no pose that counts) against
-    GT poses by name (``io.poses.read_poses`` of a ``gt_poses.txt``); with ``gt_log``/``gt_info`` also the
-    registration recall by the paper's protocol (``registration_recall_counting_unplaced``)."""
+    """Score estimated ``poses`` of ``names`` (scans in ``unregistered`` have no pose that counts; ``flagged`` the
+    run doubted) against GT poses by name (``io.poses.read_poses`` of a ``gt_poses.txt``); with
+    ``gt_log``/``gt_info`` also the registration recall by the paper's protocol
+    (``registration_recall_counting_unplaced``)."""
     gt_index = {n: k for k, n in enumerate(gt_names)}
     strangers = [n for n in names if n not in gt_index]
     if strangers:
@@ -202,20 +217,24 @@ def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses
     placed = [names[k] for k in keep]
     if not placed:
         raise InputError("no scan was placed: nothing to score")
-    placed_set = set(placed)
+    placed_set, doubted = set(placed), set(flagged)
     missing = [n for n in gt_names if n not in placed_set]
-    whole = whole_model_errors(placed, np.asarray(poses)[keep], np.asarray(gt_poses)[[gt_index[n] for n in placed]],
-                               align)
+    poses, gt_poses = np.asarray(poses), np.asarray(gt_poses)
+
+    def errors(fit: np.ndarray | None = None) -> WholeModelErrors:
+        return whole_model_errors(placed, poses[keep], gt_poses[[gt_index[n] for n in placed]], align, fit)
+
+    sure = np.array([n not in doubted for n in placed])
     recall = None
     if gt_log is not None and gt_info is not None:
         recall = registration_recall_counting_unplaced(
-            [fragment_id(n) for n in placed], np.asarray(poses)[keep], gt_log, gt_info,
+            [fragment_id(n) for n in placed], poses[keep], gt_log, gt_info,
             scene_ids=[fragment_id(n) for n in gt_names])
-    return SceneScore(len(gt_names), placed, missing, [n for n in unverified if n in placed_set], recall, whole,
-                      max_deg, max_trans)
+    return SceneScore(len(gt_names), placed, missing, [n for n in placed if n in doubted], recall, errors(),
+                      errors(sure) if sure.sum() >= 3 else None, max_deg, max_trans)
 
 
 def score_result(result: RunResult, gt_names: list[str], gt_poses: np.ndarray, **kwargs) -> SceneScore:
-    """``score_run`` of a pipeline ``RunResult`` (its poses, unregistered and unverified scans)."""
+    """``score_run`` of a pipeline ``RunResult`` (its poses, unregistered scans and flags)."""
     return score_run(result.names, result.poses, gt_names, gt_poses, unregistered=result.unregistered,
-                     unverified=result.unverified, **kwargs)
+                     flagged=set().union(*result.flags.values()), **kwargs)

@@ -133,15 +133,18 @@ def test_score_run_counts_unregistered_and_missing_scans_and_names_the_doubted_o
     est[5] = est[5] @ make_T(Rotation.from_euler("x", 60, degrees=True).as_matrix(), np.zeros(3))
     est[2] = np.eye(4)  # garbage pose of a scan the run could not place: must not count
     run_names = names[:7]  # the run never loaded the last scan
-    score = score_run(run_names, est[:7], names, gt, unregistered=[names[2]], unverified=[names[5], names[2]],
+    score = score_run(run_names, est[:7], names, gt, unregistered=[names[2]], flagged=[names[5], names[2]],
                       gt_log=log, gt_info=info)
     assert score.scans == 8 and len(score.placed) == 6
-    assert score.unregistered == [names[2], names[7]] and score.unverified == [names[5]]
-    assert score.doubted == [names[5]] and score.within == 5
+    assert score.unregistered == [names[2], names[7]] and score.flagged == [names[5]]
+    assert score.doubted == [names[5]] and score.within == 5 and score.unflagged_wrong == []
+    assert score_run(run_names, est[:7], names, gt, unregistered=[names[2]]).unflagged_wrong == [names[5]]
     # pairs with 2 or 7 fail (unplaced), pairs with 5 fail (60°: quaternion part 0.5 > 0.2), the rest are right
     scored = [(a, b) for a in range(8) for b in range(a + 2, 8)]
     right = [p for p in scored if not {2, 5, 7} & set(p)]
     assert score.recall.recall == pytest.approx(len(right) / len(scored))
+    few = score_run(run_names, est[:7], names, gt, flagged=names[2:7])  # two unflagged: no alignment to judge by
+    assert few.certain is None and few.unflagged_wrong == []
     with pytest.raises(InputError):
         score_run(["elsewhere.ply"], est[:1], names, gt)
     with pytest.raises(InputError):
@@ -162,10 +165,27 @@ def test_score_result_reads_the_runs_own_lists():
     from sghr_gtsam.evaluate import score_result
 
     names, gt, _, _ = _ring(6)
-    result = SimpleNamespace(names=names, poses=gt, unregistered=[names[1]], unverified=[names[4]])
+    result = SimpleNamespace(names=names, poses=gt, unregistered=[names[1]],
+                             flags={"unregistered": [names[1]], "unverified": [names[4]], "contested": [names[0]]})
     score = score_result(result, names, gt)
-    assert score.unregistered == [names[1]] and score.unverified == [names[4]] and score.within == 5
+    assert score.unregistered == [names[1]] and score.flagged == [names[0], names[4]] and score.within == 5
     assert score.recall is None
+
+
+@settings(max_examples=30, deadline=None)
+@given(seeds, st.integers(2, 5), st.floats(1.0, 20.0))
+def test_a_flagged_group_placed_far_off_does_not_make_the_unflagged_scans_read_wrong(seed, group, shift):
+    """Aligned on every scan, a misplaced group drags the right ones out of tolerance; aligned on the unflagged
+    scans alone, they are right, and a misplaced scan left unflagged is named (with whatever its pull on the
+    alignment carries out of tolerance)."""
+    rng = np.random.default_rng(seed)
+    gt = _trajectory(rng, 10)
+    names = [f"s{k}" for k in range(10)]
+    est = _random_T(rng)[None] @ gt
+    est[:group] = make_T(np.eye(3), np.array([shift, 0.0, 0.0])) @ est[:group]
+    score = score_run(names, est, names, gt, flagged=names[:group])
+    assert score.unflagged_wrong == [] and score.certain.within(5.0, 0.2).tolist() == [False] * group + [True] * (10 - group)
+    assert names[0] in score_run(names, est, names, gt, flagged=names[1:group]).unflagged_wrong
 
 
 @settings(max_examples=30, deadline=None)

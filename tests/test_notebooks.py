@@ -25,6 +25,7 @@ def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     cached = ns["again"].cache  # the second run read every result back from OUT/cache and computed none
     assert all(cached[stage]["computed"] == 0 < cached[stage]["cached"] for stage in ("features", "pairs", "refined"))
     np.testing.assert_array_equal(ns["again"].poses, ns["result"].poses)
+    assert ns["score"].within == ns["score"].scans == 8 and ns["score"].unflagged_wrong == []
     assert "unregistered: [] | unverified: [] | contested: []" in capsys.readouterr().out
     assert not ns["work"].exists()  # the notebook removes its temporary folder
 
