@@ -3,8 +3,8 @@ written to ``OUT/summary.png`` and the weight history the notebook shows.
 
 ``summary_figure``: left, the registered scans seen along their common axis of least extent (a floor plan for a
 room: the axis of least extent is the vertical one) coloured by scan with a categorical palette, the pose graph
-over them (scan centres; kept edges solid, as wide as their weight; rejected edges dashed red; unverified and
-contested scans ringed); right, the histogram of the edges' rotation residuals, kept and rejected apart.
+over them (scan centres; kept edges solid, as wide as their weight; rejected edges dashed red; each flagged scan
+ringed in its first flag's colour, ``palette.FLAG_COLOURS``); right, the histogram of the edges' rotation residuals, kept and rejected apart.
 Figures are built on ``matplotlib.figure.Figure`` with the Agg canvas, so drawing them never opens a window
 and never touches pyplot's global state; they show inline in Jupyter as PNG (``_repr_png_``), which a bare
 ``Figure`` does not do unless pyplot's inline backend is active.
@@ -41,8 +41,6 @@ def _hex(rgb: tuple[int, int, int]) -> str:
 
 
 REJECTED_COLOUR = _hex(REJECTED)
-UNVERIFIED_COLOUR = _hex(FLAG_COLOURS["unverified"])
-CONTESTED_COLOUR = _hex(FLAG_COLOURS["contested"])
 
 
 @cache
@@ -147,8 +145,10 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
                                       linestyles=(0, (3, 2)), alpha=0.8, label="rejected"))
     top.add_collection(LineCollection(segments[kept], colors=KEPT_COLOUR, alpha=0.85, label="kept",
                                       linewidths=0.6 + 2.4 * weights[kept] / w_max))
-    ring = {**{result.names.index(s): UNVERIFIED_COLOUR for s in result.unverified},
-            **{result.names.index(s): CONTESTED_COLOUR for s in result.contested}}
+    doubts = {flag: scans for flag, scans in result.flags.items() if flag != "unregistered" and scans}
+    ring: dict[int, str] = {}
+    for flag, scans in reversed(doubts.items()):  # a scan with several flags shows the first, in report order
+        ring.update({result.names.index(s): _hex(FLAG_COLOURS[flag]) for s in scans})
     top.scatter(centres[placed, 0], centres[placed, 1], s=36, c=colours[placed], zorder=3,
                 edgecolors=[ring.get(k, "black") for k in placed], linewidths=[2.5 if k in ring else 0.8 for k in placed])
     if n <= 40:
@@ -157,13 +157,12 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     top.set_aspect("equal", adjustable="datalim")
     top.set_xticks([])
     top.set_yticks([])
-    top.set_title(f"{len(placed)}/{n} scans placed · {len(result.unregistered)} unregistered · "
-                  f"{len(result.unverified)} unverified · {len(result.contested)} contested", fontsize=10)
+    top.set_title(" · ".join([f"{len(placed)}/{n} scans placed", f"{len(result.unregistered)} unregistered",
+                              *(f"{len(scans)} {flag}" for flag, scans in doubts.items())]), fontsize=10)
     legend = [Line2D([], [], color=KEPT_COLOUR, lw=2, label=f"kept edge ({len(kept)}; width = weight)"),
               Line2D([], [], color=REJECTED_COLOUR, lw=1, ls=(0, (3, 2)), label=f"rejected edge ({len(rejected)})")]
-    legend += [Line2D([], [], marker="o", ls="", mfc="white", mec=c, mew=2.5, label=name)
-               for name, c, flagged in (("unverified", UNVERIFIED_COLOUR, result.unverified),
-                                        ("contested", CONTESTED_COLOUR, result.contested)) if flagged]
+    legend += [Line2D([], [], marker="o", ls="", mfc="white", mec=_hex(FLAG_COLOURS[flag]), mew=2.5, label=flag)
+               for flag in doubts]
     top.legend(handles=legend, loc="upper right", fontsize=8, framealpha=0.8)
 
     residual = result.sync.residual_deg

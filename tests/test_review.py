@@ -14,7 +14,7 @@ from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.poses import read_kitti, read_tum
 from sghr_gtsam.pipeline import run
-from sghr_gtsam.palette import REJECTED, scan_colours
+from sghr_gtsam.palette import FLAG_COLOURS, REJECTED, scan_colours
 from sghr_gtsam.plots import summary_figure
 from sghr_gtsam.progress import TerminalProgress
 from sghr_gtsam.synthetic import make_scene, write_scene
@@ -106,6 +106,24 @@ def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
     image = top.images[0].get_array()
     drawn = np.unique(image[image[..., 3] > 0][:, :3], axis=0)
     np.testing.assert_allclose(np.sort(drawn, axis=0), np.sort(scan_colours(4) / 255.0, axis=0))
+
+
+def test_summary_figure_rings_each_flagged_scan_in_its_first_flags_colour(watched_run):
+    """Every flag of a placed scan shows (it once ringed unverified and contested scans only): a ring in the
+    palette's colour of its first flag in report order, a legend entry and a count in the title for each flag."""
+    from dataclasses import replace
+
+    from matplotlib.collections import PathCollection
+
+    result, _, _ = watched_run
+    a, b, c = result.names[1:4]
+    flagged = replace(result, contradicted=[a, b], underdetermined=[b, c], unverified=[], contested=[])
+    top = summary_figure(flagged).axes[0]
+    dots = next(col for col in top.collections if isinstance(col, PathCollection))
+    rings = [tuple(np.round(rgba[:3] * 255).astype(int)) for rgba in dots.get_edgecolor()]
+    assert rings[1:] == [FLAG_COLOURS["contradicted"]] * 2 + [FLAG_COLOURS["underdetermined"]]
+    assert [t.get_text() for t in top.get_legend().get_texts()][2:] == ["contradicted", "underdetermined"]
+    assert "2 contradicted · 2 underdetermined" in top.get_title()
 
 
 @pytest.mark.parametrize("n", [8, 30, 60])
