@@ -4,7 +4,7 @@ import networkx as nx
 import numpy as np
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from sghr_gtsam.sync.bridges import blocks, bridge_edges, movable_groups
+from sghr_gtsam.sync.bridges import blocks, bridge_edges
 
 
 def _reference(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -46,31 +46,3 @@ def test_a_cycle_has_no_bridge_and_a_tail_is_all_bridges():
     i = np.array([0, 1, 2, 2, 4])
     j = np.array([1, 2, 0, 3, 3])
     np.testing.assert_array_equal(bridge_edges(5, i, j), [False, False, False, True, True])
-
-
-@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 10**6), n=st.integers(1, 40), density=st.floats(0.3, 2.0))
-def test_movable_groups_are_the_blocks_and_what_each_bridge_holds(seed, n, density):
-    """Every block but the largest, and for each bridge the nodes networkx finds cut off from their part's largest
-    block when it is removed, whenever those span more than one block; nothing else."""
-    rng = np.random.default_rng(seed)
-    m = int(density * n)
-    i, j = rng.integers(0, n, m), rng.integers(0, n, m)
-    ok = i != j
-    i, j = i[ok], j[ok]
-    keep = np.ones(len(i), dtype=bool)
-    label = blocks(n, i, j, keep)
-    expected = {frozenset(np.flatnonzero(label == k).tolist()) for k in range(1, int(label.max()) + 1)}
-    G = nx.MultiGraph()
-    G.add_nodes_from(range(n))
-    G.add_edges_from(zip(i.tolist(), j.tolist()))
-    for e in np.flatnonzero(bridge_edges(n, i, j, keep)):
-        H = G.copy()
-        H.remove_edge(int(i[e]), int(j[e]))
-        part = nx.node_connected_component(G, int(i[e]))
-        root = min(label[list(part)])  # labels run largest block first
-        held = part - nx.node_connected_component(H, int(np.flatnonzero(label == root)[0]))
-        if len(set(label[list(held)].tolist())) > 1:
-            expected.add(frozenset(held))
-    found = [frozenset(g.tolist()) for g in movable_groups(n, i, j, keep)]
-    assert len(found) == len(set(found)) and set(found) == expected

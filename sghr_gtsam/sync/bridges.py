@@ -83,36 +83,4 @@ def blocks(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray
     return connected_components(n, i, j, keep & ~bridge_edges(n, i, j, keep))
 
 
-def movable_groups(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> list[np.ndarray]:
-    """Groups of nodes the ``keep`` edges hold together but attach to the rest across one edge at most: every block
-    but the largest (``blocks``), then, for each bridge whose far side holds more than one block, that side — the
-    nodes the bridge cuts off from the largest block of their part (blocks hung on blocks: a chain of loops that a
-    single wrong edge put in the wrong place). Node arrays, in that order."""
-    label = blocks(n, i, j, keep)
-    groups = [np.flatnonzero(label == k) for k in range(1, int(label.max()) + 1)]
-    bridge = np.flatnonzero(bridge_edges(n, i, j, keep))
-    tree: dict[int, list[int]] = {}
-    for a, b in zip(label[i[bridge]], label[j[bridge]]):
-        tree.setdefault(int(a), []).append(int(b))
-        tree.setdefault(int(b), []).append(int(a))
-    seen: set[int] = set()
-    for root in sorted(tree):  # labels run largest block first: each part's first one seen is its largest
-        if root in seen:
-            continue
-        order, parent = [root], {root: -1}
-        seen.add(root)
-        for node in order:  # breadth first from the root block
-            for child in tree[node]:
-                if child not in seen:
-                    seen.add(child)
-                    parent[child] = node
-                    order.append(child)
-        held = {node: [node] for node in order}
-        for node in reversed(order[1:]):  # children before parents
-            held[parent[node]].extend(held[node])
-            if len(held[node]) > 1:
-                groups.append(np.flatnonzero(np.isin(label, held[node])))
-    return groups
-
-
-__all__ = ["bridge_edges", "blocks", "movable_groups"]
+__all__ = ["bridge_edges", "blocks"]
