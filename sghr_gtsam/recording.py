@@ -35,7 +35,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from .palette import FLAG_COLOURS, REJECTED, scan_colours
-from .sync.irls import kept_edges
+from .sync.irls import NEGLIGIBLE, kept_edges
 from .types import IterationRecord, PoseGraph, SyncResult
 
 TIMELINE = "step"
@@ -43,20 +43,24 @@ ELLIPSOID_GAIN = 10.0
 """Ellipsoids are drawn this many times their 3σ size (a well-registered scan's is sub-millimetre)."""
 KEPT = (60, 200, 255)
 """Colour of the edges a synchronization keeps (light blue; the rejected ones: ``palette.REJECTED``)."""
-WEIGHT_FLOOR = -6.0
-"""log10 of weight ÷ the largest at which the ``weights`` series shows a rejected (zero-weight) edge."""
+WEIGHT_FLOOR = float(np.log10(NEGLIGIBLE)) - 1.0
+"""log10 of weight ÷ the largest at which the ``weights`` series shows a rejected (zero-weight) edge: below every
+weight synchronization can keep (``irls.NEGLIGIBLE``)."""
 FLAG_OTHER = (255, 255, 255)
 """Box colour of a flag without one in ``palette.FLAG_COLOURS`` (a box takes its first flag's colour)."""
 _EDGE_POINTS = (0.75, 3.5)  # line radius in UI points of a rejected edge / the heaviest kept edge
 _SEP = "–"  # between the two scan names of an edge
 
 
-def edge_radii(w: np.ndarray, kept: np.ndarray, min_weight: float) -> np.ndarray:
-    """Line radius (UI points) of each edge: kept edges from ``_EDGE_POINTS[0]`` at ``min_weight`` times the
+_RADIUS_DECADES = 3
+"""Kept edges' line radius grows over this many decades of weight below the largest (lighter ones: the minimum)."""
+
+
+def edge_radii(w: np.ndarray, kept: np.ndarray) -> np.ndarray:
+    """Line radius (UI points) of each edge: kept edges from ``_EDGE_POINTS[0]`` at ``10^-_RADIUS_DECADES`` times the
     largest weight to ``_EDGE_POINTS[1]`` at the largest, on a log scale; rejected ones at the minimum."""
     rel = w / max(float(w.max(initial=0.0)), 1e-300)
-    span = -np.log10(min_weight)
-    t = np.clip(1.0 + np.log10(np.maximum(rel, min_weight)) / span, 0.0, 1.0)
+    t = np.clip(1.0 + np.log10(np.maximum(rel, 10.0 ** -_RADIUS_DECADES)) / _RADIUS_DECADES, 0.0, 1.0)
     lo, hi = _EDGE_POINTS
     return np.where(kept, lo + (hi - lo) * t, lo).astype(np.float32)
 
@@ -93,7 +97,7 @@ class Recorder:
     ``min_weight``: as ``Config.min_weight``, so that an IRLS edge counts as kept where synchronization
     keeps it."""
 
-    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3):
+    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 0.0):
         self.rec = rr.RecordingStream(application_id)
         self.rec.save(str(path), default_blueprint=blueprint())
         self.min_weight = min_weight
@@ -197,7 +201,7 @@ class Recorder:
         strips = np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32)
         colours = np.where(kept[:, None], np.array(KEPT, dtype=np.uint8), np.array(REJECTED, dtype=np.uint8))
         self.rec.log("world/edges", rr.LineStrips3D(
-            strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept, self.min_weight))))
+            strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept))))
         self.rec.log("metrics/kept_edges", rr.Scalars(float(kept.sum())))
         self.rec.log("residuals", rr.Scalars(np.asarray(residual_deg, dtype=float)))
         rel = weights / max(float(weights.max(initial=0.0)), 1e-300)

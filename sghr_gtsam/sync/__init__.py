@@ -60,7 +60,7 @@ def _blas() -> ThreadpoolController:
 
 
 def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, reweight: str = "authors",
-                polish: str = "loops", min_weight: float = 1e-3,
+                polish: str = "loops", min_weight: float = 0.0,
                 on_iteration: Callable[[IterationRecord], None] | None = None) -> SyncResult:
     """Absolute poses ``T_i`` (``T_ij = T_i⁻¹ T_j``) of every node of ``graph``.
 
@@ -69,7 +69,8 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     ``polish``: a key of ``POLISHES`` (method ``"lm"`` always ends with Levenberg-Marquardt). An edge that
     enters a gtsam solve does so with its own information if the graph has it, else with its initial weight
     as precision scale (``factor_graph.edge_information``). Edges whose initial weight is below
-    ``min_weight`` times the largest are never used. With ``"none"`` and ``"lm"`` the kept edges are those
+    ``min_weight`` (default 0: every edge counts; ``irls.NEGLIGIBLE`` always applies) times the largest are never
+    used. With ``"none"`` and ``"lm"`` the kept edges are those
     whose reweighted weight is not below ``min_weight`` times the largest; with ``"robust"`` those consistent
     with the final poses (``consensus.consistent_edges``); with ``"loops"`` (default; ``_loop_placement``,
     ``_readmit``) those consistent with the least-squares optimum over them, at tolerances widened to the
