@@ -22,9 +22,9 @@ without a sustained good residual. A last solve with ``w^M`` gives the output po
 ``schedule`` gives the paper's ablations: ``"history"`` (the ``g(m)`` above), ``"constant"`` (``g = 1/M``) and
 ``"current"`` (no history: ``wⁿ = w⁰ · exp(−c δⁿ)``).
 
-Edges whose weight falls below ``min_weight`` times the largest weight are left out of the solves (they are
-numerically irrelevant to a connected graph, but a weakly attached part can otherwise capture the bottom
-eigenvectors); each part of what remains is solved on its own and anchored at its first node.
+Edges whose weight falls below ``min_weight`` (default 0) or ``NEGLIGIBLE`` times the largest weight are left out
+of the solves (they are numerically irrelevant to a connected graph, but a weakly attached part can otherwise
+capture the bottom eigenvectors); each part of what remains is solved on its own and anchored at its first node.
 """
 
 from __future__ import annotations
@@ -60,7 +60,9 @@ NEGLIGIBLE = 1e-12
 """Weights below this fraction of the largest are dropped whatever ``min_weight`` says: they vanish from
 double-precision sums, and a scan held only by such edges leaves the least-squares system singular (the authors'
 reweighting scales an edge 180° off by e⁻³⁶⁰; ``min_weight = 0`` on a 60 % outlier graph ended in "Factor is
-exactly singular")."""
+exactly singular"). Above it a part hung on one very light edge is placed, if loosely: a 10-scan cluster on one
+right edge 10⁻⁹ of the largest weight came out 3.9° / 0.38 m off (1.6° / 0.11 m at 10⁻⁶), flagged unverified. A
+floor of 10⁻⁶ moved the structured outlier graphs' all-pairs recall by −0.007 to +0.005."""
 
 
 def kept_edges(w: np.ndarray, min_weight: float) -> np.ndarray:
