@@ -115,11 +115,11 @@ class Config:
     initial_weight: str = "s*r"
     """Initial edge weight w⁰: 's*r' (overlap score × inlier count, SGHR) or the paper's ablations 's'
     (score only) and 'r' (inlier count only)."""
-    min_weight: float = 0.0
-    """Edges whose weight falls below this fraction of the largest weight are dropped; a scan left without edges is
-    reported as unregistered. 0 (default): every registration counts, however light (a right registration of a
-    thin overlap weighs little but still agrees with the loops; 1e-3 cost 0.03 of all-pairs recall at 60 %
-    random outliers, docs/BENCHMARKS.md)."""
+    min_weight: float = 1e-3
+    """An edge is dropped once the history reweighting has scaled it below this fraction of its initial weight; a
+    scan left without edges is reported as unregistered. Initial weights are never cut: a right registration of a
+    thin overlap weighs little but still agrees with the loops (cutting edges under 1e-3 of the largest initial
+    weight cost 0.03 of all-pairs recall at 60 % random outliers, docs/BENCHMARKS.md)."""
 
     # --- gtsam graph (sghr_gtsam.gtsam_api, the incremental session, ``sync``'s final LM) ---------------
     noise_model: str = "information"

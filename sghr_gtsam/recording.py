@@ -97,7 +97,7 @@ class Recorder:
     ``min_weight``: as ``Config.min_weight``, so that an IRLS edge counts as kept where synchronization
     keeps it."""
 
-    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 0.0):
+    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3):
         self.rec = rr.RecordingStream(application_id)
         self.rec.save(str(path), default_blueprint=blueprint())
         self.min_weight = min_weight
@@ -196,7 +196,7 @@ class Recorder:
 
     def _log_edges(self, poses: np.ndarray, weights: np.ndarray, residual_deg: np.ndarray) -> None:
         g = self._graph
-        kept = kept_edges(weights, self.min_weight)
+        kept = kept_edges(weights, self.min_weight, g.weight)
         centres = np.einsum("nij,nj->ni", poses[:, :3, :3], self._centres) + poses[:, :3, 3]
         strips = np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32)
         colours = np.where(kept[:, None], np.array(KEPT, dtype=np.uint8), np.array(REJECTED, dtype=np.uint8))

@@ -71,7 +71,7 @@ def flagged(tmp_path_factory):
     weight = rng.uniform(20, 100, len(i))
     wrong = [pairs.index(p) for p in ((0, 3), (1, 4), (3, 8))]
     T[wrong] = make_T(Rotation.random(3, random_state=rng).as_matrix(), rng.uniform(-3, 3, (3, 3)))
-    weight[pairs.index((0, 7))] = 1e-5
+    weight[pairs.index((0, 7))] = 1e-14  # below irls.NEGLIGIBLE of the largest: never used
     weight[[pairs.index(p) for p in ((0, 8), (1, 8), (2, 8))]] = 5.0
     weight[pairs.index((3, 8))] = 60.0
     graph = PoseGraph(n=n, i=i, j=j, T=T, weight=weight)
@@ -79,10 +79,10 @@ def flagged(tmp_path_factory):
     points = [rng.uniform(-1, 1, (200, 3)) * (1 + k % 3) for k in range(n)]
 
     path = tmp_path_factory.mktemp("rec") / "flagged.rrd"
-    recorder = Recorder(path, min_weight=1e-3)  # scan 7's edge (1e-7 of the largest) is then too weak to use
+    recorder = Recorder(path)
     recorder.log_scans(names, points)
     recorder.log_graph(graph, np.eye(n))
-    result = synchronize(graph, min_weight=1e-3, on_iteration=recorder.on_iteration)
+    result = synchronize(graph, on_iteration=recorder.on_iteration)
     recorder.log_sync(result)
     flags = {"unregistered": [names[k] for k in np.flatnonzero(result.component != 0)],
              "unverified": [names[k] for k in np.flatnonzero(unverified(graph, result))],

@@ -60,7 +60,7 @@ def _blas() -> ThreadpoolController:
 
 
 def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, reweight: str = "authors",
-                polish: str = "loops", min_weight: float = 0.0,
+                polish: str = "loops", min_weight: float = 1e-3,
                 on_iteration: Callable[[IterationRecord], None] | None = None) -> SyncResult:
     """Absolute poses ``T_i`` (``T_ij = T_i⁻¹ T_j``) of every node of ``graph``.
 
@@ -68,10 +68,9 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     factor 2, as the authors' code) or ``"paper"`` (δ in radians, as the paper writes it); see ``irls``.
     ``polish``: a key of ``POLISHES`` (method ``"lm"`` always ends with Levenberg-Marquardt). An edge that
     enters a gtsam solve does so with its own information if the graph has it, else with its initial weight
-    as precision scale (``factor_graph.edge_information``). Edges whose initial weight is below
-    ``min_weight`` (default 0: every edge counts; ``irls.NEGLIGIBLE`` always applies) times the largest are never
-    used. With ``"none"`` and ``"lm"`` the kept edges are those
-    whose reweighted weight is not below ``min_weight`` times the largest; with ``"robust"`` those consistent
+    as precision scale (``factor_graph.edge_information``). Every edge with a positive initial weight is used
+    (above ``irls.NEGLIGIBLE`` of the largest). With ``"none"`` and ``"lm"`` the kept edges are those whose
+    reweighted weight is not below ``min_weight`` times their initial weight; with ``"robust"`` those consistent
     with the final poses (``consensus.consistent_edges``); with ``"loops"`` (default; ``_loop_placement``,
     ``_readmit``) those consistent with the least-squares optimum over them, at tolerances widened to the
     residual spread or within their own noise (``cycles.kept_edges_at``). Dropped edges have weight 0 in
@@ -115,7 +114,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         weights, kept, poses = result.weights, result.kept, result.poses
     else:
         weights = graph.weight
-        kept = kept_edges(weights, min_weight)
+        kept = kept_edges(weights, min_weight, graph.weight)
         used = np.where(kept, weights, 0.0)
         if method == "lm" and graph.information is not None:
             # The chordal initial estimate weights each edge by its isotropic precisions (SE-Sync's κ, τ).
@@ -125,10 +124,10 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
             poses = solve_poses(graph, used)
     support = None
     if polish == "robust" and method != "lm":
-        poses, kept = _robust_placement(graph, poses, min_weight, keep_history)
+        poses, kept = _robust_placement(graph, poses, keep_history)
         weights = graph.weight
     elif polish == "loops" and method != "lm":
-        poses, kept, support = _loop_placement(graph, poses, min_weight, keep_history)
+        poses, kept, support = _loop_placement(graph, poses, keep_history)
         weights = graph.weight
     if polish != "none" or method == "lm":
         from ..factor_graph import edge_information, polish as lm_polish
@@ -145,7 +144,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
 
         poses = solve(poses, kept)
         if polish == "loops" and method != "lm":
-            poses, kept = _readmit(graph, poses, kept, min_weight, solve)
+            poses, kept = _readmit(graph, poses, kept, solve)
     weights = np.where(kept, weights, 0.0)
     component = connected_components(graph.n, graph.i, graph.j, kept)
     poses = _anchored(poses, component)  # a part re-judged apart is anchored at its own first node
@@ -154,9 +153,9 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
                       history=history, loop_support=support)
 
 
-def _usable(graph: PoseGraph, min_weight: float) -> PoseGraph:
-    """``graph`` without its negligible edges (initial weight below ``min_weight`` times the largest: weight 0)."""
-    return replace(graph, weight=np.where(kept_edges(graph.weight, min_weight), graph.weight, 0.0))
+def _usable(graph: PoseGraph) -> PoseGraph:
+    """``graph`` without its negligible edges (initial weight below ``irls.NEGLIGIBLE`` of the largest: weight 0)."""
+    return replace(graph, weight=np.where(kept_edges(graph.weight, 0.0), graph.weight, 0.0))
 
 
 def _anchored(poses: np.ndarray, component: np.ndarray) -> np.ndarray:
@@ -165,7 +164,7 @@ def _anchored(poses: np.ndarray, component: np.ndarray) -> np.ndarray:
     return inv_T(poses[first[component]]) @ poses
 
 
-def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, min_weight: float,
+def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
              solve: Callable[..., np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The loop polish's kept edges re-judged at least-squares optima (``kept_edges_at``), at most
     ``REFIT_ROUNDS`` solves: the placement steps judge edges at poses before least squares and with tolerances
@@ -173,7 +172,7 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, min_weight: 
     on every edge) they leave edges out that the optimum over all of them fits within their noise. With
     the edges' own information (the only noise model an edge can be re-admitted by), every usable edge is
     tried from the current poses too; the larger consistent set wins, and that set is solved again."""
-    usable_graph = _usable(graph, min_weight)
+    usable_graph = _usable(graph)
     usable = usable_graph.weight > 0
     for _ in range(REFIT_ROUNDS - 1):
         refit = kept_edges_at(usable_graph, poses)
@@ -189,7 +188,7 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, min_weight: 
     return poses, kept
 
 
-def _loop_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
+def _loop_placement(graph: PoseGraph, poses: np.ndarray,
                     keep_history: Callable[[IterationRecord], None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop polish before its last LM (``sync.cycles``): the poses, the (E,) mask of the edges
     consistent with them and every edge's loop support.
@@ -202,11 +201,11 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     runs thin (docs/BENCHMARKS.md). The start with more consistent edges is kept (IRLS on a tie); its
     kept edges are those consistent at tolerances widened to the residual spread (``kept_edges_at``), so
     that without outliers every edge stays and the final LM is plain least squares. Edges negligible from
-    the start (below ``min_weight``) stay out, as in IRLS.
+    the start (below ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
     from ..factor_graph import edge_information, polish as lm_polish
 
-    usable = _usable(graph, min_weight)
+    usable = _usable(graph)
     support = triangle_support(usable)
     cred = credibility(usable)
     by_cred = replace(usable, weight=cred)
@@ -234,7 +233,7 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     return _anchored(P, connected_components(graph.n, graph.i, graph.j, kept)), kept, support
 
 
-def _robust_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
+def _robust_placement(graph: PoseGraph, poses: np.ndarray,
                       keep_history: Callable[[IterationRecord], None]) -> tuple[np.ndarray, np.ndarray]:
     """The robust polish before its LM: consensus re-placement, GNC, consensus; the poses and the (E,)
     mask of edges consistent with them.
@@ -243,11 +242,11 @@ def _robust_placement(graph: PoseGraph, poses: np.ndarray, min_weight: float,
     translations (the authors' units). The consensus step can move a scan back by 90° or a metre, which
     no descent does; GNC over all edges then weighs translations too, and a second consensus pass catches
     what GNC moved (docs/BENCHMARKS.md, robustness). Edges negligible from the start (below
-    ``min_weight``) stay out, as in IRLS.
+    ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
     from ..factor_graph import edge_information, gnc_tls_poses
 
-    usable = _usable(graph, min_weight)
+    usable = _usable(graph)
     steps = (("consensus", lambda P: consensus_placement(usable, P)),
              ("gnc", lambda P: gnc_tls_poses(usable, P, edge_information(usable, usable.weight), GNC_ITERS)[0]),
              ("consensus", lambda P: consensus_placement(usable, P)))

@@ -22,9 +22,10 @@ without a sustained good residual. A last solve with ``w^M`` gives the output po
 ``schedule`` gives the paper's ablations: ``"history"`` (the ``g(m)`` above), ``"constant"`` (``g = 1/M``) and
 ``"current"`` (no history: ``wⁿ = w⁰ · exp(−c δⁿ)``).
 
-Edges whose weight falls below ``min_weight`` (default 0) or ``NEGLIGIBLE`` times the largest weight are left out
-of the solves (they are numerically irrelevant to a connected graph, but a weakly attached part can otherwise
-capture the bottom eigenvectors); each part of what remains is solved on its own and anchored at its first node.
+Edges the reweighting has scaled below ``min_weight`` times their initial weight, or below ``NEGLIGIBLE`` times
+the largest weight, are left out of the solves (they are numerically irrelevant to a connected graph, but a weakly
+attached part can otherwise capture the bottom eigenvectors); each part of what remains is solved on its own and
+anchored at its first node. The initial weights themselves are never cut: a light right registration still counts.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ class IrlsResult:
 
     poses: np.ndarray  # (N, 4, 4)
     weights: np.ndarray  # (E,) final weights w^M, before dropping
-    kept: np.ndarray  # (E,) bool: w^M >= min_weight * max(w^M)
+    kept: np.ndarray  # (E,) bool: w^M >= min_weight * w⁰ (and NEGLIGIBLE * max(w^M))
     history: list[IterationRecord] = field(default_factory=list)
 
 
@@ -65,10 +66,12 @@ right edge 10⁻⁹ of the largest weight came out 3.9° / 0.38 m off (1.6° / 0
 floor of 10⁻⁶ moved the structured outlier graphs' all-pairs recall by −0.007 to +0.005."""
 
 
-def kept_edges(w: np.ndarray, min_weight: float) -> np.ndarray:
-    """Edges whose weight is positive and at least ``min_weight`` (and ``NEGLIGIBLE``) times the largest weight."""
+def kept_edges(w: np.ndarray, min_weight: float, w0: np.ndarray | None = None) -> np.ndarray:
+    """Edges whose weight is positive and at least ``min_weight`` times their initial weight ``w0`` (default: times
+    the largest weight), and ``NEGLIGIBLE`` times the largest."""
     top = w.max(initial=0.0)
-    return (w > 0) & (w >= max(min_weight, NEGLIGIBLE) * top)
+    base = top if w0 is None else w0
+    return (w > 0) & (w >= min_weight * base) & (w >= NEGLIGIBLE * top)
 
 
 def solve_poses(graph: PoseGraph, w: np.ndarray, *, w_trans: np.ndarray | None = None,
@@ -94,7 +97,7 @@ def schedule_weights(M: int, schedule: str) -> np.ndarray:
 
 
 def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedule: str = "history",
-         min_weight: float = 0.0,
+         min_weight: float = 1e-3,
          on_iteration: Callable[[IterationRecord], None] | None = None) -> IrlsResult:
     """Run ``iters`` reweighting iterations from the weights ``graph.weight`` (``w⁰``); see the module doc."""
     if reweight not in REWEIGHTS:
@@ -111,7 +114,7 @@ def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedu
     t = np.zeros((n, 3))
     cache: dict = {}  # preconditioner factorizations, reused while the weights change slowly
     for m in range(1, iters + 1):
-        used = np.where(kept_edges(w, min_weight), w, 0.0)
+        used = np.where(kept_edges(w, min_weight, w0), w, 0.0)
         R = spectral_rotations(n, i, j, R_ij, used, init=R, cache=cache, tol=ITERATION_TOL)
         if reweight == "paper" or m == 1:
             t = solve_translations(n, i, j, R, graph.T[:, :3, 3], used)
@@ -126,7 +129,7 @@ def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedu
         history.append(record)
         if on_iteration is not None:
             on_iteration(record)
-    kept = kept_edges(w, min_weight)
+    kept = kept_edges(w, min_weight, w0)
     used = np.where(kept, w, 0.0)
     poses = solve_poses(graph, used, init=R, cache=cache)
     return IrlsResult(poses=poses, weights=w, kept=kept, history=history)
