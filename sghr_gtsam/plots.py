@@ -22,6 +22,7 @@ import numpy as np
 
 from .io.atomic import atomic_path
 from .palette import FLAG_COLOURS, REJECTED, scan_colours
+from .result import DOUBTS
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -145,7 +146,7 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
                                       linestyles=(0, (3, 2)), alpha=0.8, label="rejected"))
     top.add_collection(LineCollection(segments[kept], colors=KEPT_COLOUR, alpha=0.85, label="kept",
                                       linewidths=0.6 + 2.4 * weights[kept] / w_max))
-    doubts = {flag: scans for flag, scans in result.flags.items() if flag != "unregistered" and scans}
+    doubts = {flag: result.flags[flag] for flag in DOUBTS if result.flags[flag]}
     ring: dict[int, str] = {}
     for flag, scans in reversed(doubts.items()):  # a scan with several flags shows the first, in report order
         ring.update({result.names.index(s): _hex(FLAG_COLOURS[flag]) for s in scans})

@@ -20,6 +20,8 @@ FLAGS = {"unregistered": "", "unverified": "pose rests on one unchecked registra
          "underdetermined": "not fixed to a voxel in some direction"}
 """Each way a run can doubt a scan (a ``RunResult`` field naming the scans), in the order they are reported,
 with what it means in a line."""
+DOUBTS = tuple(flag for flag in FLAGS if flag != "unregistered")
+"""The flags a placed scan can carry."""
 
 
 @dataclass

@@ -25,7 +25,7 @@ from .bridges import blocks
 from .consensus import consensus_placement, consistent_edges
 from .disputes import contested
 from .cycles import credibility, grow, kept_edges_at, replace_groups, triangle_support
-from .irls import REWEIGHTS, irls, kept_edges, solve_poses
+from .irls import REWEIGHTS, irls, solve_poses, usable_edges
 from .rotation import connected_components, rotation_residuals
 
 POLISHES: dict[str, str] = {
@@ -114,7 +114,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         weights, kept, poses = result.weights, result.kept, result.poses
     else:
         weights = graph.weight
-        kept = kept_edges(weights, min_weight, graph.weight)
+        kept = usable_edges(weights)  # initial weights: nothing reweighted them yet
         used = np.where(kept, weights, 0.0)
         if method == "lm" and graph.information is not None:
             # The chordal initial estimate weights each edge by its isotropic precisions (SE-Sync's κ, τ).
@@ -155,7 +155,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
 
 def _usable(graph: PoseGraph) -> PoseGraph:
     """``graph`` without its negligible edges (initial weight below ``irls.NEGLIGIBLE`` of the largest: weight 0)."""
-    return replace(graph, weight=np.where(kept_edges(graph.weight, 0.0), graph.weight, 0.0))
+    return replace(graph, weight=np.where(usable_edges(graph.weight), graph.weight, 0.0))
 
 
 def _anchored(poses: np.ndarray, component: np.ndarray) -> np.ndarray:

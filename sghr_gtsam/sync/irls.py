@@ -66,12 +66,14 @@ right edge 10⁻⁹ of the largest weight came out 3.9° / 0.38 m off (1.6° / 0
 floor of 10⁻⁶ moved the structured outlier graphs' all-pairs recall by −0.007 to +0.005."""
 
 
-def kept_edges(w: np.ndarray, min_weight: float, w0: np.ndarray | None = None) -> np.ndarray:
-    """Edges whose weight is positive and at least ``min_weight`` times their initial weight ``w0`` (default: times
-    the largest weight), and ``NEGLIGIBLE`` times the largest."""
-    top = w.max(initial=0.0)
-    base = top if w0 is None else w0
-    return (w > 0) & (w >= min_weight * base) & (w >= NEGLIGIBLE * top)
+def usable_edges(w: np.ndarray) -> np.ndarray:
+    """Edges whose weight is positive and at least ``NEGLIGIBLE`` times the largest."""
+    return (w > 0) & (w >= NEGLIGIBLE * w.max(initial=0.0))
+
+
+def kept_edges(w: np.ndarray, min_weight: float, w0: np.ndarray) -> np.ndarray:
+    """``usable_edges`` whose weight ``w`` is still at least ``min_weight`` times their initial weight ``w0``."""
+    return usable_edges(w) & (w >= min_weight * w0)
 
 
 def solve_poses(graph: PoseGraph, w: np.ndarray, *, w_trans: np.ndarray | None = None,
