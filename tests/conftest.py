@@ -1,7 +1,14 @@
 import os
+import signal
 from pathlib import Path
 
 import pytest
+
+# A non-interactive shell starts background jobs with SIGINT ignored, and a Python started so never raises
+# KeyboardInterrupt: the tests that stop runs with SIGINT then failed when pytest ran in the background. Python's
+# handler, installed here, also gives the runs these tests start the default action again (exec resets it).
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
