@@ -35,7 +35,7 @@ from ~150×150 a multithreaded BLAS on a busy machine makes it 10-50× slower th
 _DENSE_STEPS = 4
 """Inverse-iteration steps a dense part gets from a warm start before falling back to ``eigh``."""
 _SHIFT = 1e-6
-"""Preconditioner / shift-invert shift, relative to the mean weighted degree: it only has to make the
+"""Preconditioner / inverse-iteration shift, relative to the mean weighted degree: it only has to make the
 singular Laplacian invertible, and a small shift amplifies the wanted bottom eigenspace."""
 TOL = 1e-9
 """Default LOBPCG residual tolerance, relative to the largest weighted degree."""
