@@ -199,13 +199,10 @@ def _dense_bottom(L: np.ndarray, init: np.ndarray | None = None, tol: float = TO
         # LAPACK directly: scipy's wrappers cost as much as the 180×180 factorization itself. A is symmetric,
         # so its transpose is the column-major array LAPACK factors in place.
         factor, info = scipy.linalg.lapack.dpotrf(A.T, lower=1, clean=0, overwrite_a=1)
-        V = np.swapaxes(init, 1, 2).reshape(-1, 3)
-        for _ in range(_DENSE_STEPS if info == 0 else 0):
-            V = np.linalg.qr(scipy.linalg.lapack.dpotrs(factor, V, lower=1)[0])[0]
-            LV = L @ V
-            vals, U = np.linalg.eigh(V.T @ LV)  # Rayleigh-Ritz in the 3-d subspace
-            V, LV = V @ U, LV @ U
-            if np.linalg.norm(LV - V * vals, axis=0).max() <= tol * degree.max():
+        if info == 0:
+            V, done = _inverse_iteration(L, lambda Y: scipy.linalg.lapack.dpotrs(factor, Y, lower=1)[0],
+                                         np.swapaxes(init, 1, 2).reshape(-1, 3), tol * degree.max(), _DENSE_STEPS)
+            if done:
                 return V
     try:
         return scipy.linalg.eigh(L, subset_by_index=[0, 2], check_finite=False)[1]
@@ -295,24 +292,25 @@ def _sparse_bottom(L: sp.csc_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray
     if done:
         state["factor"] = ("exact", exact, calls)
         return V
-    return _inverse_iteration(L, exact, V, tol, 4 * _MAXITER)
+    return _inverse_iteration(L, exact.solve, V, tol, 4 * _MAXITER)[0]
 
 
-def _inverse_iteration(L: sp.csc_matrix, factor, V: np.ndarray, tol: float, steps: int) -> np.ndarray:
-    """Block inverse iteration from ``V`` with ``factor`` (of ``L + σI``) and a Rayleigh-Ritz step each time, until
-    the residual is within ``tol`` or ``steps`` run out. Unlike ARPACK's shift-invert, which restarts from random
-    vectors with a seed it keeps between calls, it is deterministic: where the bottom eigenvalues cluster (a group
-    hung on edges far lighter than the rest) ARPACK returned a different basis of the cluster at every call, and
-    so different rotations (a 1000-scan graph at 60 % outliers: poses 7 m apart from one run to the next). From
-    the LOBPCG iterate, the basis stays near the rotation estimate within such a cluster."""
+def _inverse_iteration(L, solve, V: np.ndarray, tol: float, steps: int) -> tuple[np.ndarray, bool]:
+    """Block inverse iteration from ``V`` with ``solve`` (``(L + σI)⁻¹``) and a Rayleigh-Ritz step each time, until
+    the residual is within ``tol`` or ``steps`` run out; the basis and whether it converged. Unlike ARPACK's
+    shift-invert, the sparse solver's former fallback, which restarts from random vectors with a seed it keeps
+    between calls, it is deterministic: where the bottom eigenvalues cluster (a group hung on edges far lighter than
+    the rest) ARPACK returned a different basis of the cluster at every call, and so different rotations (a
+    1000-scan graph at 60 % outliers: poses 7 m apart from one run to the next). From the LOBPCG iterate, the basis
+    stays near the rotation estimate within such a cluster."""
     for _ in range(steps):
-        V = np.linalg.qr(factor.solve(V))[0]
+        V = np.linalg.qr(solve(V))[0]
         LV = L @ V
-        vals, U = np.linalg.eigh(V.T @ LV)
+        vals, U = np.linalg.eigh(V.T @ LV)  # Rayleigh-Ritz in the 3-d subspace
         V, LV = V @ U, LV @ U
         if np.linalg.norm(LV - V * vals, axis=0).max() <= tol:
-            break
-    return V
+            return V, True
+    return V, False
 
 
 def spanning_tree_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray) -> np.ndarray:
