@@ -1,5 +1,6 @@
-"""Loop evidence (sghr_gtsam.sync.cycles): triangles, their consistency, growing, group moves, and the
-default loop polish against plain least squares and against a group hung on a heavy wrong edge."""
+"""Loop evidence (sghr_gtsam.sync.cycles): triangles, their consistency, growing, group moves, the votes a
+first answer teaches, and the default loop polish against plain least squares, against a group hung on a heavy
+wrong edge and against a look-alike placement that more edges propose than the right one."""
 
 import networkx as nx
 import numpy as np
@@ -8,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.sync import synchronize
-from sghr_gtsam.sync.cycles import credibility, grow, replace_groups, triangle_support, triangles
+from sghr_gtsam.sync.cycles import credibility, grow, inlier_odds, replace_groups, triangle_support, triangles
 from sghr_gtsam.types import PoseGraph
 
 from test_sync import FAST, max_errors, random_graph
@@ -86,3 +87,59 @@ def test_loop_polish_is_plain_least_squares_without_outliers():
     rot, trans = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(plain.poses[0]) @ plain.poses)
     assert rot.max() < 0.05 and trans.max() < 1e-3
     assert result.loop_support is not None and result.loop_support.shape == (graph.num_edges,)
+
+
+@FAST
+@given(seed=st.integers(0, 10**6), scale=st.floats(1e-3, 1e3), E=st.integers(1, 200))
+def test_inlier_odds_rate_each_weight_class_by_what_was_kept(seed, scale, E):
+    """Only the order of the weights matters (their unit does not); equal weights share a vote; keeping more
+    edges never lowers one; an edge without weight has none; one class's vote is ``(k + 1) / (n − k + 1)``."""
+    rng = np.random.default_rng(seed)
+    weight = rng.lognormal(0.0, 2.0, E).round(1) * (rng.random(E) > 0.1)
+    kept = rng.random(E) < 0.6
+    odds = inlier_odds(weight, kept)
+    assert np.all(odds[weight == 0] == 0) and np.all(odds[weight > 0] > 0)
+    np.testing.assert_allclose(inlier_odds(scale * weight, kept), odds, rtol=1e-9)
+    for w in np.unique(weight):
+        assert np.ptp(odds[weight == w]) == 0
+    assert np.all(inlier_odds(weight, kept | (rng.random(E) < 0.3)) >= odds)
+    used = weight > 0
+    same = np.where(used, 1.0, 0.0)
+    k, n = int((kept & used).sum()), int(used.sum())
+    np.testing.assert_allclose(inlier_odds(same, kept)[used], (k + 1) / (n - k + 1))
+
+
+def _look_alike(seed: int) -> tuple[PoseGraph, np.ndarray]:
+    """20 scans joined by right registrations of w⁰ 50-100 (1° / 2 cm noise); scan 0 keeps two of its own and
+    gets four light ones (w⁰ 2-5) that agree on one wrong placement, turned 180° about the vertical as a
+    symmetric room fools pairwise registration. Ten other scans get two such light look-alikes each, which
+    their many right edges outvote: the graph itself shows that light edges are mostly wrong here."""
+    rng = np.random.default_rng(seed)
+    graph, truth, _ = random_graph(seed, 20, extra=3, rot_deg=1.0, trans_sigma=0.02)
+    own = np.flatnonzero((graph.i == 0) | (graph.j == 0))
+    keep = np.setdiff1d(np.arange(len(graph.i)), own[2:])
+    i, j, T = list(graph.i[keep]), list(graph.j[keep]), list(graph.T[keep])
+    weight = list(rng.uniform(50.0, 100.0, len(keep)))
+    flip = make_T(Rotation.from_euler("z", 180, degrees=True).as_matrix(), np.zeros(3))
+    for scan, count in [(0, 4)] + [(s, 2) for s in rng.choice(np.arange(1, 20), 10, replace=False)]:
+        for partner in rng.choice(np.arange(1, 20)[np.arange(1, 20) != scan], count, replace=False):
+            i.append(partner)
+            j.append(scan)
+            T.append(inv_T(truth[partner]) @ flip @ truth[scan])
+            weight.append(rng.uniform(2.0, 5.0))
+    return PoseGraph(n=20, i=np.array(i), j=np.array(j), T=np.array(T), weight=np.array(weight)), truth
+
+
+def test_a_look_alike_with_more_but_lighter_edges_than_the_right_placement_loses():
+    """Counted edge by edge (``credibility``), scan 0's four look-alike edges outvote its two right ones; the
+    votes a first answer teaches (``inlier_odds``: light edges are mostly wrong in this graph) place it right.
+    Measured on these 60 graphs: 58 right (counts alone: 2). Not every graph: a first answer that keeps the
+    look-alike counts its four edges as kept, which raises their class's odds (a thin class learns from the
+    very mistake it should correct)."""
+    right = 0
+    for seed in range(60):
+        graph, truth = _look_alike(seed)
+        poses = synchronize(graph).poses
+        rot, trans = relative_errors((inv_T(poses[1]) @ poses[0])[None], (inv_T(truth[1]) @ truth[0])[None])
+        right += int(rot[0] < 5.0 and trans[0] < 0.3)
+    assert right >= 54

@@ -453,8 +453,8 @@ def test_history_reweighting_rejects_gross_outliers_and_recovers_the_truth():
     assert np.all(result.weights[bad] == 0)  # every outlier dropped
     assert np.mean(result.weights[~bad] > 0) > 0.9
     assert np.all(result.component == 0)
-    loops = ["loops/irls", "loops/grow"]
-    assert [r.stage for r in records] == ["irls"] * 50 + loops + ["lm"] * (len(records) - 52)
+    loops = ["loops/irls", "loops/grow", "loops/odds"]
+    assert [r.stage for r in records] == ["irls"] * 50 + loops + ["lm"] * (len(records) - 53)
     # As good as least squares told which edges are inliers (scans held by one tree edge keep its noise).
     inliers = PoseGraph(n=graph.n, i=graph.i[~bad], j=graph.j[~bad], T=graph.T[~bad], weight=graph.weight[~bad])
     oracle = max_errors(synchronize(inliers, method="lm").poses, truth)

@@ -24,14 +24,15 @@ from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import blocks
 from .consensus import consensus_placement, consistent_edges
 from .disputes import contested
-from .cycles import credibility, grow, kept_edges_at, replace_groups, triangle_support
+from .cycles import credibility, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
 from .irls import REWEIGHTS, irls, solve_poses, usable_edges
 from .rotation import connected_components, rotation_residuals
 
 POLISHES: dict[str, str] = {
     "loops": "loop evidence (sync.cycles): the IRLS poses and scans grown outward from the most consistent "
              "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups "
-             "and by scans where most edges agree; the one with more consistent edges wins; then LM",
+             "and by scans where most edges agree; the one with more consistent edges wins, and is re-placed "
+             "once more with the votes its consistent edges teach each weight class; then LM",
     "robust": "consensus re-placement of scans, gtsam GNC (TLS) over every edge, consensus again, then "
               "gtsam Levenberg-Marquardt on the edges consistent with the poses",
     "lm": "gtsam Levenberg-Marquardt on the edges IRLS kept",
@@ -198,7 +199,10 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     would read as disagreement), then whole groups and single scans move where most of their edges agree
     (``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a look-alike from
     dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the core's evidence
-    runs thin (docs/BENCHMARKS.md). The start with more consistent edges is kept (IRLS on a tie); its
+    runs thin (docs/BENCHMARKS.md). The start with more consistent edges is kept (IRLS on a tie). Its
+    consistent edges then say what each weight class is worth in this graph (``inlier_odds``); re-placed with
+    those votes, the answer changes if its consistent edges carry more of them (a look-alike placement that more,
+    lighter edges propose loses where light edges are mostly wrong). The final answer's
     kept edges are those consistent at tolerances widened to the residual spread (``kept_edges_at``), so
     that without outliers every edge stays and the final LM is plain least squares. Edges negligible from
     the start (below ``irls.NEGLIGIBLE``) stay out, as in IRLS.
@@ -208,26 +212,33 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     usable = _usable(graph)
     support = triangle_support(usable)
     cred = credibility(usable)
-    by_cred = replace(usable, weight=cred)
 
     def record(stage: str, k: int, P: np.ndarray, kept: np.ndarray) -> None:
         residual = rotation_residuals(P[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
         keep_history(IterationRecord(stage=stage, iteration=k, poses=P, weights=np.where(kept, graph.weight, 0.0),
                                      residual_deg=np.degrees(residual)))
 
-    best = None
-    for k, (stage, start) in enumerate((("irls", lambda: poses), ("grow", lambda: grow(usable, cred, support))), 1):
-        P = start()
+    def place(P: np.ndarray, votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kept = consistent_edges(usable, P)
         component = connected_components(graph.n, graph.i, graph.j, kept)
         P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component).poses
-        P = consensus_placement(by_cred, replace_groups(usable, P, cred))
-        kept = consistent_edges(usable, P)
+        P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
+        return P, consistent_edges(usable, P)
+
+    best = None
+    for k, (stage, start) in enumerate((("irls", lambda: poses), ("grow", lambda: grow(usable, cred, support))), 1):
+        P, kept = place(start(), cred)
         record(f"loops/{stage}", k, P, kept)
         score = int(kept.sum())  # ties go to the IRLS start: near-ties are where it is right (tests)
         if best is None or score > best[0]:
             best = (score, P, kept)
     _, P, kept = best
+    # A second opinion with the votes the first answer learned: kept if its consistent edges carry more of them.
+    odds = inlier_odds(usable.weight, kept)
+    Q, kept_q = place(P, odds)
+    record("loops/odds", 3, Q, kept_q)
+    if odds[kept_q].sum() > odds[kept].sum():
+        P, kept = Q, kept_q
     kept = kept_edges_at(usable, P)
     # Every part is anchored at its own first node (the grown poses are anchored at the seed).
     return _anchored(P, connected_components(graph.n, graph.i, graph.j, kept)), kept, support

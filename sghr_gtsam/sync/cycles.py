@@ -22,6 +22,9 @@ through the placed scans — and each edge's vote (``credibility``) is 1 plus at
 - **Group moves** (``replace_groups``): after least squares, the blocks of the consistent edges once the
   bridges are cut (groups held by loops but hung on one edge) move as a whole where their other edges
   agree they belong — the failure growing and IRLS share, which no single-scan move repairs.
+- **Learned votes** (``inlier_odds``): counts ignore what a weight says, and what it says depends on how the
+  registrations failed. A first answer's consistent edges give each weight class its odds of being right in
+  this graph, and the answer is re-placed once with those votes.
 
 Each connected part of the graph is grown from its own seed (identity). Cost: one pass over the triangles
 (vectorised) and, per placed scan, one vectorised comparison of the proposals of all its unplaced partners
@@ -94,6 +97,32 @@ def credibility(graph: PoseGraph) -> np.ndarray:
     counts and against ``w⁰`` alone on the development draws: docs/BENCHMARKS.md)."""
     top = graph.weight.max(initial=0.0)
     return np.where(graph.weight > 0, 1.0 + graph.weight / (top if top > 0 else 1.0), 0.0)
+
+
+ODDS_BINS = 8
+"""Weight classes of ``inlier_odds``: octiles of log w⁰, so that each class holds an eighth of the edges (about 40
+on a 60-scan graph) and its rate is measured on enough of them."""
+
+
+def inlier_odds(weight: np.ndarray, kept: np.ndarray, bins: int = ODDS_BINS) -> np.ndarray:
+    """(E,) an edge's vote learned from a first answer: the odds ``(k + 1) / (n − k + 1)`` that an edge of its
+    weight class (``bins`` quantiles of log w⁰) is among the ``kept`` edges, ``k`` of the class's ``n``; 0 for
+    an edge without weight.
+
+    What a weight says depends on how registrations fail. Failed random registrations are light, so a heavy
+    edge is likely right; a look-alike placement carries the weight of a true registration or more, so weight
+    says little or speaks against. A first answer placed by counts (``credibility``) has most edges right,
+    and the share of each class it keeps says what that class's weight is worth in this graph."""
+    used = weight > 0
+    if not used.any():
+        return np.zeros(len(weight))
+    log_w = np.log(np.where(used, weight, 1.0))
+    cuts = np.quantile(log_w[used], np.linspace(0.0, 1.0, bins + 1))
+    label = np.clip(np.searchsorted(cuts, log_w, side="right") - 1, 0, bins - 1)
+    n = np.bincount(label[used], minlength=bins)
+    k = np.bincount(label[used & kept], minlength=bins)
+    odds = (k + 1.0) / (n - k + 1.0)
+    return np.where(used, odds[label], 0.0)
 
 
 def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None) -> np.ndarray:
@@ -257,4 +286,4 @@ def kept_edges_at(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
     return (graph.weight > 0) & close
 
 
-__all__ = ["triangles", "triangle_support", "credibility", "grow", "replace_groups", "kept_edges_at"]
+__all__ = ["triangles", "triangle_support", "credibility", "inlier_odds", "grow", "replace_groups", "kept_edges_at"]
