@@ -85,7 +85,9 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
 
     The nodes split into connected parts over the kept edges; ``SyncResult.component`` labels them (0 =
     the largest) and every part is anchored at its own first node (the identity). A node without kept
-    edges is a part of its own. Raises ``InputError`` for unusable input.
+    edges is a part of its own. The result does not depend on the order of the edges (they are solved sorted
+    by (i, j, weight, T)); it can depend on the nodes' labels, which break ties between near-equal placements
+    (docs/BENCHMARKS.md, "Still near-ties, now deterministic"). Raises ``InputError`` for unusable input.
     """
     # The dense blocks are small (3N×3N below DENSE_NODES, 3N×3 beyond): a multithreaded BLAS spends its
     # time synchronising threads, 10-30× slower on a busy 2-core machine (a 180×180 Cholesky: 0.8 ms on one
