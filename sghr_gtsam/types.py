@@ -133,7 +133,7 @@ class PoseGraph:
 class IterationRecord:
     """State after one IRLS iteration, robust-polish stage or LM iteration, for the recording and the report."""
 
-    stage: str  # "irls", "consensus", "gnc", "loops/irls", "loops/grow", "loops/transform", "loops/odds" or "lm"
+    stage: str  # "irls", "consensus", "gnc", "loops/irls", "loops/grow", "loops/odds" or "lm"
     iteration: int
     poses: np.ndarray  # (N, 4, 4) T_i
     weights: np.ndarray  # (E,)

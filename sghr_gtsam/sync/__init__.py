@@ -25,16 +25,15 @@ from .bridges import blocks
 from .consensus import MAX_DEG, consensus_placement, consistent_edges, translation_tolerance
 from .disputes import contested
 from .cycles import credibility, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
-from .irls import REWEIGHTS, irls, solve_poses, transform_irls, usable_edges
+from .irls import REWEIGHTS, irls, solve_poses, usable_edges
 from .rotation import connected_components, rotation_residuals
 
 POLISHES: dict[str, str] = {
-    "loops": "loop evidence (sync.cycles): the IRLS poses, scans grown outward from the most consistent "
-             "core, and the IRLS poses reweighted by whole-transform residuals, each polished by gtsam "
-             "Levenberg-Marquardt on its consistent edges and re-placed by groups and by scans where most edges "
-             "agree; the one with more consistent edges wins (unless another fits more of the edges they place "
-             "far apart), and is re-placed once more with the votes its consistent edges teach each weight "
-             "class; then LM",
+    "loops": "loop evidence (sync.cycles): the IRLS poses and scans grown outward from the most consistent "
+             "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups "
+             "and by scans where most edges agree; the one with more consistent edges wins (unless the other fits "
+             "more of the edges they place far apart), and is re-placed once more with the votes its consistent "
+             "edges teach each weight class; then LM",
     "robust": "consensus re-placement of scans, gtsam GNC (TLS) over every edge, consensus again, then "
               "gtsam Levenberg-Marquardt on the edges consistent with the poses",
     "lm": "gtsam Levenberg-Marquardt on the edges IRLS kept",
@@ -215,19 +214,18 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     """The loop polish before its last LM (``sync.cycles``): the poses, the (E,) mask of the edges
     consistent with them and every edge's loop support.
 
-    Three starts: ``poses`` (the IRLS warm start), the scans grown from the most consistent core, and ``poses``
-    reweighted by whole-transform residuals (``irls.transform_irls``: the history reweighting sees rotations
-    only). Each is polished by LM on its consistent edges (growing chains registration errors, which the
-    consistency test would read as disagreement), then whole groups and single scans move where most of their
-    edges agree (``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a look-alike
-    from dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the core's evidence
-    runs thin (docs/BENCHMARKS.md). In that order, a start replaces the answer so far if it has more consistent
-    edges, and not fewer among those the other answer puts far off (``_overturns``). The kept answer's
-    consistent edges then say what each weight class is worth in this graph (``inlier_odds``); re-placed with
-    those votes, the answer changes by the same rule with those votes (a look-alike placement that more,
-    lighter edges propose loses where light edges are mostly wrong). The final answer's kept edges are those
-    consistent at tolerances widened to the residual spread (``kept_edges_at``), so that without outliers
-    every edge stays and the final LM is plain least squares. Edges negligible from
+    Two starts: ``poses`` (the IRLS warm start) and the scans grown from the most consistent core. Each is
+    polished by LM on its consistent edges (growing chains registration errors, which the consistency test
+    would read as disagreement), then whole groups and single scans move where most of their edges agree
+    (``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a look-alike from
+    dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the core's evidence
+    runs thin (docs/BENCHMARKS.md). The grown start replaces the IRLS one if it has more consistent edges,
+    and not fewer among those the other answer puts far off (``_overturns``). The kept answer's consistent edges
+    then say what each weight class is worth in this graph (``inlier_odds``); re-placed with those votes, the
+    answer changes by the same rule with those votes (a look-alike placement that more, lighter edges propose
+    loses where light edges are mostly wrong). The final answer's
+    kept edges are those consistent at tolerances widened to the residual spread (``kept_edges_at``), so
+    that without outliers every edge stays and the final LM is plain least squares. Edges negligible from
     the start (below ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
     from ..factor_graph import edge_information, polish as lm_polish
@@ -248,18 +246,19 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
         P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
         return P, consistent_edges(usable, P)
 
-    starts = (("irls", lambda: poses), ("grow", lambda: grow(usable, cred, support)),
-              ("transform", lambda: transform_irls(usable, poses)))
-    for k, (stage, start) in enumerate(starts, 1):
-        Q, kept_q = place(start(), cred)
-        record(f"loops/{stage}", k, Q, kept_q)
-        # Ties go to the IRLS start: near-ties are where it is right (tests).
-        if k == 1 or _overturns(usable, np.ones(graph.num_edges), (Q, kept_q), (P, kept)):
-            P, kept = Q, kept_q
+    answers = []
+    for k, (stage, start) in enumerate((("irls", lambda: poses), ("grow", lambda: grow(usable, cred, support))), 1):
+        P, kept = place(start(), cred)
+        record(f"loops/{stage}", k, P, kept)
+        answers.append((P, kept))
+    (P, kept), (Q, kept_q) = answers
+    # Ties go to the IRLS start: near-ties are where it is right (tests).
+    if _overturns(usable, np.ones(graph.num_edges), (Q, kept_q), (P, kept)):
+        P, kept = Q, kept_q
     # A second opinion with the votes the first answer learned.
     odds = inlier_odds(usable.weight, kept)
     Q, kept_q = place(P, odds)
-    record("loops/odds", len(starts) + 1, Q, kept_q)
+    record("loops/odds", 3, Q, kept_q)
     if _overturns(usable, odds, (Q, kept_q), (P, kept)):
         P, kept = Q, kept_q
     kept = kept_edges_at(usable, P)

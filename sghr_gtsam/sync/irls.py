@@ -35,9 +35,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..se3 import inv_T, make_T, rotation_angle
+from ..se3 import make_T
 from ..types import IterationRecord, PoseGraph
-from .consensus import MAX_DEG, translation_tolerance
 from .rotation import rotation_residuals, spectral_rotations
 from .translation import solve_translations
 
@@ -136,27 +135,3 @@ def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedu
     used = np.where(kept, w, 0.0)
     poses = solve_poses(graph, used, init=R, cache=cache)
     return IrlsResult(poses=poses, weights=w, kept=kept, history=history)
-
-
-TRANSFORM_ITERS = 10
-"""Solves of ``transform_irls``: the scale of its weights shrinks from ``TRANSFORM_SCALES[0]`` to
-``TRANSFORM_SCALES[1]`` tolerances over them."""
-TRANSFORM_SCALES = (4.0, 1.0)
-
-
-def transform_irls(graph: PoseGraph, poses: np.ndarray, iters: int = TRANSFORM_ITERS) -> np.ndarray:
-    """Poses reweighted by whole-transform residuals from ``poses``: ``iters`` solves (``solve_poses``) with
-    Geman-McClure weights ``w⁰ / (1 + (r / c)²)²`` of each edge's residual ``r`` in consistency tolerances (the
-    larger of its rotation over ``MAX_DEG`` and its translation over ``translation_tolerance``), the scale ``c``
-    shrinking as ``TRANSFORM_SCALES`` says.
-
-    The history reweighting judges an edge by its rotation alone, so a registration that is right in rotation and
-    metres off in translation (a look-alike along a repeated wall) keeps its weight; here it loses it."""
-    tol = translation_tolerance(graph)
-    first, last = TRANSFORM_SCALES
-    for k in range(iters):
-        c = first + (last - first) * k / max(iters - 1, 1)
-        E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
-        r = np.maximum(np.degrees(rotation_angle(E[:, :3, :3])) / MAX_DEG, np.linalg.norm(E[:, :3, 3], axis=1) / tol)
-        poses = solve_poses(graph, graph.weight / (1.0 + (r / c) ** 2) ** 2, init=poses[:, :3, :3])
-    return poses
