@@ -246,12 +246,10 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
         P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
         return P, consistent_edges(usable, P)
 
-    answers = []
-    for k, (stage, start) in enumerate((("irls", lambda: poses), ("grow", lambda: grow(usable, cred, support))), 1):
-        P, kept = place(start(), cred)
-        record(f"loops/{stage}", k, P, kept)
-        answers.append((P, kept))
-    (P, kept), (Q, kept_q) = answers
+    P, kept = place(poses, cred)
+    record("loops/irls", 1, P, kept)
+    Q, kept_q = place(grow(usable, cred, support), cred)
+    record("loops/grow", 2, Q, kept_q)
     # Ties go to the IRLS start: near-ties are where it is right (tests).
     if _overturns(usable, np.ones(graph.num_edges), (Q, kept_q), (P, kept)):
         P, kept = Q, kept_q
