@@ -1,7 +1,7 @@
 """Full 3DMatch test scenes end to end: scans placed, the paper's registration recall and the whole-model check.
 
     python benchmarks/bench_3dmatch.py [--data ../shared/data] [--scenes home_at hotel_uc studyroom kitchen bunny
-        bunny_ring] [--set key=value ...] [--workers N] [--refit-gt] [--json rows.json]
+        bunny_ring] [--set key=value ...] [--workers N] [--refit-gt] [--gt-overlap] [--json rows.json]
 
 Each scene runs ``sghr_gtsam.pipeline.run`` in its own process (so peak memory is the scene's own) and is scored
 by ``sghr_gtsam.evaluate.score_run``: fragments placed / unregistered / unverified; registration recall by the
@@ -15,6 +15,8 @@ the tolerance (``SceneScore.unflagged_wrong``: a wrong model that looks right). 
 ring scans alone (45-90° apart).
 ``--refit-gt`` also scores the 3DMatch scenes against their GT re-fitted to the scans (``data_tools.refit_gt``):
 the GT's own error, measured, beside the GT and never instead of it.
+``--gt-overlap`` chooses each scan's top-k partners by the scene's GT overlap (``gt_overlap.log``) instead of the
+global features: an upper reference for what a better overlap estimate could do, never a result.
 ``--set`` overrides a ``Config`` field (parsed by the field's type, ``none`` for None) for ablations;
 ``--workers`` is passed to ``Config.workers`` when the installed Config has that field. Seconds per stage
 are the run's own timings; ``wall s`` is the whole child process, imports included.
@@ -181,20 +183,40 @@ def print_table(rows: list[dict]) -> None:
                   f"| {f['ate_rmse']:.4g} | {labels(f['doubted'])} | {labels(f['unflagged_wrong'])} |")
 
 
-def child(scene_dir: str, overrides_json: str, workers: str) -> None:
-    """Run the pipeline on one scene and print what scoring needs as one JSON line."""
-    from sghr_gtsam.pipeline import run
+def child(scene_dir: str, overrides_json: str, workers: str, overlap_log: str) -> None:
+    """Run the pipeline on one scene and print what scoring needs as one JSON line. With ``overlap_log`` (not
+    "none") the top-k graph comes from those GT overlaps (``register(scores=...)``) and no output is written."""
+    from sghr_gtsam.pipeline import load_scene, register, run
     from sghr_gtsam.result import peak_memory_mb
 
     config = make_config(json.loads(overrides_json), int(workers) if workers != "none" else None)
-    with tempfile.TemporaryDirectory() as out:
-        res = run(scene_dir, out, config, log=lambda m: print(m, file=sys.stderr))
+    log = lambda m: print(m, file=sys.stderr)  # noqa: E731
+    if overlap_log == "none":
+        with tempfile.TemporaryDirectory() as out:
+            res = run(scene_dir, out, config, log=log)
+    else:
+        scans, skipped = load_scene(scene_dir, config, log)
+        res = register(scans, config, log=log, skipped=skipped, scores=gt_overlap_scores(scans, overlap_log))
     print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
                       "flags": res.flags, "timings": res.timings,
                       "peak_mb": peak_memory_mb()}))
 
 
-def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False) -> dict:
+def gt_overlap_scores(scans: list, overlap_log: str) -> np.ndarray:
+    """The (N, N) GT overlaps of ``scans`` (3DMatch fragments, by fragment number) from a ``gt_overlap.log``."""
+    from sghr_gtsam.evaluate import fragment_id
+    from sghr_gtsam.io.poses import read_gt_overlap
+
+    ov = read_gt_overlap(overlap_log)
+    ids = [fragment_id(s.name) for s in scans]
+    S = np.eye(len(ids))
+    for a, b in zip(*np.triu_indices(len(ids), 1)):
+        S[a, b] = S[b, a] = ov.get((min(ids[a], ids[b]), max(ids[a], ids[b])), 0.0)
+    return S
+
+
+def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False,
+              gt_overlap: bool = False) -> dict:
     from sghr_gtsam.evaluate import score_run
 
     scene = SCENES[name]
@@ -205,8 +227,9 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
                 (Path(subset) / n).symlink_to(folder / n)
             folder = Path(subset)
         started = time.perf_counter()
+        overlap_log = str(data / scene.gt_dir / "gt_overlap.log") if gt_overlap and scene.gt_dir else "none"
         proc = subprocess.run([sys.executable, __file__, "--child", str(folder), json.dumps(overrides),
-                               str(workers) if workers else "none"], capture_output=True, text=True, cwd=ROOT,
+                               str(workers) if workers else "none", overlap_log], capture_output=True, text=True, cwd=ROOT,
                               check=False)
         wall = time.perf_counter() - started
     if proc.returncode:
@@ -243,7 +266,7 @@ def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: 
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
-        child(*sys.argv[2:5])
+        child(*sys.argv[2:6])
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
@@ -254,6 +277,9 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="also write the raw rows (with per-scan errors) here")
     ap.add_argument("--refit-gt", action="store_true",
                     help="also score the 3DMatch scenes against their GT re-fitted to the scans (data_tools.refit_gt)")
+    ap.add_argument("--gt-overlap", action="store_true",
+                    help="the top-k graph from the scenes' GT overlaps (gt_overlap.log; 3DMatch scenes and kitchen): "
+                         "an upper reference for the overlap estimate, not a result")
     args = ap.parse_args()
     from sghr_gtsam.config import Config
     from sghr_gtsam.types import InputError
@@ -266,7 +292,7 @@ def main() -> None:
     rows = []
     for name in args.scenes:
         print(f"running {name} ...", file=sys.stderr, flush=True)
-        rows.append(run_scene(args.data, name, overrides, args.workers, args.refit_gt))
+        rows.append(run_scene(args.data, name, overrides, args.workers, args.refit_gt, args.gt_overlap))
     print_table(rows)
     if args.json:
         from sghr_gtsam.io.atomic import atomic_write

@@ -27,8 +27,12 @@ cache: made with another seed than the training cache (``python -m data_tools.si
 are unseen scenes from the head's own domain, so the head against the codebook there, and again on the real
 scans, separates what training achieves from what is lost between simulated and real scans.
 
+With ``--scenes`` (home_at, hotel_uc, studyroom: full 3DMatch test scenes) it also counts, for k = 6, 10, 15, 20, the
+scene's gt.log pairs (the benchmark's pairs, GT overlap >= 30 %) that each score's top-k graph proposes: a pair
+never proposed is never registered, whatever the registration does.
+
 Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH] [--sim DIR]
-[--no-speed | --speed-only] [--repeats R]``.
+[--scenes home_at hotel_uc studyroom] [--no-speed | --speed-only] [--repeats R]``.
 """
 
 from __future__ import annotations
@@ -49,13 +53,13 @@ from data_tools.gt_overlap import fragment_id, overlap_matrix, relative_params  
 from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E402
 from sghr_gtsam.features.netvlad import (  # noqa: E402
     DEFAULT_HEAD,
-    NetVLAD,
+    VladHead,
     codebook_features,
     global_features,
     load_checkpoint,
 )
 from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  # noqa: E402
-from sghr_gtsam.io.poses import read_gt_overlap, read_poses  # noqa: E402
+from sghr_gtsam.io.poses import read_gt_log, read_gt_overlap, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import load_scan  # noqa: E402
 
 DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -117,7 +121,7 @@ def _row(name: str, m: dict) -> str:
     return f"| {name} | " + " | ".join(parts) + " |"
 
 
-def report_scene(title: str, names: list[str], desc: list[np.ndarray], G: np.ndarray, head: NetVLAD,
+def report_scene(title: str, names: list[str], desc: list[np.ndarray], G: np.ndarray, head: VladHead,
                  extra: dict[str, np.ndarray] | None = None) -> dict[str, dict]:
     iu = np.triu_indices(len(G), 1)
     n_pairs, n_good = len(iu[0]), int((G[iu] > THRESHOLD).sum())
@@ -135,6 +139,48 @@ def report_scene(title: str, names: list[str], desc: list[np.ndarray], G: np.nda
     for name, m in results.items():
         print(_row(name, m))
     return results
+
+
+MATCH_SCENES = {
+    "home_at": "sun3d-home_at-home_at_scan1_2013_jan_1",
+    "hotel_uc": "sun3d-hotel_uc-scan3",
+    "studyroom": "sun3d-mit_76_studyroom-76-1studyroom2",
+}
+MATCH_KS = (6, 10, 15, 20)
+
+
+def match_scene(data: Path, name: str) -> tuple[list[np.ndarray], np.ndarray, set[tuple[int, int]]]:
+    """A full 3DMatch test scene's FPFH (fragments in ``gt_poses.txt`` order), its GT overlap matrix
+    (``gt_overlap.log``) and its gt.log pairs (the benchmark's pairs: GT overlap >= 30 %)."""
+    folder, gt = data / "3dmatch-scenes" / name, data / "3dmatch-test-gt" / "3DMatch" / MATCH_SCENES[name]
+    names, _ = read_poses(folder / "gt_poses.txt")
+    ids = {fragment_id(n): k for k, n in enumerate(names)}
+    G = np.eye(len(names))
+    for (a, b), o in read_gt_overlap(gt / "gt_overlap.log").items():
+        G[ids[a], ids[b]] = G[ids[b], ids[a]] = o
+    scans = [load_scan(folder / n) for n in names]
+    voxel = default_voxel(scans)
+    pairs = {tuple(sorted((ids[a], ids[b]))) for a, b in read_gt_log(gt / "gt.log")}
+    return [compute_features(P, voxel).fpfh for P in scans], G, pairs
+
+
+def report_match_scene(name: str, desc: list[np.ndarray], G: np.ndarray, pairs: set[tuple[int, int]],
+                       head: VladHead) -> None:
+    """The share of the scene's gt.log pairs that each score's top-k graph proposes (a pair never proposed is
+    never registered), for k in ``MATCH_KS``, with the graph's size."""
+    n = len(G)
+    scores = {"VLAD codebook (pipeline now)": codebook_scores(desc),
+              "learned head": overlap_scores(global_features(head, desc)), "GT overlap (oracle)": G}
+    print(f"\n### {name}: {n} fragments, {n * (n - 1) // 2} pairs, {len(pairs)} gt.log pairs\n")
+    print("| scores | " + " | ".join(f"top-{k}: gt.log pairs proposed (edges, % of all pairs)" for k in MATCH_KS) + " |")
+    print("|---|" + "---:|" * len(MATCH_KS))
+    for label, S in scores.items():
+        cells = []
+        for k in MATCH_KS:
+            edges = {tuple(e) for e in np.sort(top_k_edges(S, k), axis=1).tolist()}
+            hit = len(pairs & edges)
+            cells.append(f"{hit}/{len(pairs)} = {hit / len(pairs):.3f} ({len(edges)}, {len(edges) / (n * (n - 1) / 2):.0%})")
+        print(f"| {label} | " + " | ".join(cells) + " |")
 
 
 def previous_scores_top_k(F: np.ndarray, k: int) -> np.ndarray:
@@ -200,8 +246,8 @@ def graph_speed(D: int, n: int = 5000, k: int = 10, repeats: int = 5) -> None:
     print(f"| graph.py before (commit 5cca2b2): scores + top-k | {cell(times['previous'])} | |")
 
 
-def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 5) -> None:
-    D = head.centroids.numel()
+def speed(head: VladHead, desc: list[np.ndarray], n: int = 5000, repeats: int = 5) -> None:
+    D = head.centroids.size
     d5000 = [d if len(d) >= 5000 else np.concatenate([d] * (5000 // len(d) + 1))[:5000] for d in desc]
     global_features(head, d5000[:1])  # warm-up
     per_scan = []
@@ -219,13 +265,13 @@ def speed(head: NetVLAD, desc: list[np.ndarray], n: int = 5000, repeats: int = 5
     print("| what | time | target |")
     print("|---|---:|---:|")
     print(f"| global feature of one scan, learned head, 5000 FPFH descriptors ({len(d5000)} kitchen scans "
-          f"x 3; torch on 1 thread, as global_features runs it) | {1e3 * np.median(per_scan):.1f} ms | ≤ 50 ms |")
+          f"x 3; numpy, as global_features runs it) | {1e3 * np.median(per_scan):.1f} ms | ≤ 50 ms |")
     print(f"| VLAD codebook, k-means + features of the whole kitchen ({len(desc)} scans) | "
           f"{1e3 * codebook_total:.0f} ms ({1e3 * codebook_total / len(desc):.0f} ms a scan) | |")
     graph_speed(D, n, repeats=repeats)
 
 
-def simulated(head: NetVLAD, cache: Path) -> None:
+def simulated(head: VladHead, cache: Path) -> None:
     """Spearman ρ of the head and of the per-scene codebook on every scene of ``cache``, by kind and in all,
     with the paired difference (mean ± standard error) and the scenes each side wins."""
     from sghr_gtsam.train import evaluate, evaluate_codebook, load_cache
@@ -251,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--head", type=Path, default=DEFAULT_HEAD, help="learned head checkpoint")
     parser.add_argument("--sim", type=Path, help="also score every scene of this simulated cache (make it with "
                         "another seed than the training cache's)")
+    parser.add_argument("--scenes", nargs="*", default=[], choices=list(MATCH_SCENES),
+                        help="also these full 3DMatch test scenes: the gt.log pairs each top-k graph proposes")
     parser.add_argument("--no-speed", action="store_true")
     parser.add_argument("--speed-only", "--only-speed", dest="only_speed", action="store_true",
                         help="skip the overlap tables")
@@ -286,6 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     report_scene(f"Stanford bunny (voxel {1000 * b_voxel:.2f} mm; GT: gt_overlap tool, symmetric)", b_names,
                  b_desc, b_G, head)
 
+    for name in args.scenes:
+        report_match_scene(name, *match_scene(args.data, name), head)
     if args.sim:
         simulated(head, args.sim)
     if not args.no_speed:

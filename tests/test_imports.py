@@ -48,3 +48,18 @@ def test_default_overlap_scoring_runs_without_torch():
         "print('torch' in sys.modules)\n"
     )
     assert seen == ["True", "False", "True"]
+
+
+def test_every_benchmark_script_imports():
+    """A benchmark whose imports fall behind the package fails here, not when its numbers are next needed
+    (bench_overlap.py imported a class renamed months before anyone ran it again)."""
+    scripts = sorted((_ROOT / "benchmarks").glob("bench_*.py"))
+    seen = _python(
+        "import importlib.util, sys\n"
+        f"for path in {[str(p) for p in scripts]!r}:\n"
+        "    spec = importlib.util.spec_from_file_location(path.rsplit('/', 1)[1][:-3], path)\n"
+        "    sys.modules[spec.name] = module = importlib.util.module_from_spec(spec)\n"
+        "    spec.loader.exec_module(module)\n"
+        "    print(spec.name)\n"
+    )
+    assert seen == [p.stem for p in scripts] and len(seen) > 10
