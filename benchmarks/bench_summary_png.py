@@ -28,7 +28,7 @@ def main() -> None:
 
     import sghr_gtsam.io.results as results
     from sghr_gtsam.config import Config
-    from sghr_gtsam.io.results import edge_status
+    from sghr_gtsam.registration.edges import edge_status
     from sghr_gtsam.pipeline import run
     from sghr_gtsam.plots import write_summary
 

@@ -107,13 +107,13 @@ class _Raster:
 
 
 def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Figure":
-    """The run at a glance (module doc). ``status``: each edge's ``io.results.EDGE_STATUS`` key (computed when
+    """The run at a glance (module doc). ``status``: each edge's ``registration.edges.EDGE_STATUS`` key (computed when
     not given)."""
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
 
     if status is None:
-        from .io.results import edge_status
+        from .registration.edges import edge_status
 
         status = edge_status(result)
     placed = result.registered

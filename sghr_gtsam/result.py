@@ -91,7 +91,6 @@ class RunResult:
         return transform_points(self.poses[k], self.features[k].points + centre)
 
 
-
 def peak_memory_mb() -> float:
     """Peak resident memory of this process (Linux reports ru_maxrss in KiB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -88,7 +88,7 @@ def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
     from matplotlib.collections import LineCollection
 
     result, _, _ = watched_run
-    from sghr_gtsam.io.results import edge_status
+    from sghr_gtsam.registration.edges import edge_status
 
     status = edge_status(result)
     kept = [e for e, s in enumerate(status) if s == "kept"]

@@ -6,7 +6,7 @@ graph.g2o is what a SLAM stack loads as it is: one vertex per registered scan (i
 ``report.json["scans"]``, mapped to its name in ``report.json["g2o_vertices"]``) at its final pose, and the
 edges the result rests on (kept by synchronization, both ends registered) with their calibrated information.
 graph_rejected.g2o holds the other registered pairs as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to
-be optimized). edges.csv lists every pair with its ``status`` (``EDGE_STATUS``).
+be optimized). edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
 
 The folder is replaced as a whole (``io.atomic.staged_folder``): a run writes into a temporary folder beside it and swaps it
 in at the end, so a run stopped at any point (SIGINT, SIGTERM, SIGKILL, a failure) leaves the previous results
@@ -27,7 +27,7 @@ import numpy as np
 
 from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
 from ..plots import write_summary
-from ..registration.visibility import contradicted
+from ..registration.edges import EDGE_STATUS, edge_status
 from ..result import peak_memory_mb
 from ..types import InputError, PoseGraph
 from .atomic import atomic_write
@@ -49,27 +49,6 @@ _LEGACY = ("recording.rrd.partial",)  # left by runs from before the swap
 
 EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status",
                 "origin", "free_space_conflict"]
-EDGE_STATUS = {
-    "kept": "in graph.g2o: synchronization kept it and both scans are registered",
-    "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
-    "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
-    "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
-                    "(registration.visibility; graph_rejected.g2o)",
-    "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
-}
-
-
-def edge_status(result: "RunResult") -> list[str]:
-    """The ``EDGE_STATUS`` key of every edge of ``result.graph``."""
-    g = result.graph
-    placed = np.zeros(len(result.names), dtype=bool)
-    placed[result.registered] = True
-    ruled_out = np.zeros(g.num_edges, dtype=bool) if result.edge_conflict is None else contradicted(result.edge_conflict)
-    return [("contradicted" if ruled_out[e] else "failed") if g.weight[e] <= 0
-            else "rejected" if result.sync.weights[e] <= 0
-            else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
-
-
 def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
     g, s = result.graph, result.sync
     conflict = np.full(g.num_edges, np.nan) if result.edge_conflict is None else result.edge_conflict

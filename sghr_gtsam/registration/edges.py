@@ -4,6 +4,7 @@ loop closures and retries (``EdgeSet``), and the ``PoseGraph`` they make."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -12,8 +13,31 @@ from ..types import PoseGraph
 from .pairwise import PairResult
 from .visibility import conflicts, contradicted
 
+if TYPE_CHECKING:
+    from ..result import RunResult
+
 ORIGINS = ("top-k", "loop", "retry")
 """How an edge entered: the sparse graph (with its bridges), a loop closure, or a retry of a weak scan."""
+
+EDGE_STATUS = {
+    "kept": "in graph.g2o: synchronization kept it and both scans are registered",
+    "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
+    "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
+    "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
+                    "(registration.visibility; graph_rejected.g2o)",
+    "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
+}
+
+
+def edge_status(result: "RunResult") -> list[str]:
+    """The ``EDGE_STATUS`` key of every edge of ``result.graph``."""
+    g = result.graph
+    placed = np.zeros(len(result.names), dtype=bool)
+    placed[result.registered] = True
+    ruled_out = np.zeros(g.num_edges, dtype=bool) if result.edge_conflict is None else contradicted(result.edge_conflict)
+    return [("contradicted" if ruled_out[e] else "failed") if g.weight[e] <= 0
+            else "rejected" if result.sync.weights[e] <= 0
+            else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
 
 
 @dataclass
