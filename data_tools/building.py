@@ -1,6 +1,6 @@
 """Generated ground truth for large pose graphs: a hand-held depth camera walking through one floor of a building.
 
-``make_building(n, seed)`` returns a ``data_tools.outlier_graphs.SceneGT`` (named ``gen<n>``) that the
+``make_building(n, seed)`` returns a ``data_tools.scene_gt.SceneGT`` (named ``gen<n>``) that the
 robustness benchmark corrupts exactly as it corrupts the real 3DMatch scenes; only GT is made, no point clouds
 beyond the samples that measure overlap.
 
@@ -47,7 +47,7 @@ import numpy as np
 import open3d as o3d
 
 from data_tools.gt_overlap import combine
-from data_tools.outlier_graphs import SceneGT
+from data_tools.scene_gt import SceneGT
 from sghr_gtsam.se3 import inv_T, make_T
 
 SCANS_PER_ROOM = 25

@@ -40,19 +40,16 @@ kind corrupts the same inlier graph; the outlier draw depends on (seed, scene, r
 
 from __future__ import annotations
 
-import os
 import re
 import zlib
-from dataclasses import dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from data_tools.scene_gt import SceneGT, load_scene
 from sghr_gtsam.graph import top_k_edges
-from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read_poses
-from sghr_gtsam.se3 import inv_T, make_T, project_to_so3
+from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.types import PoseGraph
 
 SCENES = (
@@ -80,47 +77,6 @@ RANDOM_TRANSLATION = 3.0  # metres, per axis
 SCAN_CENTRE = np.array([0.0, -0.3, 2.3])  # metres, in the fragment's own frame
 SHIFT_RANGE = (0.8, 1.5)  # metres
 MIN_GROUP = 2  # edges sharing one structured wrong placement: MIN_GROUP + Poisson(1)
-
-
-@dataclass
-class SceneGT:
-    """Ground truth of one scene (a 3DMatch test scene or a generated building), indexed by graph node."""
-
-    name: str  # seeds the corruption's random streams
-    ids: list[int]  # fragment number of each node (the names gt_log and gt_info use)
-    poses: np.ndarray  # (N, 4, 4) GT T_i, rotations projected to SO(3)
-    overlap: np.ndarray  # (N, N) symmetric GT overlap, 0 on the diagonal
-    vertical: np.ndarray  # (3,) unit vertical axis in the world frame (sign arbitrary)
-    gt_log: dict[tuple[int, int], np.ndarray]  # fragment pair -> T_ij, for evaluate.registration_recall
-    gt_info: dict[tuple[int, int], np.ndarray]  # fragment pair -> 6×6 information, order [translation, rotation]
-
-
-def data_root() -> Path:
-    """The shared data: ``$SGHR_DATA`` or ``../shared/data`` beside the repository (as tests/conftest.py)."""
-    return Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
-
-
-@lru_cache(maxsize=None)
-def load_scene(scene: str, root: Path | None = None) -> SceneGT:
-    """Read one scene's GT; cached, so callers must not modify the arrays."""
-    base = (root or data_root()) / "3dmatch-test-gt"
-    names, P = read_poses(base / "derived_abs_poses" / f"{scene}.txt")
-    keep = np.isfinite(P).all(axis=(1, 2))
-    ids = [int(name) for name, k in zip(names, keep) if k]
-    poses = P[keep]
-    poses[:, :3, :3] = project_to_so3(poses[:, :3, :3])
-
-    index = {f: k for k, f in enumerate(ids)}
-    overlap = np.zeros((len(ids), len(ids)))
-    for (a, b), v in read_gt_overlap(base / "3DMatch" / scene / "gt_overlap.log").items():
-        if a in index and b in index:
-            overlap[index[a], index[b]] = overlap[index[b], index[a]] = v
-
-    positions = poses[:, :3, 3] - poses[:, :3, 3].mean(axis=0)
-    vertical = np.linalg.eigh(positions.T @ positions)[1][:, 0]
-    scene_dir = base / "3DMatch" / scene
-    return SceneGT(scene, ids, poses, overlap, vertical,
-                   read_gt_log(scene_dir / "gt.log"), read_gt_info(scene_dir / "gt.info"))
 
 
 WEIGHTS = ("s*r", "r", "s")
