@@ -3,7 +3,7 @@ many scans land on GT.
 
     python benchmarks/bench_scale.py [--scans 100 500 2000] [--kind building] [--workers 2] [--workdir DIR] [--keep]
 
-For each N: ``synthetic.make_scene(kind, N)`` written scan by scan (``synthetic_building``: rooms along corridors,
+For each N: ``synthetic.make_scene(kind, N)`` written scan by scan (``synthetic.building``: rooms along corridors,
 each scan overlapping a bounded number of others), then one ``python -m sghr_gtsam run SCENE --out OUT --workers W
 --no-record --quiet`` measured as ``benchmarks/bench_memory.py`` measures (``/usr/bin/time -v`` for the largest
 process, the process tree's RSS and PSS sampled every 0.2 s, CPU seconds of every process). From OUT/report.json:

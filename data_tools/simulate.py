@@ -46,7 +46,7 @@ import open3d as o3d
 from data_tools.gt_overlap import combine, directed_overlap_matrix, relative_params
 from sghr_gtsam.features.local import compute_features, default_voxel
 from sghr_gtsam.se3 import inv_T, make_T
-from sghr_gtsam.synthetic import (SyntheticScene, _Sensor, _clutter, _look_at, _object, _random_rotation, _room,
+from sghr_gtsam.synthetic.geometry import (SyntheticScene, _Sensor, _clutter, _look_at, _object, _random_rotation, _room,
                                   _scan)
 
 KINDS = ("room", "object")
@@ -199,7 +199,7 @@ def _object_scans(n: int, rng: np.random.Generator) -> tuple[list[np.ndarray], n
 def make_turntable(n_scans: int, seed: int = 0, noise: float = 0.001, elevation_deg: float = 20.0,
                    distance: float = 2.2) -> SyntheticScene:
     """An object on a turntable: ``n_scans`` range scans ``360 / n_scans`` degrees apart, as one fixed sensor sees
-    the demo's lumpy object (``synthetic._object``, ~1 m across) turned in equal steps. In the object's frame the
+    the demo's lumpy object (``synthetic.geometry._object``, ~1 m across) turned in equal steps. In the object's frame the
     sensor moves on a horizontal circle of radius ``distance`` · cos(elevation), ``elevation_deg`` above the
     turntable's centre, looking at that centre with no roll; 40° field of view, 220 × 220 rays with sub-ray jitter,
     Gaussian range noise of std ``noise`` m (1 mm: the middle of the training objects' 0.5–2 mm). Scans in the

@@ -18,7 +18,7 @@ from sghr_gtsam.io.scans import load_scan, write_scan
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.se3 import inv_T, transform_points
 from sghr_gtsam.synthetic import make_scene, write_scene
-from sghr_gtsam.synthetic_building import building_layout
+from sghr_gtsam.synthetic.building import building_layout
 
 OVERLAP = 0.1  # a pair overlaps when this fraction of their points (mean of both ways) lie within 2 voxels
 

@@ -1,41 +1,24 @@
-"""Small registrable scenes with known poses, for ``python -m sghr_gtsam demo`` and data-free tests.
-
-A scene is a procedurally generated mesh (a furnished room, or one bumpy closed object) that is
-ray-cast from sensors spread along a path around it, so consecutive scans overlap well while each
-one sees only part of the scene. Every scan is expressed in its own sensor frame; ``poses[i]`` is
-the sensor's pose in the scene frame (``p_world = poses[i] @ p_scan``), so even the first pose is
-not the identity.
-Sensor frame: z forward along the central ray, x right, y down (camera convention).
-
-Tuned so that FPFH + RANSAC + ICP at ``scene.voxel`` registers consecutive scans, provided the normals
-are oriented towards each scan's origin (the sensor): with open3d's unoriented normals the FPFH
-descriptors of one surface differ between scans and a quarter of the room's pairs fail.
+"""The geometry of the generated scenes: a furnished room and a bumpy object as meshes, the sensors spread
+around them, and the ray casting that scans them (``synthetic.make_scene``); the building reuses the room, its
+furniture and the sensor model (``synthetic.building``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
 
-from sghr_gtsam.io.poses import write_poses
-from sghr_gtsam.io.scans import write_scan
 from sghr_gtsam.se3 import make_T
-
-KINDS = ("room", "object")
-"""The kinds of one mesh scanned from around it; ``SCENE_KINDS`` adds the buildings (``synthetic_building``)."""
-SCENE_KINDS = (*KINDS, "building", "hotel")
-
 
 @dataclass
 class SyntheticScene:
     """Scans in their own sensor frames and their ground-truth poses ``T_i`` (scene frame, metres)."""
 
     names: list[str]  # "scan_00.ply", ...: the file names ``write_scene`` gives with its default format
-    scans: Sequence[np.ndarray]  # (N_i, 3) float64; a building's are ray-cast when read (``synthetic_building``)
+    scans: Sequence[np.ndarray]  # (N_i, 3) float64; a building's are ray-cast when read (``synthetic.building``)
     poses: np.ndarray  # (N, 4, 4) T_i: p_world = T_i @ p_scan
     voxel: float  # a voxel size suited to the scene's point spacing
 
@@ -291,57 +274,3 @@ def _scan(
     ok = np.isfinite(hit)
     ranges = hit[ok] + rng.normal(0.0, noise, ok.sum())
     return d[ok] * ranges[:, None]
-
-
-def make_scene(kind: str = "room", n_scans: int = 6, seed: int = 0, noise: float = 0.003) -> SyntheticScene:
-    """Generate a scene of ``kind`` ("room": ~5 m furnished room, voxel 5 cm; "object": ~1 m bumpy
-    object, voxel 2 cm; "building": rooms along corridors growing with ``n_scans``, at least 9; "hotel": the
-    building with every room the same, ``synthetic_building``) seen by ``n_scans`` sensors, with Gaussian range
-    noise of std ``noise`` metres. About 5-15k points a scan; well under a second for 6 scans; deterministic for a
-    given seed."""
-    if kind not in SCENE_KINDS:
-        raise ValueError(f"unknown scene kind {kind!r} (choose from {', '.join(SCENE_KINDS)})")
-    if n_scans < 2:
-        raise ValueError("a scene needs at least 2 scans")
-    if kind not in KINDS:
-        from .synthetic_building import make_building  # it builds on this module's geometry
-
-        return make_building(n_scans, seed, noise, identical_rooms=kind == "hotel")
-    rng = np.random.default_rng(seed)
-    if kind == "room":
-        mesh, sensor, voxel = _room(rng), _room_sensors(n_scans, rng), 0.05
-    else:
-        mesh, sensor, voxel = _object(rng), _object_sensors(n_scans, rng), 0.02
-    raycaster = o3d.t.geometry.RaycastingScene()
-    raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-
-    rolls = rng.uniform(-sensor.max_roll, sensor.max_roll, len(sensor.eyes))
-    poses = np.stack([_look_at(e, t, roll) for e, t, roll in zip(sensor.eyes, sensor.targets, rolls)])
-    scans = [_scan(raycaster, T, sensor, noise, rng) for T in poses]
-    return SyntheticScene([f"scan_{k:02d}.ply" for k in range(n_scans)], scans, poses, voxel)
-
-
-def write_scene(scene: SyntheticScene, folder: str | Path, formats: Sequence[str] = ("ply",)) -> list[Path]:
-    """Write the scans to ``folder`` (created if needed) and ``gt_poses.txt`` naming the written files.
-
-    Scan k is written as ``formats[k % len(formats)]`` (suffixes from ``SCAN_SUFFIXES`` without the
-    dot; the format replaces the suffix of ``scene.names[k]``), so e.g. ``("ply", "npy", "xyz")``
-    exercises several readers. Returns the scan paths.
-    """
-    if not formats:
-        raise ValueError("formats must name at least one scan format")
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    paths = [
-        folder / Path(name).with_suffix("." + formats[k % len(formats)].lstrip(".")).name
-        for k, name in enumerate(scene.names)
-    ]
-    for path, points in zip(paths, scene.scans):
-        write_scan(path, points)
-    write_poses(
-        folder / "gt_poses.txt",
-        [p.name for p in paths],
-        scene.poses,
-        comment="Synthetic scene (sghr_gtsam.synthetic). Per scan: its file name, then T with p_world = T @ p_scan.",
-    )
-    return paths

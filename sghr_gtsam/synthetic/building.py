@@ -5,7 +5,7 @@ whose rooms are all one room.
 **Floor plan** (metres, z up, floor at z = 0). A *branch* is a corridor ``CORRIDOR`` wide along +x from x = 0 with
 rooms on both sides, about sqrt(R / 2) a side for R rooms in all; branch b runs along y = b · ``BRANCH_PITCH``. With
 more than one branch, a *spine* corridor as wide runs along y at x < 0 and joins them, so the floor grows in both
-directions with N. A room is ``synthetic._room`` (4–5 × 3.4–4 × 2.5 m, furniture and clutter of its own) with a
+directions with N. A room is ``synthetic.geometry._room`` (4–5 × 3.4–4 × 2.5 m, furniture and clutter of its own) with a
 doorway 1.2–1.6 m wide through the ``WALL`` between it and the corridor; rooms stand at least ``GAP`` apart. Walls
 have a thickness, so that no surface is seen from both sides (a wall's two faces would count as overlap). Corridor
 and spine segments have uneven walls, floor and ceiling, cabinets, things on the floor and panels on the walls,
@@ -42,7 +42,7 @@ from math import ceil
 import numpy as np
 import open3d as o3d
 
-from .synthetic import (
+from .geometry import (
     DOOR_HEIGHT, ROOM_SIZE, SyntheticScene, _box, _clutter, _look_at, _relief_wall, _room, _rot_z, _scan, _Sensor,
 )
 
@@ -68,7 +68,7 @@ View = Callable[[int, np.ndarray, np.ndarray, np.ndarray, float], None]
 @dataclass
 class Cell:
     """A piece of the building with geometry of its own: a ``room``, a ``corridor`` segment of a branch or a
-    ``spine`` segment. ``frame`` maps the cell's own frame into the world: a room's is ``synthetic._room``'s
+    ``spine`` segment. ``frame`` maps the cell's own frame into the world: a room's is ``synthetic.geometry._room``'s
     (doorway in its wall at y = -2); a segment's has x along its corridor, y across it, origin on the corridor's
     centre line, and spans x in [``start``, ``start + length``]."""
 
@@ -231,7 +231,7 @@ def _spine_cell(b: int, y: float) -> Cell:
 
 
 def _room_views(rng: np.random.Generator, cell: int, room: Cell, count: int, view: View) -> None:
-    """``count`` views from the ellipse around the table (as ``synthetic._room_sensors``), then one each way
+    """``count`` views from the ellipse around the table (as ``synthetic.geometry._room_sensors``), then one each way
     along the wall from the middle of the doorway (the jambs take the middle of the view)."""
     L, W, _ = room.size
     angles = 2 * np.pi / count * np.arange(count) + rng.uniform(0, 2 * np.pi) + rng.uniform(-0.08, 0.08, count)
