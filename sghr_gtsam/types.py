@@ -9,9 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-
-class InputError(ValueError):
-    """Bad user input; the CLI prints its message on one line and exits non-zero."""
+from .errors import InputError  # noqa: F401 - re-exported: the stages import it with the types
 
 
 @dataclass

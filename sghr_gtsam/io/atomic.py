@@ -14,7 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from ..types import InputError
+from ..errors import InputError
 
 # mkstemp creates files 0600; finished outputs get the usual 0666 & ~umask instead. The umask can
 # only be read by setting it, so read it once at import rather than on every write.

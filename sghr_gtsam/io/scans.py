@@ -16,7 +16,7 @@ import numpy as np
 import open3d as o3d
 
 from sghr_gtsam.io.atomic import atomic_path, atomic_write
-from sghr_gtsam.types import InputError
+from sghr_gtsam.errors import InputError
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
