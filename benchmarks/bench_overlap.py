@@ -167,19 +167,23 @@ def match_scene(data: Path, name: str) -> tuple[list[np.ndarray], np.ndarray, se
 def report_match_scene(name: str, desc: list[np.ndarray], G: np.ndarray, pairs: set[tuple[int, int]],
                        head: VladHead) -> None:
     """The share of the scene's gt.log pairs that each score's top-k graph proposes (a pair never proposed is
-    never registered), for k in ``MATCH_KS``, with the graph's size."""
+    never registered), for k in ``MATCH_KS``, with the graph's size and its edges between scans that barely
+    overlap (GT overlap below ``THRESHOLD``)."""
     n = len(G)
     scores = {"VLAD codebook (pipeline now)": codebook_scores(desc),
               "learned head": overlap_scores(global_features(head, desc)), "GT overlap (oracle)": G}
     print(f"\n### {name}: {n} fragments, {n * (n - 1) // 2} pairs, {len(pairs)} gt.log pairs\n")
-    print("| scores | " + " | ".join(f"top-{k}: gt.log pairs proposed (edges, % of all pairs)" for k in MATCH_KS) + " |")
+    print("| scores | " + " | ".join(f"top-{k}: gt.log pairs proposed (edges, % of all pairs; edges of GT overlap "
+                                     f"< {THRESHOLD})" for k in MATCH_KS) + " |")
     print("|---|" + "---:|" * len(MATCH_KS))
     for label, S in scores.items():
         cells = []
         for k in MATCH_KS:
             edges = {tuple(e) for e in np.sort(top_k_edges(S, k), axis=1).tolist()}
             hit = len(pairs & edges)
-            cells.append(f"{hit}/{len(pairs)} = {hit / len(pairs):.3f} ({len(edges)}, {len(edges) / (n * (n - 1) / 2):.0%})")
+            blind = sum(G[i, j] < THRESHOLD for i, j in edges)
+            cells.append(f"{hit}/{len(pairs)} = {hit / len(pairs):.3f} ({len(edges)}, {len(edges) / (n * (n - 1) / 2):.0%}; "
+                         f"{blind} below {THRESHOLD})")
         print(f"| {label} | " + " | ".join(cells) + " |")
 
 
