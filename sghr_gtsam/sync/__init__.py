@@ -19,10 +19,10 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from ..io.g2o import sesync_precisions
-from ..se3 import inv_T, project_to_so3, rotation_angle
+from ..se3 import inv_T, project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import blocks
-from .consensus import MAX_DEG, consensus_placement, consistent_edges, translation_tolerance
+from .consensus import MAX_DEG, consensus_placement, consistent_edges, edge_residuals, translation_tolerance
 from .disputes import contested
 from .cycles import credibility, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
 from .irls import REWEIGHTS, irls, solve_poses, usable_edges
@@ -283,9 +283,8 @@ def _overturns(graph: PoseGraph, votes: np.ndarray, challenger: tuple[np.ndarray
 
 def _far(graph: PoseGraph, poses: np.ndarray) -> np.ndarray:
     """(E,) bool: edges ``poses`` put beyond ``FAR`` times the consistency tolerances."""
-    E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
-    return ((np.degrees(rotation_angle(E[:, :3, :3])) > FAR * MAX_DEG)
-            | (np.linalg.norm(E[:, :3, 3], axis=1) > FAR * translation_tolerance(graph)))
+    _, rot, trans = edge_residuals(graph, poses)
+    return (rot > FAR * MAX_DEG) | (trans > FAR * translation_tolerance(graph))
 
 
 def _robust_placement(graph: PoseGraph, poses: np.ndarray,

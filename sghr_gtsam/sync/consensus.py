@@ -47,6 +47,13 @@ def translation_tolerance(graph: PoseGraph, max_deg: float = MAX_DEG) -> float:
     return TRANS_FACTOR * np.radians(max_deg) * (length if length > 0 else 1.0)
 
 
+def edge_residuals(graph: PoseGraph, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each edge's residual transform ``T_ij⁻¹ T_i⁻¹ T_j`` under ``poses`` (E, 4, 4), its rotation angle in
+    degrees and its translation's length (E,)."""
+    E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
+    return E, np.degrees(rotation_angle(E[:, :3, :3])), np.linalg.norm(E[:, :3, 3], axis=1)
+
+
 def consistent_edges(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
                      max_trans: float | None = None) -> np.ndarray:
     """(E,) bool: edges with positive weight whose ``T_ij⁻¹ T_i⁻¹ T_j`` is within ``max_deg`` and
@@ -55,8 +62,8 @@ def consistent_edges(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_D
     alone they dropped 55-80 % of the edges of gtsam's clean but noisy grid graphs (σ ≈ 15°), every one of
     them within its own noise at the least-squares optimum."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
-    E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
-    close = (np.degrees(rotation_angle(E[:, :3, :3])) <= max_deg) & (np.linalg.norm(E[:, :3, 3], axis=1) <= max_trans)
+    E, rot, trans = edge_residuals(graph, poses)
+    close = (rot <= max_deg) & (trans <= max_trans)
     if graph.information is not None:
         close |= within_noise(E, graph.information)
     return (graph.weight > 0) & close

@@ -40,7 +40,7 @@ import numpy as np
 from ..se3 import inv_T, rotation_angle
 from ..types import PoseGraph
 from .bridges import blocks as block_labels
-from .consensus import MAX_DEG, translation_tolerance, within_noise
+from .consensus import MAX_DEG, edge_residuals, translation_tolerance, within_noise
 
 
 def triangles(graph: PoseGraph) -> np.ndarray:
@@ -273,9 +273,7 @@ def kept_edges_at(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
     median residual of the edges consistent at the base tolerances, or, with ``graph.information``, within
     their own noise (``consensus.within_noise``; gtsam's grid graphs have σ ≈ 15° on every edge)."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
-    E = inv_T(graph.T) @ inv_T(poses[graph.i]) @ poses[graph.j]
-    rot = np.degrees(rotation_angle(E[:, :3, :3]))
-    trans = np.linalg.norm(E[:, :3, 3], axis=1)
+    E, rot, trans = edge_residuals(graph, poses)
     base = (graph.weight > 0) & (rot <= max_deg) & (trans <= max_trans)
     if base.any():
         max_deg = max(max_deg, SPREAD * float(np.median(rot[base])))
