@@ -195,24 +195,15 @@ def child(scene_dir: str, overrides_json: str, workers: str, overlap_log: str) -
         with tempfile.TemporaryDirectory() as out:
             res = run(scene_dir, out, config, log=log)
     else:
+        from data_tools.scene_gt import log_overlaps
+        from sghr_gtsam.evaluate import fragment_id
+
         scans, skipped = load_scene(scene_dir, config, log)
-        res = register(scans, config, log=log, skipped=skipped, scores=gt_overlap_scores(scans, overlap_log))
+        scores = log_overlaps(Path(overlap_log), [fragment_id(s.name) for s in scans])
+        res = register(scans, config, log=log, skipped=skipped, scores=scores)
     print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
                       "flags": res.flags, "timings": res.timings,
                       "peak_mb": peak_memory_mb()}))
-
-
-def gt_overlap_scores(scans: list, overlap_log: str) -> np.ndarray:
-    """The (N, N) GT overlaps of ``scans`` (3DMatch fragments, by fragment number) from a ``gt_overlap.log``."""
-    from sghr_gtsam.evaluate import fragment_id
-    from sghr_gtsam.io.poses import read_gt_overlap
-
-    ov = read_gt_overlap(overlap_log)
-    ids = [fragment_id(s.name) for s in scans]
-    S = np.eye(len(ids))
-    for a, b in zip(*np.triu_indices(len(ids), 1)):
-        S[a, b] = S[b, a] = ov.get((min(ids[a], ids[b]), max(ids[a], ids[b])), 0.0)
-    return S
 
 
 def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False,

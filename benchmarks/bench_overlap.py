@@ -38,7 +38,6 @@ Run from the repository root: ``python benchmarks/bench_overlap.py [--head PATH]
 from __future__ import annotations
 
 import argparse
-import itertools
 import os
 import sys
 import time
@@ -50,6 +49,7 @@ from scipy.stats import spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_tools.gt_overlap import fragment_id, overlap_matrix, relative_params  # noqa: E402
+from data_tools.scene_gt import log_overlaps  # noqa: E402
 from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E402
 from sghr_gtsam.features.netvlad import (  # noqa: E402
     DEFAULT_HEAD,
@@ -59,7 +59,7 @@ from sghr_gtsam.features.netvlad import (  # noqa: E402
     load_checkpoint,
 )
 from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  # noqa: E402
-from sghr_gtsam.io.poses import read_gt_log, read_gt_overlap, read_poses  # noqa: E402
+from sghr_gtsam.io.poses import read_gt_log, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import load_scan  # noqa: E402
 
 DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -70,11 +70,7 @@ RANDOM_DRAWS = 1000
 
 def kitchen(data: Path) -> tuple[list[str], list[np.ndarray], np.ndarray]:
     names, _ = read_poses(data / "kitchen" / "gt" / "gt_poses.txt")
-    log = read_gt_overlap(data / "kitchen" / "gt" / "gt_overlap.log")
-    ids = [fragment_id(n) for n in names]
-    G = np.eye(len(names))
-    for a, b in itertools.combinations(range(len(names)), 2):
-        G[a, b] = G[b, a] = log[tuple(sorted((ids[a], ids[b])))]
+    G = log_overlaps(data / "kitchen" / "gt" / "gt_overlap.log", [fragment_id(n) for n in names])
     return names, [load_scan(data / "kitchen" / n) for n in names], G
 
 
@@ -155,9 +151,7 @@ def match_scene(data: Path, name: str) -> tuple[list[np.ndarray], np.ndarray, se
     folder, gt = data / "3dmatch-scenes" / name, data / "3dmatch-test-gt" / "3DMatch" / MATCH_SCENES[name]
     names, _ = read_poses(folder / "gt_poses.txt")
     ids = {fragment_id(n): k for k, n in enumerate(names)}
-    G = np.eye(len(names))
-    for (a, b), o in read_gt_overlap(gt / "gt_overlap.log").items():
-        G[ids[a], ids[b]] = G[ids[b], ids[a]] = o
+    G = log_overlaps(gt / "gt_overlap.log", list(ids))
     scans = [load_scan(folder / n) for n in names]
     voxel = default_voxel(scans)
     pairs = {tuple(sorted((ids[a], ids[b]))) for a, b in read_gt_log(gt / "gt.log")}

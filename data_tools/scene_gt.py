@@ -32,6 +32,17 @@ def data_root() -> Path:
     return Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 
+def log_overlaps(path: Path, ids: list[int]) -> np.ndarray:
+    """(N, N) symmetric GT overlaps of the fragments numbered ``ids`` from a 3DMatch ``gt_overlap.log`` (0 on the
+    diagonal and for pairs it does not list)."""
+    index = {f: k for k, f in enumerate(ids)}
+    overlap = np.zeros((len(ids), len(ids)))
+    for (a, b), v in read_gt_overlap(path).items():
+        if a in index and b in index:
+            overlap[index[a], index[b]] = overlap[index[b], index[a]] = v
+    return overlap
+
+
 @lru_cache(maxsize=None)
 def load_scene(scene: str, root: Path | None = None) -> SceneGT:
     """Read one scene's GT; cached, so callers must not modify the arrays."""
@@ -42,11 +53,7 @@ def load_scene(scene: str, root: Path | None = None) -> SceneGT:
     poses = P[keep]
     poses[:, :3, :3] = project_to_so3(poses[:, :3, :3])
 
-    index = {f: k for k, f in enumerate(ids)}
-    overlap = np.zeros((len(ids), len(ids)))
-    for (a, b), v in read_gt_overlap(base / "3DMatch" / scene / "gt_overlap.log").items():
-        if a in index and b in index:
-            overlap[index[a], index[b]] = overlap[index[b], index[a]] = v
+    overlap = log_overlaps(base / "3DMatch" / scene / "gt_overlap.log", ids)
 
     positions = poses[:, :3, 3] - poses[:, :3, 3].mean(axis=0)
     vertical = np.linalg.eigh(positions.T @ positions)[1][:, 0]
