@@ -48,7 +48,7 @@ from scipy.stats import spearmanr
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data_tools.gt_overlap import fragment_id, overlap_matrix, relative_params  # noqa: E402
+from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
 from data_tools.scene_gt import log_overlaps  # noqa: E402
 from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E402
 from sghr_gtsam.features.netvlad import (  # noqa: E402
@@ -58,6 +58,7 @@ from sghr_gtsam.features.netvlad import (  # noqa: E402
     global_features,
     load_checkpoint,
 )
+from sghr_gtsam.evaluate import fragment_id  # noqa: E402
 from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_log, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import load_scan  # noqa: E402

@@ -130,15 +130,11 @@ KITCHEN_SCANS = ("cloud_bin_0", "cloud_bin_1", "cloud_bin_2", "cloud_bin_3", "cl
                  "cloud_bin_6", "cloud_bin_21", "cloud_bin_34")
 
 
-def fragment_id(name: str) -> int:
-    """``cloud_bin_21.ply`` -> 21."""
-    return int(Path(name).stem.rsplit("_", 1)[-1])
-
-
 def reproduce_kitchen(data_dir: str | Path, radius: float = KITCHEN_RADIUS, voxel: float | None = KITCHEN_GRID,
                       mode: str = "first") -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
     """Fragment pairs (i < j) among the kitchen scans of the shared data, our overlaps and the
     ``gt/gt_overlap.log`` values, in the same order."""
+    from sghr_gtsam.evaluate import fragment_id
     from sghr_gtsam.io.poses import read_gt_overlap, read_poses
     from sghr_gtsam.io.scans import load_scan
 
