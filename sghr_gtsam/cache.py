@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -98,87 +99,29 @@ def refined_key(a: str, b: str, guess: np.ndarray, icp_distance: float) -> str |
 # --- what a file holds -----------------------------------------------------------------------------------------
 
 
-def _encode_features(f) -> dict[str, np.ndarray] | None:
-    if isinstance(f, str):  # a scan without features: its reason is not stored
-        return None
-    out = {"points": f.points, "normals": f.normals, "voxel": np.float64(f.voxel)}
-    if f.fpfh is not None:
-        out["fpfh"] = f.fpfh
-    else:
-        out["keypoints"], out["descriptors"] = f.keypoints, f.descriptors
-    return out
+@dataclass(frozen=True)
+class Kind:
+    """One kind of entry, defined beside its result's type: the folder ``name`` (one of ``KINDS``), and how a
+    result becomes arrays (``encode``; None: not stored) and comes back from them (``decode``, raising on arrays
+    that do not make one). Module-level functions, so that a ``store.Stored`` handle pickles with its kind."""
+
+    name: str
+    encode: Callable[[Any], dict[str, np.ndarray] | None]
+    decode: Callable[[dict[str, np.ndarray]], Any]
 
 
-def _decode_features(a: dict[str, np.ndarray]):
-    from .features.local import ScanFeatures
-
-    fpfh = a.get("fpfh")
-    keypoints, descriptors = (a["points"], fpfh) if fpfh is not None else (a["keypoints"], a["descriptors"])
-    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
+def entry_path(folder: str | Path, name: str, key: str) -> Path:
+    """Where the result of the kind ``name`` under ``key`` lives in ``folder``."""
+    return Path(folder) / name / f"{key}.npz"
 
 
-def _encode_pyramid(p) -> dict[str, np.ndarray]:
-    return {"voxels": np.array(p.voxels), **{f"grid{k}": g for k, g in enumerate(p.grids)}}
-
-
-def _decode_pyramid(a: dict[str, np.ndarray]):
-    from .registration.refine import Pyramid
-
-    voxels = tuple(float(v) for v in a["voxels"])
-    return Pyramid(voxels, tuple(a[f"grid{k}"] for k in range(len(voxels))))
-
-
-_PAIR_ARRAYS = ("information", "bounded", "loose")
-
-
-def _encode_pair(p) -> dict[str, np.ndarray]:
-    out = {"T": p.T, "numbers": np.array([p.inliers, p.fitness, p.rmse, p.seconds, p.coverage, p.free])}
-    out.update({name: getattr(p, name) for name in _PAIR_ARRAYS if getattr(p, name) is not None})
-    if p.matches is not None:
-        out["match_i"], out["match_j"] = p.matches
-    return out
-
-
-def _decode_pair(a: dict[str, np.ndarray]):
-    from .registration.pairwise import PairResult
-
-    inliers, fitness, rmse, seconds, coverage, free = a["numbers"].tolist()
-    matches = (a["match_i"], a["match_j"]) if "match_i" in a else None
-    if a["T"].shape != (4, 4):
-        raise ValueError(f"T of shape {a['T'].shape}")
-    return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
-                      int(free), a.get("bounded"), a.get("loose"))
-
-
-def _encode_refined(result) -> dict[str, np.ndarray]:
-    pair, converged = result
-    return {**_encode_pair(pair), "converged": np.bool_(converged)}
-
-
-def _decode_refined(a: dict[str, np.ndarray]):
-    return _decode_pair(a), bool(a["converged"])
-
-
-_CODECS: dict[str, tuple[Callable, Callable]] = {
-    "features": (_encode_features, _decode_features),
-    "pyramids": (_encode_pyramid, _decode_pyramid),
-    "pairs": (_encode_pair, _decode_pair),
-    "refined": (_encode_refined, _decode_refined),
-}
-
-
-def entry_path(folder: str | Path, kind: str, key: str) -> Path:
-    """Where the result of ``kind`` named ``key`` lives under ``folder``."""
-    return Path(folder) / kind / f"{key}.npz"
-
-
-def read_entry(path: Path, kind: str) -> Any:
+def read_entry(path: Path, kind: Kind) -> Any:
     """The result of ``kind`` stored at ``path``, ``MISS`` when there is none; raises when it cannot be read."""
     if not path.is_file():
         return MISS
     with np.load(path, allow_pickle=False) as archive:
         arrays = {name: archive[name] for name in archive.files}  # reading each checks its CRC
-    return _CODECS[kind][1](arrays)
+    return kind.decode(arrays)
 
 
 class Cache:
@@ -195,8 +138,8 @@ class Cache:
         """What report.json says of the cache."""
         return {**self.counts, "unreadable": self.unreadable}
 
-    def _path(self, kind: str, key: str) -> Path:
-        return entry_path(self.folder, kind, key)
+    def _path(self, kind: Kind, key: str) -> Path:
+        return entry_path(self.folder, kind.name, key)
 
     def _remove_stale(self) -> None:
         """Temporary files of writes a killed run left (``io.atomic``'s hidden names)."""
@@ -210,7 +153,7 @@ class Cache:
             except OSError:
                 pass
 
-    def load(self, kind: str, key: str | None) -> Any:
+    def load(self, kind: Kind, key: str | None) -> Any:
         """The stored result, or ``MISS`` (also when its file cannot be read)."""
         if key is None:
             return MISS
@@ -220,13 +163,13 @@ class Cache:
             self.unreadable += 1
             return MISS
 
-    def store(self, kind: str, key: str | None, result: Any) -> None:
-        arrays = None if key is None else _CODECS[kind][0](result)
+    def store(self, kind: Kind, key: str | None, result: Any) -> None:
+        arrays = None if key is None else kind.encode(result)
         if arrays is not None:
             with atomic_write(self._path(kind, key), "wb") as f:
                 np.savez(f, **arrays)
 
-    def map(self, kind: str, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
+    def map(self, kind: Kind, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
             workers: int | None, on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,
             keep: Callable[[Any], Any] | None = None) -> list:
         """``executor.parallel_map(fn, shared, tasks, workers, on_result, ray, keep)`` for the tasks whose ``keys``
@@ -251,8 +194,8 @@ class Cache:
 
         for k, result in zip(todo, parallel_map(fn, shared, [tasks[k] for k in todo], workers, arrived, ray, keep)):
             results[k] = result
-        self.counts[kind]["cached"] += len(tasks) - len(todo)
-        self.counts[kind]["computed"] += len(todo)
+        self.counts[kind.name]["cached"] += len(tasks) - len(todo)
+        self.counts[kind.name]["computed"] += len(todo)
         return results
 
 
@@ -260,7 +203,7 @@ MISS = object()
 """``Cache.load``'s answer for a result it does not hold."""
 
 
-def cached_map(cache: Cache | None, kind: str, fn: Callable, shared: Any, tasks: Sequence,
+def cached_map(cache: Cache | None, kind: Kind, fn: Callable, shared: Any, tasks: Sequence,
                keys: Sequence[str | None], workers: int | None,
                on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,
                keep: Callable[[Any], Any] | None = None) -> list:

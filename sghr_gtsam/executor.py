@@ -21,7 +21,7 @@ import signal
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -94,11 +94,15 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
     if ray is not None:
         from .executor_ray import ray_map
 
-        return ray_map(fn, shared, tasks, workers, ray, on_result, keep)
+        if workers is None and ray == "local":
+            workers = default_workers()
+        # closing: a failing on_result ends the cluster's actors now, not when the generator is collected
+        with closing(ray_map(fn, shared, tasks, workers, ray)) as results:
+            return [_arrived(k, result, on_result, keep) for k, result in enumerate(results)]
     workers = default_workers() if workers is None else workers
     workers = min(workers, len(tasks))
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
-        return [arrived(k, fn(shared, task), on_result, keep) for k, task in enumerate(tasks)]
+        return [_arrived(k, fn(shared, task), on_result, keep) for k, task in enumerate(tasks)]
     context = multiprocessing.get_context("forkserver")
     _ensure_server([fn.__module__])
     started = context.Value("i", 0)
@@ -112,7 +116,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             results = []
             for k in range(len(futures)):
                 future, futures[k] = futures[k], None  # a future holds its result: let it go once taken
-                results.append(arrived(k, future.result(), on_result, keep))
+                results.append(_arrived(k, future.result(), on_result, keep))
             return results
         except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
             # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
@@ -131,7 +135,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             raise
 
 
-def arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep: Callable[[R], Any] | None) -> Any:
+def _arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep: Callable[[R], Any] | None) -> Any:
     """What a backend does with task ``k``'s result as it arrives, in task order: tell ``on_result``, keep it."""
     if on_result is not None:
         on_result(k, result)

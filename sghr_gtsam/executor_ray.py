@@ -25,13 +25,12 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 import ray
 from ray.exceptions import RayTaskError
 
-from .executor import arrived
 from .types import InputError
 
 T = TypeVar("T")
@@ -82,9 +81,7 @@ class _Cluster:
         self.actors: list[Any] = []
         self.slots: dict[str, int] = {}  # actors per node, for their cores
         if address == "local":
-            from .executor import default_workers
-
-            kwargs: dict[str, Any] = {"address": "local", "num_cpus": workers or default_workers()}
+            kwargs: dict[str, Any] = {"address": "local", "num_cpus": workers}
         else:
             kwargs = {"address": address}
         sigterm = signal.getsignal(signal.SIGTERM)
@@ -136,16 +133,16 @@ def _disconnect() -> None:
         ray.shutdown()
 
 
-def ray_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None, address: str,
-            on_result: Callable[[int, R], None] | None = None, keep: Callable[[R], Any] | None = None) -> list:
-    """``executor.parallel_map`` over the Ray cluster at ``address`` (``Config.ray``) on ``workers`` CPUs (None:
-    every CPU of the cluster; 'local': of this machine)."""
+def ray_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None,
+            address: str) -> Iterator[R]:
+    """``fn(shared, t)`` for each of ``tasks`` over the Ray cluster at ``address`` (``Config.ray``) on ``workers``
+    CPUs (None: every CPU of the cluster; 'local' needs a number), yielded in the tasks' order as they complete;
+    ``executor.parallel_map`` is the public call."""
 
     if not tasks:
-        return []
+        return
     cluster = _connect(address, workers)
-    results: list[Any] = [None] * len(tasks)
-    done = [False] * len(tasks)
+    results: dict[int, Any] = {}
     pending: dict[ray.ObjectRef, tuple[int, Any]] = {}
     queue = iter(enumerate(tasks))
 
@@ -171,16 +168,14 @@ def ray_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers:
                 results[k] = ray.get(ready[0])
             except RayTaskError as e:  # the task's own exception, as the process pool raises it
                 raise e.cause from e
-            done[k] = True
             submit(actor)
-            while reported < len(tasks) and done[reported]:
-                results[reported] = arrived(reported, results[reported], on_result, keep)
+            while reported in results:
+                yield results.pop(reported)
                 reported += 1
-    except BaseException as e:  # Ctrl-C, SIGTERM, a failed task: end the actors instead of finishing the tasks
+    except BaseException as e:  # Ctrl-C, SIGTERM, a failed task or caller: end the actors instead of finishing
         _disconnect()
         if isinstance(e, SystemError) and e.__cause__ is not None and "with an exception set" in str(e):
             raise e.__cause__ from None  # a signal handler's exception (the CLI's SIGTERM), wrapped by Ray's wait
         raise
     for actor in actors:
         actor.release.remote()
-    return results

@@ -15,7 +15,7 @@ from . import local_frame
 from .cache import Cache, pyramid_key, scan_key
 from .config import Config
 from .executor import start_server
-from .features.local import scan_features, voxel_from_spans
+from .features.local import FEATURES, scan_features, voxel_from_spans
 from .features.netvlad import (
     DEFAULT_HEAD,
     codebook_features,
@@ -36,7 +36,7 @@ from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
 from .registration.information import STIFFEN, underdetermined
-from .registration.refine import scan_pyramid
+from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
 from .registration.visibility import contradicted_placements
 from .result import RunResult
@@ -248,7 +248,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     keys = [scan_key(s, voxel, config) for s in scans]
     radii = (voxel, config.normal_radius, config.fpfh_radius)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        counts = store.map("features", scan_features, radii, scans, keys, config.workers, tick, config.ray,
+        counts = store.map(FEATURES, scan_features, radii, scans, keys, config.workers, tick, config.ray,
                            keep=lambda f: f if isinstance(f, str) else len(f.descriptors))
     for s, count in zip(scans, counts):
         if isinstance(count, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
@@ -258,7 +258,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     scans, centres, counts = [scans[k] for k in usable], centres[usable], [counts[k] for k in usable]
     if len(scans) < 2:
         raise _too_few(scans, skipped)
-    features = store.sequence("features", [keys[k] for k in usable], _again(scan_features, radii, scans))
+    features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, radii, scans))
     names = [s.name for s in scans]
     if recorder:
         recorder.log_scans(names, Attribute(features, "points"))
@@ -298,9 +298,9 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
         if (config.refine or config.loops) and pyramids is None:
             grid_keys = [pyramid_key(key) for key in features.keys]
             with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
-                store.map("pyramids", scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
+                store.map(PYRAMIDS, scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
                           keep=lambda p: None)
-            pyramids = store.sequence("pyramids", grid_keys, _again(scan_pyramid, voxel, scans))
+            pyramids = store.sequence(PYRAMIDS, grid_keys, _again(scan_pyramid, voxel, scans))
         if config.refine:
             with timer.stage("refine"):
                 changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress, cache)

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from .cache import MISS, Cache, cached_map, entry_path, read_entry
+from .cache import MISS, Cache, Kind, cached_map, entry_path, read_entry
 from .types import InputError
 
 LRU_BYTES = 256 * 2**20
@@ -65,13 +65,12 @@ _LRU = _Lru(LRU_BYTES)
 
 @dataclass(frozen=True, eq=False)
 class Stored(Sequence):
-    """Scan k's stored ``kind`` at ``[k]`` (``features``: ``features.local.ScanFeatures``, ``pyramids``:
-    ``registration.refine.Pyramid``), read from ``folder`` through this process's memory of ``LRU_BYTES``.
-    Pickles as ``folder``, ``kind`` and ``keys``; where it was made it also recomputes a missing entry
-    (``compute(k)``, module doc)."""
+    """Scan k's stored ``kind`` at ``[k]`` (``features.local.FEATURES``, ``registration.refine.PYRAMIDS``), read
+    from ``folder`` through this process's memory of ``LRU_BYTES``. Pickles as ``folder``, ``kind`` and ``keys``;
+    where it was made it also recomputes a missing entry (``compute(k)``, module doc)."""
 
     folder: str
-    kind: str
+    kind: Kind
     keys: tuple[str, ...]
     _store: Store | None = field(default=None, repr=False)
     _compute: Callable[[int], Any] | None = field(default=None, repr=False)
@@ -81,7 +80,7 @@ class Stored(Sequence):
 
     def __getitem__(self, k: int) -> Any:  # type: ignore[override] - no slices
         key = self.keys[k]
-        return _LRU.get((self.folder, self.kind, key), lambda: self._read(k, key))
+        return _LRU.get((self.folder, self.kind.name, key), lambda: self._read(k, key))
 
     def __reduce__(self) -> tuple:
         return Stored, (self.folder, self.kind, self.keys)
@@ -95,13 +94,13 @@ class Stored(Sequence):
             item = self._compute(k)
             if self._store.open:
                 disk.store(self.kind, key, item)
-                disk.counts[self.kind]["computed"] += 1
+                disk.counts[self.kind.name]["computed"] += 1
         return item
 
 
-def _read_elsewhere(folder: Path, kind: str, key: str) -> Any:
+def _read_elsewhere(folder: Path, kind: Kind, key: str) -> Any:
     """An entry read in a worker, which cannot compute it again."""
-    path = entry_path(folder, kind, key)
+    path = entry_path(folder, kind.name, key)
     try:
         item = read_entry(path, kind)
     except Exception:  # noqa: BLE001 - a damaged entry, whatever broke while reading it
@@ -142,13 +141,13 @@ class Store:
         if self._removal is not None:
             self._removal()
 
-    def map(self, kind: str, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str], workers: int | None,
+    def map(self, kind: Kind, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str], workers: int | None,
             on_result: Callable[[int, Any], None] | None, ray: str | None, keep: Callable[[Any], Any]) -> list:
         """A per-scan stage (``cache.Cache.map``): each task's result read from the store or computed and written
         as it arrives; the list holds ``keep(result)``."""
         return self.disk.map(kind, fn, shared, tasks, keys, workers, on_result, ray, keep)
 
-    def sequence(self, kind: str, keys: Sequence[str], compute: Callable[[int], Any]) -> Stored:
+    def sequence(self, kind: Kind, keys: Sequence[str], compute: Callable[[int], Any]) -> Stored:
         """The scans' ``kind`` under ``keys`` as a ``Stored`` sequence; ``compute(k)`` makes item k again."""
         return Stored(str(self.folder), kind, tuple(keys), self, compute)
 
@@ -174,7 +173,7 @@ def pair_order(ij: np.ndarray) -> np.ndarray:
     return np.lexsort((ij.max(axis=1), ij.min(axis=1)))
 
 
-def pair_map(cache: Cache | None, kind: str, fn: Callable, shared: Any, ij: np.ndarray, tasks: Sequence,
+def pair_map(cache: Cache | None, kind: Kind, fn: Callable, shared: Any, ij: np.ndarray, tasks: Sequence,
              keys: Sequence[str | None], workers: int | None, on_result: Callable[[int, Any], None] | None,
              ray: str | None) -> list:
     """``cache.cached_map`` of one task a pair (row of ``ij``), run in ``pair_order``; results in the tasks' order

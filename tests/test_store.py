@@ -19,9 +19,9 @@ from sghr_gtsam import pipeline, store
 from sghr_gtsam.cache import Cache, entry_path, pyramid_key, scan_key
 from sghr_gtsam.config import Config
 from sghr_gtsam.executor import parallel_map
-from sghr_gtsam.features.local import scan_features
+from sghr_gtsam.features.local import FEATURES, scan_features
 from sghr_gtsam.pipeline import register, run
-from sghr_gtsam.registration.refine import scan_pyramid
+from sghr_gtsam.registration.refine import PYRAMIDS, scan_pyramid
 from sghr_gtsam.store import Attribute, Store, Stored, pair_order
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError, Scan
@@ -48,10 +48,10 @@ def _stored(room, cache, voxel=0.08):
     radii = (voxel, config.normal_radius, config.fpfh_radius)
     keys = [scan_key(s, voxel, config) for s in room]
     grid_keys = [pyramid_key(k) for k in keys]
-    box.map("features", scan_features, radii, room, keys, 1, None, None, keep=lambda f: None)
-    box.map("pyramids", scan_pyramid, voxel, room, grid_keys, 1, None, None, keep=lambda p: None)
-    return (box, box.sequence("features", keys, lambda k: scan_features(radii, room[k])),
-            box.sequence("pyramids", grid_keys, lambda k: scan_pyramid(voxel, room[k])))
+    box.map(FEATURES, scan_features, radii, room, keys, 1, None, None, keep=lambda f: None)
+    box.map(PYRAMIDS, scan_pyramid, voxel, room, grid_keys, 1, None, None, keep=lambda p: None)
+    return (box, box.sequence(FEATURES, keys, lambda k: scan_features(radii, room[k])),
+            box.sequence(PYRAMIDS, grid_keys, lambda k: scan_pyramid(voxel, room[k])))
 
 
 @dataclass
@@ -132,7 +132,7 @@ def test_missing_or_damaged_entries_are_computed_again_where_the_scans_are(room,
 
 def test_a_worker_that_does_not_see_the_folder_says_so(room, tmp_path):
     _, features, _ = _stored(room, Cache(tmp_path / "out" / "cache"))
-    elsewhere = Stored(str(tmp_path / "other" / "cache"), "features", features.keys)
+    elsewhere = Stored(str(tmp_path / "other" / "cache"), FEATURES, features.keys)
     with pytest.raises(InputError, match="does not exist on .*: on a Ray cluster of several machines the output "
                                          "folder must be on a filesystem every node mounts at the same path$"):
         elsewhere[0]
@@ -146,7 +146,7 @@ def _points(features: Stored, k: int) -> np.ndarray:
 def test_a_ray_worker_that_does_not_see_the_store_ends_the_run_with_one_line(tmp_path):
     import ray
 
-    elsewhere = Stored(str(tmp_path / "not-on-this-node"), "features", ("0" * 64,))
+    elsewhere = Stored(str(tmp_path / "not-on-this-node"), FEATURES, ("0" * 64,))
     try:
         with pytest.raises(InputError, match="does not exist on .*: on a Ray cluster of several machines"):
             parallel_map(_points, elsewhere, [0], 1, ray="local")

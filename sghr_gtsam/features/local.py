@@ -13,6 +13,7 @@ import open3d as o3d
 import small_gicp
 from scipy.spatial import cKDTree
 
+from sghr_gtsam.cache import Kind
 from sghr_gtsam.types import InputError, Keypoints, Scan
 
 # small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
@@ -94,6 +95,27 @@ class ScanFeatures:
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         self.__post_init__()
+
+
+def _encode_features(f: ScanFeatures | str) -> dict[str, np.ndarray] | None:
+    if isinstance(f, str):  # a scan without features: its reason is not stored
+        return None
+    out = {"points": f.points, "normals": f.normals, "voxel": np.float64(f.voxel)}
+    if f.fpfh is not None:
+        out["fpfh"] = f.fpfh
+    else:
+        out["keypoints"], out["descriptors"] = f.keypoints, f.descriptors
+    return out
+
+
+def _decode_features(a: dict[str, np.ndarray]) -> ScanFeatures:
+    fpfh = a.get("fpfh")
+    keypoints, descriptors = (a["points"], fpfh) if fpfh is not None else (a["keypoints"], a["descriptors"])
+    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
+
+
+FEATURES = Kind("features", _encode_features, _decode_features)
+"""A scan's features in the cache and the store (``cache.Kind``)."""
 
 
 def query_threads() -> int:

@@ -9,7 +9,7 @@ import numpy as np
 from ..cache import Cache, pair_key
 from ..config import Config
 from ..store import Stored, pair_map
-from .pairwise import PairResult, register_pair
+from .pairwise import PAIRS, PairResult, register_pair
 
 
 def _register(shared: tuple[Stored, float, Config], pair: tuple[int, int]) -> PairResult:
@@ -27,5 +27,5 @@ def register_edges(features: Stored, edges: np.ndarray, voxel: float, config: Co
     results stored as they arrive and reused (``cache.Cache``)."""
     pairs = [(int(a), int(b)) for a, b in edges]
     keys = [pair_key(features.keys[a], features.keys[b], config) for a, b in pairs]
-    return pair_map(cache, "pairs", _register, (features, voxel, config), edges, pairs, keys, config.workers,
+    return pair_map(cache, PAIRS, _register, (features, voxel, config), edges, pairs, keys, config.workers,
                     on_result, config.ray)

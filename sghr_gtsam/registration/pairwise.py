@@ -13,6 +13,7 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
+from sghr_gtsam.cache import Kind
 from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
 from sghr_gtsam.types import InputError
 
@@ -77,6 +78,30 @@ class PairResult:
     what the reported covariances use; None when none is free."""
     loose: np.ndarray | None = None
     """The part of ``bounded`` along those directions (``information.Information.loose``)."""
+
+
+_PAIR_ARRAYS = ("information", "bounded", "loose")
+
+
+def _encode_pair(p: PairResult) -> dict[str, np.ndarray]:
+    out = {"T": p.T, "numbers": np.array([p.inliers, p.fitness, p.rmse, p.seconds, p.coverage, p.free])}
+    out.update({name: getattr(p, name) for name in _PAIR_ARRAYS if getattr(p, name) is not None})
+    if p.matches is not None:
+        out["match_i"], out["match_j"] = p.matches
+    return out
+
+
+def _decode_pair(a: dict[str, np.ndarray]) -> PairResult:
+    inliers, fitness, rmse, seconds, coverage, free = a["numbers"].tolist()
+    matches = (a["match_i"], a["match_j"]) if "match_i" in a else None
+    if a["T"].shape != (4, 4):
+        raise ValueError(f"T of shape {a['T'].shape}")
+    return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
+                      int(free), a.get("bounded"), a.get("loose"))
+
+
+PAIRS = Kind("pairs", _encode_pair, _decode_pair)
+"""A pair's global registration in the cache (``cache.Kind``)."""
 
 
 def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.ndarray, np.ndarray]:

@@ -19,14 +19,14 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
-from ..cache import Cache, refined_key
+from ..cache import Cache, Kind, refined_key
 from ..config import Config
 from ..features.local import COV_NEIGHBORS, GICP_BYTES, GICP_THREADS, ScanFeatures
 from ..se3 import inv_T, rotation_angle
 from ..store import Stored, pair_map
 from ..types import Scan
 from .information import registration_information
-from .pairwise import PairResult, score_pair
+from .pairwise import PAIRS, PairResult, score_pair
 
 LEVELS = (1.0, 0.5)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six bunny pairs started a voxel
@@ -86,6 +86,30 @@ class Pyramid:
             small_gicp.estimate_normals_covariances(cloud, tree, COV_NEIGHBORS, GICP_THREADS)
             self._levels[k] = Level(self.grids[k], np.asarray(cloud.normals())[:, :3], cloud, tree)
         return self._levels[k]
+
+
+def _encode_pyramid(p: Pyramid) -> dict[str, np.ndarray]:
+    return {"voxels": np.array(p.voxels), **{f"grid{k}": g for k, g in enumerate(p.grids)}}
+
+
+def _decode_pyramid(a: dict[str, np.ndarray]) -> Pyramid:
+    voxels = tuple(float(v) for v in a["voxels"])
+    return Pyramid(voxels, tuple(a[f"grid{k}"] for k in range(len(voxels))))
+
+
+def _encode_refined(result: tuple[PairResult, bool]) -> dict[str, np.ndarray]:
+    pair, converged = result
+    return {**PAIRS.encode(pair), "converged": np.bool_(converged)}
+
+
+def _decode_refined(a: dict[str, np.ndarray]) -> tuple[PairResult, bool]:
+    return PAIRS.decode(a), bool(a["converged"])
+
+
+PYRAMIDS = Kind("pyramids", _encode_pyramid, _decode_pyramid)
+"""A scan's refinement grids in the cache and the store (``cache.Kind``)."""
+REFINED = Kind("refined", _encode_refined, _decode_refined)
+"""A pair's re-registration from a synchronized guess in the cache (``cache.Kind``)."""
 
 
 def build_pyramid(points: np.ndarray, voxel: float) -> Pyramid:
@@ -170,6 +194,6 @@ def register_from_guesses(features: Stored, pyramids: Stored, ij: np.ndarray, gu
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
     keys = [refined_key(features.keys[a], features.keys[b], T, config.icp_distance) for a, b, T, _ in tasks]
-    out = pair_map(cache, "refined", _refine_task, (features, pyramids, voxel, config.icp_distance), ij, tasks, keys,
+    out = pair_map(cache, REFINED, _refine_task, (features, pyramids, voxel, config.icp_distance), ij, tasks, keys,
                    config.workers, on_result, config.ray)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)
