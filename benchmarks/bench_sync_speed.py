@@ -29,14 +29,18 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", 
 
 import argparse  # noqa: E402
 import csv  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
 
 import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from data_tools.scene_gt import placement_groups  # noqa: E402
 from sghr_gtsam.io.g2o import read_g2o  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors  # noqa: E402
@@ -96,41 +100,6 @@ def load_run(run_dir: Path) -> tuple[list[int], PoseGraph]:
     if (np.linalg.eigvalsh(graph.information)[:, 0] <= 0).any():
         graph.information = None  # older runs wrote zero information for edges synchronization dropped
     return ids, graph
-
-
-def placement_groups(poses: np.ndarray, truth: np.ndarray, ids: list[int]) -> list[str]:
-    """Where the scans went: scans whose correction ``T_est T_gt⁻¹`` agrees (5° / 0.2 m at their positions)
-    form one rigidly placed group, largest first; each as 'count: fragment ranges (rotation of the group
-    relative to the largest one)'."""
-    G = poses @ inv_T(truth)
-    left = list(range(len(ids)))
-    groups = []
-    while left:
-        s = max(left, key=lambda k: sum(_same(G[k], G[m], truth[m]) for m in left))
-        members = [m for m in left if _same(G[s], G[m], truth[m])]
-        groups.append((s, members))
-        left = [m for m in left if m not in members]
-    out = []
-    for s, members in groups:
-        turn = np.degrees(np.arccos(np.clip((np.trace(G[s][:3, :3] @ G[groups[0][0]][:3, :3].T) - 1) / 2, -1, 1)))
-        out.append(f"{len(members)}: {_ranges([ids[m] for m in members])} ({turn:.0f}°)")
-    return out
-
-
-def _same(A: np.ndarray, B: np.ndarray, T: np.ndarray) -> bool:
-    D = A @ inv_T(B)
-    angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
-    return bool(angle <= 5.0 and np.linalg.norm((D @ T)[:3, 3] - T[:3, 3]) <= 0.2)
-
-
-def _ranges(values: list[int]) -> str:
-    values = sorted(values)
-    out, start = [], values[0]
-    for a, b in zip(values, values[1:] + [None]):
-        if b != a + 1:
-            out.append(f"{start}" if start == a else f"{start}–{a}")
-            start = b
-    return " ".join(out)
 
 
 def real_graph(run_dir: Path, gt_file: Path, polishes: list[str], repeats: int) -> None:

@@ -1,5 +1,6 @@
 """Ground truth of one scene as the outlier-graph generator uses it (``SceneGT``): a 3DMatch test scene read from
-the shared data (``load_scene``) or, made by ``data_tools.building``, a generated building."""
+the shared data (``load_scene``) or, made by ``data_tools.building``, a generated building; and where a model's
+scans went against it (``placement_groups``)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read_poses
-from sghr_gtsam.se3 import project_to_so3
+from sghr_gtsam.se3 import inv_T, project_to_so3
 
 
 @dataclass
@@ -60,3 +61,38 @@ def load_scene(scene: str, root: Path | None = None) -> SceneGT:
     scene_dir = base / "3DMatch" / scene
     return SceneGT(scene, ids, poses, overlap, vertical,
                    read_gt_log(scene_dir / "gt.log"), read_gt_info(scene_dir / "gt.info"))
+
+
+def placement_groups(poses: np.ndarray, truth: np.ndarray, ids: list[int]) -> list[str]:
+    """Where the scans went: scans whose correction ``T_est T_gt⁻¹`` agrees (5° / 0.2 m at their positions)
+    form one rigidly placed group, largest first; each as 'count: fragment ranges (rotation of the group
+    relative to the largest one)'."""
+    G = poses @ inv_T(truth)
+    left = list(range(len(ids)))
+    groups = []
+    while left:
+        s = max(left, key=lambda k: sum(_same(G[k], G[m], truth[m]) for m in left))
+        members = [m for m in left if _same(G[s], G[m], truth[m])]
+        groups.append((s, members))
+        left = [m for m in left if m not in members]
+    out = []
+    for s, members in groups:
+        turn = np.degrees(np.arccos(np.clip((np.trace(G[s][:3, :3] @ G[groups[0][0]][:3, :3].T) - 1) / 2, -1, 1)))
+        out.append(f"{len(members)}: {_ranges([ids[m] for m in members])} ({turn:.0f}°)")
+    return out
+
+
+def _same(A: np.ndarray, B: np.ndarray, T: np.ndarray) -> bool:
+    D = A @ inv_T(B)
+    angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    return bool(angle <= 5.0 and np.linalg.norm((D @ T)[:3, 3] - T[:3, 3]) <= 0.2)
+
+
+def _ranges(values: list[int]) -> str:
+    values = sorted(values)
+    out, start = [], values[0]
+    for a, b in zip(values, values[1:] + [None]):
+        if b != a + 1:
+            out.append(f"{start}" if start == a else f"{start}–{a}")
+            start = b
+    return " ".join(out)
