@@ -37,9 +37,10 @@ MAX_GT_M = 1e-3  # 7-scenes-redkitchen: 0.8 mm (the shared scenes: < 1e-4 m)
 def _points(path: Path) -> np.ndarray:
     import torch
 
-    # numpy 2 names its reconstruct function numpy._core; the files name it numpy.core
-    allowed = [(np._core.multiarray._reconstruct, "numpy.core.multiarray._reconstruct"), np.ndarray, np.dtype,
-               (type(np.dtype(np.float64)), "numpy.dtype[float64]")]
+    # the repository's files were pickled by numpy 1, whose names (numpy.core) numpy 2 keeps only as aliases
+    reconstruct, float64 = np._core.multiarray._reconstruct, type(np.dtype(np.float64))
+    allowed = [reconstruct, (reconstruct, "numpy.core.multiarray._reconstruct"), np.ndarray, np.dtype, float64,
+               (float64, "numpy.dtype[float64]")]
     with torch.serialization.safe_globals(allowed):
         P = np.asarray(torch.load(path, weights_only=True), dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3 or not np.isfinite(P).all():
