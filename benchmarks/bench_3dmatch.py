@@ -247,8 +247,7 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
 def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: dict, gt: dict) -> dict:
     """The run scored against its scene's GT re-fitted to the scans (``data_tools.refit_gt``)."""
     from data_tools.refit_gt import refit
-    from data_tools.scene_gt import placement_groups
-    from sghr_gtsam.evaluate import fragment_id, score_run, whole_model_errors
+    from sghr_gtsam.evaluate import score_run, whole_model_errors
     from sghr_gtsam.io.scans import load_scan
 
     fit = refit([load_scan(data / scene.folder / n) for n in gt["gt_names"]], gt["gt_poses"], 0.025)
@@ -266,6 +265,9 @@ def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: 
 
 def _groups(names: list[str], poses: np.ndarray, unregistered: list[str], gt: dict, truth: np.ndarray) -> list[str]:
     """``placement_groups`` of the placed scans against ``truth`` (poses of ``gt["gt_names"]``)."""
+    from data_tools.scene_gt import placement_groups
+    from sghr_gtsam.evaluate import fragment_id
+
     index = {n: k for k, n in enumerate(gt["gt_names"])}
     placed = [k for k, n in enumerate(names) if n not in set(unregistered)]
     return placement_groups(poses[placed], truth[[index[names[k]] for k in placed]],

@@ -66,7 +66,7 @@ def _gt_log_deviation(poses: list[np.ndarray], gt_log: Path) -> tuple[float, flo
         i, j = (int(x) for x in lines[k].split()[:2])
         T_gt = np.array([line.split() for line in lines[k + 1:k + 5]], dtype=np.float64)
         E = inv_T(T_gt) @ inv_T(poses[i]) @ poses[j]
-        worst_deg = max(worst_deg, rotation_angle(project_to_so3(E[:3, :3])))
+        worst_deg = max(worst_deg, float(np.degrees(rotation_angle(project_to_so3(E[:3, :3])))))
         worst_m = max(worst_m, float(np.linalg.norm(E[:3, 3])))
     return worst_deg, worst_m
 
