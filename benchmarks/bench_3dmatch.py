@@ -269,7 +269,8 @@ def _groups(names: list[str], poses: np.ndarray, unregistered: list[str], gt: di
     from sghr_gtsam.evaluate import fragment_id
 
     index = {n: k for k, n in enumerate(gt["gt_names"])}
-    placed = [k for k, n in enumerate(names) if n not in set(unregistered)]
+    skip = set(unregistered)
+    placed = [k for k, n in enumerate(names) if n not in skip]
     return placement_groups(poses[placed], truth[[index[names[k]] for k in placed]],
                             [fragment_id(names[k]) for k in placed])
 

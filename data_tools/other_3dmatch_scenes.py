@@ -58,17 +58,13 @@ def _info_pose(path: Path) -> np.ndarray:
 
 def _gt_log_deviation(poses: list[np.ndarray], gt_log: Path) -> tuple[float, float]:
     """Largest rotation (degrees) and translation (m) between ``inv(T_i) @ T_j`` and the gt.log's ``T_ij``."""
-    from sghr_gtsam.se3 import inv_T, project_to_so3, rotation_angle
+    from sghr_gtsam.io.poses import read_gt_log
+    from sghr_gtsam.se3 import inv_T, relative_errors
 
-    lines = [line for line in gt_log.read_text().splitlines() if line.strip()]
-    worst_deg = worst_m = 0.0
-    for k in range(0, len(lines) - 4, 5):
-        i, j = (int(x) for x in lines[k].split()[:2])
-        T_gt = np.array([line.split() for line in lines[k + 1:k + 5]], dtype=np.float64)
-        E = inv_T(T_gt) @ inv_T(poses[i]) @ poses[j]
-        worst_deg = max(worst_deg, float(np.degrees(rotation_angle(project_to_so3(E[:3, :3])))))
-        worst_m = max(worst_m, float(np.linalg.norm(E[:3, 3])))
-    return worst_deg, worst_m
+    pairs = read_gt_log(gt_log)
+    ours = np.stack([inv_T(poses[i]) @ poses[j] for i, j in pairs])
+    rot, trans = relative_errors(ours, np.stack(list(pairs.values())))
+    return float(rot.max()), float(trans.max())
 
 
 def convert(source: Path, data: Path, out: Path, name: str) -> str:

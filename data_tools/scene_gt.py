@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read_poses
-from sghr_gtsam.se3 import inv_T, project_to_so3
+from sghr_gtsam.se3 import inv_T, project_to_so3, rotation_angle
 
 
 @dataclass
@@ -77,14 +77,14 @@ def placement_groups(poses: np.ndarray, truth: np.ndarray, ids: list[int]) -> li
         left = [m for m in left if m not in members]
     out = []
     for s, members in groups:
-        turn = np.degrees(np.arccos(np.clip((np.trace(G[s][:3, :3] @ G[groups[0][0]][:3, :3].T) - 1) / 2, -1, 1)))
+        turn = np.degrees(rotation_angle(G[s][:3, :3] @ G[groups[0][0]][:3, :3].T))
         out.append(f"{len(members)}: {_ranges([ids[m] for m in members])} ({turn:.0f}°)")
     return out
 
 
 def _same(A: np.ndarray, B: np.ndarray, T: np.ndarray) -> bool:
     D = A @ inv_T(B)
-    angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1)))
+    angle = np.degrees(rotation_angle(D[:3, :3]))
     return bool(angle <= 5.0 and np.linalg.norm((D @ T)[:3, 3] - T[:3, 3]) <= 0.2)
 
 

@@ -13,6 +13,7 @@ import open3d as o3d
 
 from sghr_gtsam.se3 import make_T
 
+
 @dataclass
 class SyntheticScene:
     """Scans in their own sensor frames and their ground-truth poses ``T_i`` (scene frame, metres)."""
