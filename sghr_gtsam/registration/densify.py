@@ -63,12 +63,12 @@ def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncR
         return 0
     guesses = _guesses(sync.poses, edges.ij[todo])
     with progress.stage("refinement", len(todo)) as tick:
-        results, converged = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel, config,
-                                                   [edges.pairs[e].matches for e in todo], tick, cache)
+        results, near = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel, config,
+                                              [edges.pairs[e].matches for e in todo], tick, cache)
     changed = 0
-    for e, result, ok, guess in zip(todo, results, converged, guesses):
+    for e, result, ok in zip(todo, results, near):
         edges.refined[e] = True
-        if confirms(result, ok, guess, voxel, config.min_inliers):
+        if confirms(result, ok, config.min_inliers):
             edges.replace(e, result)
             changed += 1
     report.refine_tried += len(todo)
@@ -99,10 +99,10 @@ def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncRe
     guesses = _guesses(sync.poses, ij)
     known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
     with progress.stage("loop closure", len(ij)) as tick:
-        results, converged = register_from_guesses(features, pyramids, ij, guesses, voxel, config, known, tick, cache)
+        results, near = register_from_guesses(features, pyramids, ij, guesses, voxel, config, known, tick, cache)
     closed = 0
-    for (a, b), result, ok, guess in zip(ij, results, converged, guesses):
-        if not confirms(result, ok, guess, voxel, config.min_inliers):
+    for (a, b), result, ok in zip(ij, results, near):
+        if not confirms(result, ok, config.min_inliers):
             continue
         closed += 1
         e = index.get((int(a), int(b)))
