@@ -11,6 +11,13 @@ from pathlib import Path
 
 from .types import InputError
 
+MATCHERS = ("sc2", "kiss", "ransac")
+"""Pairwise estimators (``registration.pairwise.register_pair``)."""
+NOISE_MODELS = ("information", "isotropic")
+"""Edge noise models of the gtsam graph (``gtsam_api.noise_model``)."""
+KERNELS = ("none", "huber", "cauchy", "tls")
+"""Robust kernels of the gtsam graph (``gtsam_api``)."""
+
 
 _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
 
@@ -149,8 +156,6 @@ class Config:
 
     def validate(self) -> "Config":
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
-        from .gtsam_api import KERNELS, NOISE_MODELS
-        from .registration.pairwise import MATCHERS
         from .sync import METHODS, POLISHES
         from .sync.irls import REWEIGHTS
 

@@ -26,6 +26,7 @@ import networkx as nx
 import numpy as np
 from scipy.special import chdtri  # chi2.ppf(q, df) is chdtri(df, 1 - q); scipy.stats costs ~1 s to import
 
+from .config import KERNELS, NOISE_MODELS
 from .factor_graph import _ABSOLUTE_TOL, _METIS_NODES, _PRIOR_SCALE, edge_information
 from .io.g2o import isotropic_information
 from .types import InputError, PoseGraph
@@ -33,8 +34,6 @@ from .types import InputError, PoseGraph
 if TYPE_CHECKING:
     from .result import RunResult
 
-NOISE_MODELS = ("information", "isotropic")
-KERNELS = ("none", "huber", "cauchy", "tls")
 KERNEL_THRESHOLD = float(np.sqrt(chdtri(6, 1 - 0.99)))
 """Whitened residual norm where Huber turns linear and Cauchy halves a factor's weight: the 99 % point of a
 6-dof residual under the edge's own noise model, the inlier threshold gtsam's GNC uses by default for TLS."""

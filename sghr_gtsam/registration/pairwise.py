@@ -14,13 +14,13 @@ import open3d as o3d
 import small_gicp
 
 from sghr_gtsam.cache import Kind
+from sghr_gtsam.config import MATCHERS
 from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
 from sghr_gtsam.types import InputError
 
 from .estimators import sc2_estimate
 from .information import Information, registration_information
 
-MATCHERS = ("sc2", "kiss", "ransac")
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
 # matching is 4-6x faster than exact search and registers the same pairs (+-1) on the kitchen and
 # the bunny; with 3 both scenes lose pairs. On the authors' 32-d YOHO descriptors (kitchen 0-5) it
