@@ -350,8 +350,8 @@ def sync(
         weak = [ids[k] for k in np.flatnonzero(unverified(graph, result))]
         if weak:
             shown = " ".join(map(str, weak[:10])) + (" ..." if len(weak) > 10 else "")
-            typer.echo(f"{len(weak)} pose(s) of the largest part unverified (reached across an edge on no loop): "
-                       f"{shown}", err=True)
+            typer.echo(f"{len(weak)} pose(s) of the largest part unverified (reached across an edge on no loop or "
+                       f"through one node): {shown}", err=True)
 
     _guard(work)
 

@@ -14,7 +14,7 @@ from .se3 import transform_points
 from .types import PoseGraph, SyncResult
 
 
-FLAGS = {"unregistered": "", "unverified": "pose rests on one unchecked registration",
+FLAGS = {"unregistered": "", "unverified": "pose rests on one registration, or one scan, that no loop checks",
          "contested": "dropped registrations outweigh the kept ones",
          "contradicted": "placed where other scans saw empty space",
          "underdetermined": "not fixed to a voxel in some direction"}
@@ -28,7 +28,8 @@ DOUBTS = tuple(flag for flag in FLAGS if flag != "unregistered")
 class RunResult:
     """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
     first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
-    ``unverified`` have one that rests on a single registration no loop checks (``sync.unverified``); scans in
+    ``unverified`` have one that rests on a single registration, or a single scan's registrations, that no loop
+    checks (``sync.unverified``); scans in
     ``contested`` have one against which the graph holds more registration evidence than for it
     (``sync.contested``); scans in ``contradicted`` have one that puts them where other scans saw empty space, or
     them seeing empty space where others are (``registration.visibility.contradicted_placements``); scans in

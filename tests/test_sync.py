@@ -371,6 +371,17 @@ def test_dropped_edges_accuse_the_scan_at_their_far_end_not_the_group_they_leave
     np.testing.assert_array_equal(np.flatnonzero(contested(graph, result)), [21])
 
 
+def test_a_cluster_hung_on_one_scan_is_flagged_unverified():
+    """Three registrations of one scan (17) to the large cluster, all wrong the same way (a symmetric room's scan
+    turned 180°): no edge is a bridge, yet the small cluster goes wherever that one scan's registrations put it.
+    The scans hanging on it are flagged; scan 17 itself, held by three agreeing edges, cannot be."""
+    graph, truth = _two_clusters([(3, 17, False), (5, 17, False), (8, 17, False)])
+    result = synchronize(graph)
+    rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
+    assert np.all(result.component == 0) and rot[15:].min() > 170.0 and rot[:15].max() < 3.0
+    np.testing.assert_array_equal(np.flatnonzero(unverified(graph, result)), [15, 16, 18, 19, 20])
+
+
 @FAST
 @given(st.permutations(range(21)))
 def test_unverified_nodes_follow_a_relabelling(perm):

@@ -8,6 +8,7 @@ edge nothing covers and that has no parallel twin is a bridge.
 
 from __future__ import annotations
 
+import networkx as nx
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
@@ -83,4 +84,17 @@ def blocks(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray
     return connected_components(n, i, j, keep & ~bridge_edges(n, i, j, keep))
 
 
-__all__ = ["bridge_edges", "blocks"]
+def biconnected_core(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """(N,) bool: the nodes of the largest biconnected component of the ``keep`` edges (ties: the one with the
+    smallest node), in which any two nodes are joined by two paths that share no other node. Nodes outside it are
+    reached only through a bridge or through one node (an articulation point). All False when no edge is kept."""
+    G = nx.Graph()
+    G.add_edges_from(zip(np.asarray(i)[keep].tolist(), np.asarray(j)[keep].tolist()))
+    core = np.zeros(n, dtype=bool)
+    components = [sorted(c) for c in nx.biconnected_components(G)]  # networkx's search is iterative
+    if components:
+        core[max(components, key=lambda c: (len(c), -c[0]))] = True
+    return core
+
+
+__all__ = ["bridge_edges", "blocks", "biconnected_core"]
