@@ -98,18 +98,19 @@ def _decode_pyramid(a: dict[str, np.ndarray]) -> Pyramid:
 
 
 def _encode_refined(result: tuple[PairResult, bool]) -> dict[str, np.ndarray]:
-    pair, converged = result
-    return {**PAIRS.encode(pair), "converged": np.bool_(converged)}
+    pair, near = result
+    return {**PAIRS.encode(pair), "near": np.bool_(near)}
 
 
 def _decode_refined(a: dict[str, np.ndarray]) -> tuple[PairResult, bool]:
-    return PAIRS.decode(a), bool(a["converged"])
+    return PAIRS.decode(a), bool(a["near"])
 
 
 PYRAMIDS = Kind("pyramids", _encode_pyramid, _decode_pyramid)
 """A scan's refinement grids in the cache and the store (``cache.Kind``)."""
 REFINED = Kind("refined", _encode_refined, _decode_refined)
-"""A pair's re-registration from a synchronized guess in the cache (``cache.Kind``)."""
+"""A pair's re-registration from a synchronized guess, and whether it stayed near the guess (``refine_pair``), in
+the cache (``cache.Kind``)."""
 
 
 def build_pyramid(points: np.ndarray, voxel: float) -> Pyramid:
