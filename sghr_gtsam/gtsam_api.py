@@ -32,6 +32,7 @@ from .io.g2o import isotropic_information
 from .types import InputError, PoseGraph
 
 if TYPE_CHECKING:
+    from .registration.pairwise import PairResult
     from .result import RunResult
 
 KERNEL_THRESHOLD = float(np.sqrt(chdtri(6, 1 - 0.99)))
@@ -178,15 +179,17 @@ def variance_factor(result: "RunResult", *, noise: str = "information") -> float
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
-def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0) -> np.ndarray:
+def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
+                     grid: bool = True) -> np.ndarray:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
     edges' information with the directions their geometry leaves free bounded by the overlap alone
-    (``PairResult.bounded``; those bounds ``stiffen`` times stiffer), scaled by the variance factor when the
+    (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, each refined edge's
+    dependence on its grid added to its covariance (``PairResult.grid``), scaled by the variance factor when the
     graph's loops show that information overconfident (``max(1, σ̂₀²)``: real scans have systematic errors that
     per-point noise does not see); NaN for unregistered scans."""
-    if result.graph.information is not None and any(p.bounded is not None for p in result.pairs):
-        information = np.stack([p.information if p.bounded is None else p.bounded + (stiffen - 1.0) * p.loose
-                                for p in result.pairs])
+    if result.graph.information is not None and any(p.bounded is not None or (grid and p.grid is not None)
+                                                     for p in result.pairs):
+        information = np.stack([_reported_information(p, stiffen, grid) for p in result.pairs])
         result = replace(result, graph=replace(result.graph, information=information))
     factor = variance_factor(result, noise=noise)
     factors, values = to_gtsam(result, noise=noise)
@@ -203,6 +206,16 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
         out[nodes] *= factor
     out[anchor] = 0.0
     return out
+
+
+def _reported_information(pair: "PairResult", stiffen: float, grid: bool) -> np.ndarray:
+    """The information ``pose_covariances`` gives an edge: ``bounded`` (free directions ``stiffen`` times stiffer)
+    or ``information``, and with ``grid`` the inverse of its covariance plus ``grid gridᵀ`` (Sherman-Morrison)."""
+    info = pair.information if pair.bounded is None else pair.bounded + (stiffen - 1.0) * pair.loose
+    if grid and pair.grid is not None:
+        w = info @ pair.grid
+        info = info - np.outer(w, w) / (1.0 + pair.grid @ w)
+    return info
 
 
 def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

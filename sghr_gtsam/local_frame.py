@@ -41,10 +41,10 @@ def _adjoint(c: np.ndarray) -> np.ndarray:
 
 
 def to_input_frame(run: RunResult, centres: np.ndarray) -> None:
-    """Poses, edges, their information (also its free directions' bounds) and the pose covariances of a run on
-    centred scans, in the scans' input frames: scan k centred at ``c_k``, ``T_k = S(c_a) T_k' S(-c_k)`` with the
-    world at scan a, ``T_ij = S(c_i) T_ij' S(-c_j)``. Features and ``sync`` stay in the centred frames (``centres``
-    is kept to map them back)."""
+    """Poses, edges, their information (also its free directions' bounds and grid terms) and the pose covariances
+    of a run on centred scans, in the scans' input frames: scan k centred at ``c_k``, ``T_k = S(c_a) T_k' S(-c_k)``
+    with the world at scan a, ``T_ij = S(c_i) T_ij' S(-c_j)``. Features and ``sync`` stay in the centred frames
+    (``centres`` is kept to map them back)."""
     anchor = int(np.flatnonzero(run.sync.component == 0)[0])
     g = run.graph
     run.poses[anchor] = np.eye(4)  # exactly: its rounding residue would be multiplied by the offset
@@ -53,8 +53,9 @@ def to_input_frame(run: RunResult, centres: np.ndarray) -> None:
     back = _adjoint(-centres[g.j])  # ξ' = Ad(c_j) ξ: the information is Ad(-c_j)ᵀ Ω Ad(-c_j)
     if g.information is not None:
         g.information = np.swapaxes(back, 1, 2) @ g.information @ back
-    run.pairs = [replace(p, T=T, **{name: None if getattr(p, name) is None else A.T @ getattr(p, name) @ A
-                                    for name in ("information", "bounded", "loose")})
+    run.pairs = [replace(p, T=T, grid=None if p.grid is None else np.linalg.solve(A, p.grid),  # ξ' = Ad(c_j) ξ
+                         **{name: None if getattr(p, name) is None else A.T @ getattr(p, name) @ A
+                            for name in ("information", "bounded", "loose")})
                  for p, T, A in zip(run.pairs, g.T, back)]
     if run.covariances is not None:
         forward = _adjoint(centres)

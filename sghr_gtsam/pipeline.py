@@ -380,16 +380,20 @@ def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]
 
 def _underdetermined(run: RunResult, anchor: int) -> list[str]:
     """The registered scans (but the world one) whose pose is not fixed in some direction
-    (``information.underdetermined``; the stiffened covariances only when a kept edge leaves a direction free)."""
+    (``information.underdetermined``; the stiffened covariances only when a kept edge leaves a direction free).
+    Judged on the covariances of the geometry alone, without the edges' grid terms (``PairResult.grid``): those
+    size the errors, they do not tell which directions the scans fix."""
     others = [k for k in run.registered if k != anchor]
     kept = [p for p, w in zip(run.pairs, run.sync.weights) if w > 0]
-    stiffened = None
-    if run.graph.information is not None and any(p.free for p in kept):
-        try:
-            stiffened = pose_covariances(run, stiffen=STIFFEN)
-        except RuntimeError:  # indeterminate (see above): the spreads alone decide
-            pass
-    flagged = underdetermined(run.covariances, Attribute(run.features, "points"), run.voxel, others, stiffened)
+    covariances, stiffened = run.covariances, None
+    try:
+        if any(p.grid is not None for p in kept):
+            covariances = pose_covariances(run, grid=False)
+        if run.graph.information is not None and any(p.free for p in kept):
+            stiffened = pose_covariances(run, stiffen=STIFFEN, grid=False)
+    except RuntimeError:  # indeterminate (see above): the spreads alone decide
+        pass
+    flagged = underdetermined(covariances, Attribute(run.features, "points"), run.voxel, others, stiffened)
     return [run.names[k] for k in np.flatnonzero(flagged)]
 
 

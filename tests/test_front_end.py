@@ -67,6 +67,30 @@ def test_refined_pair_information_matches_its_error_against_ground_truth():
     assert np.median(coarse) < median / 2, np.round(coarse, 2)
 
 
+def test_refined_object_pairs_with_their_grid_term_have_a_calibrated_mean_nees():
+    """The systematic part of a refined edge's error: on simulated objects (1 m, 3 mm range noise) refined from a
+    guess 0.5° / 0.5 voxel off the truth, the mean of ``ξᵀ (Ω⁻¹ + g gᵀ)⁻¹ ξ`` (``g`` = ``PairResult.grid``, the
+    move between the two finest grids) over 24 pairs lies in the 95 % band of a mean of 24 χ²₆ samples. Without the
+    grid term the same pairs give 8.2, above the band's 7.46: the information alone is overconfident there."""
+    nees = []
+    for seed in range(1, 9):
+        scene = make_scene(kind="object", n_scans=4, seed=seed)
+        features = [compute_features(P, scene.voxel) for P in scene.scans]
+        pyramids = [build_pyramid(P, scene.voxel) for P in scene.scans]
+        rng = np.random.default_rng(seed)
+        for a, b in ((0, 1), (1, 2), (2, 3)):
+            truth = inv_T(scene.poses[a]) @ scene.poses[b]
+            off = rng.normal(size=6) * np.r_[[np.radians(0.5)] * 3, [0.5 * scene.voxel] * 3]
+            guess = truth @ gtsam.Pose3.Expmap(off).matrix()
+            result, near = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel, 1.5)
+            assert near and result.grid is not None
+            xi = gtsam.Pose3.Logmap(gtsam.Pose3(result.T).between(gtsam.Pose3(truth)))
+            covariance = np.linalg.inv(result.information) + np.outer(result.grid, result.grid)
+            nees.append(xi @ np.linalg.solve(covariance, xi))
+    m = len(nees)
+    assert chi2.ppf(0.025, 6 * m) / m < np.mean(nees) < chi2.ppf(0.975, 6 * m) / m, np.round(nees, 2)
+
+
 def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, monkeypatch):
     """One scan hangs on a single edge (k = 1, given scores) whose registration is replaced by a wrong one.
     Whatever refinement, loops and retries do, the scan ends flagged (unverified or unregistered) or right."""

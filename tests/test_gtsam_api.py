@@ -16,6 +16,7 @@ from sghr_gtsam.config import Config
 from sghr_gtsam.factor_graph import graph_error
 from sghr_gtsam.gtsam_api import (
     KERNELS,
+    _reported_information,
     marginal_covariances,
     noise_model,
     optimize,
@@ -27,6 +28,7 @@ from sghr_gtsam.gtsam_api import (
 from sghr_gtsam.incremental import Session
 from sghr_gtsam.pipeline import Scan, register, run
 from sghr_gtsam.registration.information import plane_information
+from sghr_gtsam.registration.pairwise import PairResult
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError, PoseGraph
@@ -147,6 +149,19 @@ def test_plane_information_recovers_the_point_noise(seed, sigma):
     sigma_hat2 = (J.T @ J)[5, 5] / info[5, 5]
     assert np.sqrt(sigma_hat2) == pytest.approx(sigma, rel=0.05)
     np.testing.assert_allclose(info, J.T @ J / sigma_hat2, rtol=1e-10)
+
+
+@given(st.integers(0, 10_000), st.floats(1e-6, 1e-1), st.booleans())
+def test_reported_information_adds_the_grid_term_to_the_covariance(seed, scale, with_grid):
+    """An edge's reported information is the inverse of its covariance plus ``grid gridᵀ`` (or no change without
+    ``grid``), whatever the sizes of the two."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(6, 6))
+    information = A @ A.T + 6 * np.eye(6)
+    pair = PairResult(np.eye(4), 10, 0.5, 0.01, information, 0.0, grid=scale * rng.normal(size=6))
+    got = _reported_information(pair, 1.0, with_grid)
+    want = np.linalg.inv(np.linalg.inv(information) + np.outer(pair.grid, pair.grid)) if with_grid else information
+    np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(information).max())
 
 
 def test_repolish_with_each_kernel_keeps_a_clean_graph_at_its_optimum():

@@ -78,9 +78,13 @@ class PairResult:
     what the reported covariances use; None when none is free."""
     loose: np.ndarray | None = None
     """The part of ``bounded`` along those directions (``information.Information.loose``)."""
+    grid: np.ndarray | None = None
+    """(6,) tangent at ``T`` to the transform the next coarser grid gave (``refine.refine_pair``; None for a single
+    grid): how far the estimate moves with the grid it is aligned on, an error of the sampling that the information
+    does not see. ``gtsam_api.pose_covariances`` adds ``grid gridᵀ`` to the edge's covariance."""
 
 
-_PAIR_ARRAYS = ("information", "bounded", "loose")
+_PAIR_ARRAYS = ("information", "bounded", "loose", "grid")
 
 
 def _encode_pair(p: PairResult) -> dict[str, np.ndarray]:
@@ -97,7 +101,7 @@ def _decode_pair(a: dict[str, np.ndarray]) -> PairResult:
     if a["T"].shape != (4, 4):
         raise ValueError(f"T of shape {a['T'].shape}")
     return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
-                      int(free), a.get("bounded"), a.get("loose"))
+                      int(free), a.get("bounded"), a.get("loose"), a.get("grid"))
 
 
 PAIRS = Kind("pairs", _encode_pair, _decode_pair)

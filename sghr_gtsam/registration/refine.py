@@ -6,7 +6,12 @@ each level starting where the coarser one ended, as Open3D's reconstruction syst
 final transform is then scored on the matching grid like a global registration (``score_pair``), so that a
 refined edge and a loop closure carry the same kind of weight as the edges they join. Its information comes
 from the finest level instead, the grid the transform was aligned on: on the matching grid the same transform
-gets σ 2-3× what its error spread is (docs/BENCHMARKS.md, calibrated covariances).
+gets σ 2-3× what its error spread is (docs/BENCHMARKS.md, calibrated covariances). What that information
+cannot see is how the estimate depends on the grid itself (which points average into a cell, which neighbours a
+normal is fitted on): the same for every draw of noise, so no spread of residuals shows it. The move from the
+next coarser level's transform to the finest one's measures it, if that error shrinks in proportion to the grid
+(half the cell, half the error: the move then equals the finest level's own error); it is kept as
+``PairResult.grid`` and added to the reported covariance (``gtsam_api.pose_covariances``).
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import gtsam
 import numpy as np
 import open3d as o3d
 import small_gicp
@@ -140,17 +146,18 @@ def _distance(target_i: Pyramid, k: int) -> float:
     return LEVEL_DISTANCE[k] * target_i.voxels[k]
 
 
-def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> tuple[np.ndarray, bool]:
-    """GICP of scan j onto scan i, coarse to fine from ``T_init``; the final ``T_ij`` and whether the finest
-    level converged."""
+def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> tuple[np.ndarray, bool, np.ndarray]:
+    """GICP of scan j onto scan i, coarse to fine from ``T_init``; the final ``T_ij``, whether the finest
+    level converged, and the ``T_ij`` of the level before the finest (``T_init`` when there is one level)."""
     T, converged = np.asarray(T_init, dtype=float), False
     for k in range(_levels(target_i, source_j)):
+        coarser = T
         target, source = target_i.level(k), source_j.level(k)
         result = small_gicp.align(target.cloud, source.cloud, target.cloud_tree, init_T_target_source=T,
                                   registration_type="GICP", max_correspondence_distance=_distance(target_i, k),
                                   num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[k])
         T, converged = result.T_target_source, bool(result.converged)
-    return T, converged
+    return T, converged, coarser
 
 
 def _stays_near(T: np.ndarray, guess: np.ndarray, voxel: float) -> bool:
@@ -167,7 +174,7 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
     earlier ``matches`` when given) with the information of the finest level's alignment (the matching grid's
     when that level has too few close pairs); otherwise the result has no inliers and no information."""
     start = time.perf_counter()
-    T, converged = multiscale_icp(pyramid_i, pyramid_j, T_init)
+    T, converged, coarser = multiscale_icp(pyramid_i, pyramid_j, T_init)
     if not (converged and _stays_near(T, T_init, voxel)):
         # A move away from the guess is no evidence for the poses the guess came from, whatever its score:
         # skipping the scoring saves the descriptor matching and the information (40 % of a pair on kitchen60).
@@ -176,6 +183,8 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
     information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
                                            _distance(pyramid_i, finest))
     result = score_pair(target_i, source_j, T, voxel, icp_distance, matches, information)
+    if finest > 0:
+        result.grid = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(coarser)))
     result.seconds = time.perf_counter() - start
     return result, True
 
