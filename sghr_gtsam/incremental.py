@@ -4,8 +4,10 @@
 
 1. its local features, and its global feature from the overlap head (``features.netvlad``: one scan at a time,
    so no scene codebook);
-2. its top-``k`` partners among the scans so far by overlap score, each registered (``register_pair``) with
-   the calibrated information (``registration.information``);
+2. its top-``k`` partners among the scans so far by overlap score, each registered (``register_pair``) and,
+   with ``Config.refine``, refined on finer grids from that registration as the batch refines its edges
+   (``refine.refine_pair``, kept when it ``confirms``), with the calibrated information
+   (``registration.information``);
 3. ``add_node``: the back end alone (also for callers with their own front end). The scan is placed by its
    heaviest edge to a placed scan, its edges become ``BetweenFactorPose3`` in a ``gtsam.ISAM2``, and one
    update runs. A scan with no edge to a placed scan waits, and is placed when a later scan connects it.
@@ -35,6 +37,7 @@ from .features.local import ScanFeatures, compute_features
 from .features.netvlad import global_features, load_default_head
 from .gtsam_api import noise_model
 from .registration.pairwise import PairResult, register_pair
+from .registration.refine import Pyramid, build_pyramid, confirms, refine_pair
 from .result import RunResult
 from .se3 import inv_T
 from .sync import synchronize
@@ -95,6 +98,7 @@ class Session:
             raise InputError(f"voxel must be positive; got {self.voxel!r}")
         self._head = None
         self._F: list[np.ndarray] = []
+        self._pyramids: list[Pyramid] = []
         self._placed: dict[int, np.ndarray] = {}
         self._reset_isam()
 
@@ -115,9 +119,18 @@ class Session:
         self._F.append(F)
         scores = (np.array([F @ G for G in self._F[:-1]]) + 1.0) / 2.0
         found = []
+        pyramid = build_pyramid(points, self.voxel)
+        self._pyramids.append(pyramid)
         for i in np.argsort(-scores, kind="stable")[: cfg.k]:
             pair = register_pair(self.features[i], f, self.voxel, matcher=cfg.matcher,
                                  icp_distance=cfg.icp_distance, seed=cfg.seed)
+            if pair.inliers >= cfg.min_inliers and cfg.refine:
+                # The batch's refinement, from the registration itself: the session has no synchronized
+                # guess before the scan is placed, and from either start ICP lands in the same basin.
+                refined, near = refine_pair(self.features[i], f, self._pyramids[i], pyramid, pair.T, self.voxel,
+                                            cfg.icp_distance, pair.matches)
+                if confirms(refined, near, cfg.min_inliers):
+                    pair = refined
             self.pairs.append(pair)
             if pair.inliers >= cfg.min_inliers and pair.information is not None:
                 found.append((int(i), pair.T, float(scores[i] * pair.inliers), pair.information))

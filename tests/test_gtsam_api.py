@@ -266,6 +266,24 @@ def test_session_fed_scan_by_scan_ends_at_the_batch_synchronization_of_its_edges
     assert truth[0].max() < 1.0
 
 
+@pytest.mark.slow
+@pytest.mark.parametrize("scene,max_deg,max_trans", [("kitchen", 0.5, 0.01), ("bunny", 0.1, 0.001)])
+def test_session_fed_real_scans_one_by_one_ends_at_the_batch_result(data_dir, scene, max_deg, max_trans):
+    """Issue 12's incremental target: kitchen and bunny fed scan by scan end within 0.5° / 1 cm and 0.1° / 1 mm of
+    the batch run of the same scans, every scan placed by both."""
+    from sghr_gtsam.pipeline import load_scene
+
+    cfg = Config(record=False, workers=1)
+    scans, _ = load_scene(data_dir / scene, cfg, log=lambda m: None)
+    batch = register(scans, cfg, log=lambda m: None)
+    session = Session(cfg, batch.voxel)
+    for s in scans:
+        session.add_scan(s.name, s.read()[0])
+    assert batch.unregistered == [] and np.isfinite(session.poses).all()
+    rot, trans = relative_errors(session.poses, batch.poses)
+    assert rot.max() < max_deg and trans.max() < max_trans, (rot.max(), trans.max())
+
+
 def test_session_back_end_rejects_a_contradicting_edge():
     """Scan 7's edge from scan 5 is 86° off, outvoted by its 3 other edges: rejected on arrival, no batch re-run;
     scan 3's two edges disagree with equal weight: only the batch robust stage can settle it."""
