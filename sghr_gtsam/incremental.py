@@ -98,7 +98,7 @@ class Session:
             raise InputError(f"voxel must be positive; got {self.voxel!r}")
         self._head = None
         self._F: list[np.ndarray] = []
-        self._pyramids: list[Pyramid] = []
+        self._pyramids: list[Pyramid | None] = []  # the refinement grids, None without Config.refine
         self._placed: dict[int, np.ndarray] = {}
         self._reset_isam()
 
@@ -119,7 +119,7 @@ class Session:
         self._F.append(F)
         scores = (np.array([F @ G for G in self._F[:-1]]) + 1.0) / 2.0
         found = []
-        pyramid = build_pyramid(points, self.voxel)
+        pyramid = build_pyramid(points, self.voxel) if cfg.refine else None
         self._pyramids.append(pyramid)
         for i in np.argsort(-scores, kind="stable")[: cfg.k]:
             pair = register_pair(self.features[i], f, self.voxel, matcher=cfg.matcher,
