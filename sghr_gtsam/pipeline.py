@@ -36,6 +36,7 @@ from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
 from .registration.information import STIFFEN, underdetermined
+from .registration.overrule import overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
 from .registration.visibility import contradicted_placements
@@ -186,6 +187,29 @@ def _pose_graph(edges: EdgeSet, features: Stored, centres: np.ndarray, scores: n
     return edges.pose_graph(len(features), scores, config.min_inliers, config.initial_weight)
 
 
+OVERRULE_ROUNDS = 3
+"""Synchronizations without overruled edges after each one with them, at most: each can bring new groups to light."""
+
+
+def _overrule(edges: EdgeSet, graph: PoseGraph, result: SyncResult, features: Stored, centres: np.ndarray,
+              scores: np.ndarray, voxel: float, config: Config, timer: _Timer, log: Log, recorder: Recorder | None,
+              progress: Progress) -> tuple[PoseGraph, SyncResult]:
+    """Synchronize again without the edges that hold a group where the scans' free space rules it out
+    (``registration.overrule``; ``config.free_space``), until none is left, at most ``OVERRULE_ROUNDS`` times."""
+    for _ in range(OVERRULE_ROUNDS if config.free_space else 0):
+        with timer.stage("free_space"):
+            overruled = overruled_edges(features, graph, result, voxel, centres) & ~edges.overruled
+        if not overruled.any():
+            break
+        edges.overruled |= overruled
+        log(f"free space: {int(overruled.sum())} registrations overruled (they held a group of scans where the "
+            f"scans' free space rules it out)")
+        graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
+        with timer.stage("sync"):
+            result = _synchronize(graph, config, recorder, progress, "synchronization (overruled edges out)")
+    return graph, result
+
+
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
     def both(message: str) -> None:
         log(message)
@@ -288,6 +312,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     with timer.stage("sync"):
         result = _synchronize(graph, config, recorder, progress, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
+    graph, result = _overrule(edges, graph, result, features, centres, scores, voxel, config, timer, log, recorder,
+                              progress)
 
     # Steps 2-4 of the front end, then synchronize again, while they change the graph (at most config.rounds).
     densify = DensifyReport()
@@ -324,6 +350,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
             recorder.log_graph(graph, scores)
         with timer.stage("sync"):
             result = _synchronize(graph, config, recorder, progress, f"synchronization (round {densify.rounds})")
+        graph, result = _overrule(edges, graph, result, features, centres, scores, voxel, config, timer, log,
+                                  recorder, progress)
 
     # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
     main_part = result.component == 0
@@ -353,6 +381,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
         log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
                     edge_origin=edges.origin, edge_conflict=edges.conflict if config.free_space else None,
+                    edge_overruled=edges.overruled if config.free_space else None,
                     densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=skipped, features=features, timings=timer.seconds,
                     global_feature=feature_kind, unverified=weak, contested=disputed, contradicted=clashing,

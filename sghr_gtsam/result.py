@@ -58,6 +58,9 @@ class RunResult:
     edge_conflict: np.ndarray | None = None
     """(E,) per edge of ``graph``: the free space its transform contradicts (``registration.visibility``; weight 0
     above ``visibility.CONFLICT``), NaN where not checked. None: no check."""
+    edge_overruled: np.ndarray | None = None
+    """(E,) bool per edge of ``graph``: it held a group of scans where their free space rules them out (weight 0;
+    ``registration.overrule``). None: no check."""
     densify: dict = field(default_factory=dict)
     """What refinement, loop closure and retries did (``registration.densify.DensifyReport``), and the
     scans they rescued (weak after the first synchronization, placed and verified at the end)."""

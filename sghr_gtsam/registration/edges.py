@@ -25,6 +25,8 @@ EDGE_STATUS = {
     "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
     "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
                     "(registration.visibility; graph_rejected.g2o)",
+    "overruled": "registered, but it held a group of scans where their free space rules them out, against a place "
+                 "other registrations agree on: no measurement (registration.overrule; graph_rejected.g2o)",
     "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
 }
 
@@ -35,7 +37,8 @@ def edge_status(result: "RunResult") -> list[str]:
     placed = np.zeros(len(result.names), dtype=bool)
     placed[result.registered] = True
     ruled_out = np.zeros(g.num_edges, dtype=bool) if result.edge_conflict is None else contradicted(result.edge_conflict)
-    return [("contradicted" if ruled_out[e] else "failed") if g.weight[e] <= 0
+    overruled = np.zeros(g.num_edges, dtype=bool) if result.edge_overruled is None else result.edge_overruled
+    return [("contradicted" if ruled_out[e] else "overruled" if overruled[e] else "failed") if g.weight[e] <= 0
             else "rejected" if result.sync.weights[e] <= 0
             else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
 
@@ -44,13 +47,15 @@ def edge_status(result: "RunResult") -> list[str]:
 class EdgeSet:
     """``ij`` (E, 2) scan pairs, ``pairs[e]`` the registration of ``ij[e]`` (``T_ij``), ``origin[e]`` one of
     ``ORIGINS``, ``refined[e]`` whether ``pairs[e]`` comes from multi-scale refinement, ``conflict[e]`` its
-    ``visibility.free_space_conflict`` (NaN: not checked, or a scan not seen from its origin)."""
+    ``visibility.free_space_conflict`` (NaN: not checked, or a scan not seen from its origin), ``overruled[e]``
+    whether it held a group where the scans' free space rules it out (``overrule``)."""
 
     ij: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     pairs: list[PairResult] = field(default_factory=list)
     origin: list[str] = field(default_factory=list)
     refined: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     conflict: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    overruled: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     _checked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), repr=False)
 
     def add(self, ij: np.ndarray, pairs: list[PairResult], origin: str) -> None:
@@ -59,6 +64,7 @@ class EdgeSet:
         self.origin.extend([origin] * len(pairs))
         self.refined = np.concatenate([self.refined, np.zeros(len(pairs), dtype=bool)])
         self.conflict = np.concatenate([self.conflict, np.full(len(pairs), np.nan)])
+        self.overruled = np.concatenate([self.overruled, np.zeros(len(pairs), dtype=bool)])
         self._checked = np.concatenate([self._checked, np.zeros(len(pairs), dtype=bool)])
 
     def replace(self, e: int, pair: PairResult, origin: str | None = None) -> None:
@@ -89,11 +95,11 @@ class EdgeSet:
     def pose_graph(self, n: int, scores: np.ndarray, min_inliers: int, initial_weight: str) -> PoseGraph:
         """The graph synchronization sees: ``w⁰ = s · r`` (or the ``initial_weight`` ablation), 0 for pairs
         with fewer than ``min_inliers`` inliers (a failed pair is no measurement at all) and for ``contradicted``
-        ones (a transform the scans' free space rules out is none either)."""
+        and ``overruled`` ones (a transform the scans' free space rules out is none either)."""
         i, j = self.ij[:, 0].copy(), self.ij[:, 1].copy()
         s = scores[i, j]
         r = np.array([p.inliers for p in self.pairs], dtype=float)
-        r[(r < min_inliers) | self.contradicted()] = 0.0
+        r[(r < min_inliers) | self.contradicted() | self.overruled] = 0.0
         info = [p.information for p in self.pairs]
         return PoseGraph(
             n=n, i=i, j=j,

@@ -43,10 +43,10 @@ MIN_CONFLICTS = 2
 others."""
 
 
-def _cells(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def _cells(P: np.ndarray, bin_deg: float = BIN_DEG) -> tuple[np.ndarray, np.ndarray, int]:
     """Ranges (n,) and range-image cells (n,) of points ``P`` (n, 3) seen from the origin, and the cell count."""
     r = np.linalg.norm(P, axis=1)
-    step = np.radians(BIN_DEG)
+    step = np.radians(bin_deg)
     rows, cols = int(np.ceil(np.pi / step)), int(np.ceil(2 * np.pi / step))
     elevation = np.arcsin(np.clip(P[:, 2] / np.maximum(r, 1e-300), -1.0, 1.0))
     azimuth = np.arctan2(P[:, 1], P[:, 0])
@@ -82,24 +82,26 @@ def contradicted(conflict: np.ndarray) -> np.ndarray:
     return np.nan_to_num(conflict, nan=0.0) > CONFLICT
 
 
-def _image(P: np.ndarray) -> np.ndarray:
-    """The range image of scan points ``P`` (n, 3) seen from the origin (``_nearest``)."""
-    return _nearest(*_cells(P))
+def range_image(P: np.ndarray, bin_deg: float = BIN_DEG) -> np.ndarray:
+    """The range image of scan points ``P`` (n, 3) seen from the origin, in cells of ``bin_deg`` (``_nearest``)."""
+    return _nearest(*_cells(P, bin_deg))
 
 
-def _in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, min_seen: int = 1) -> float:
-    """Fraction of points ``P`` (in the frame of the scan whose range image is ``image``) that lie in front of its
-    surface among those in cells it observed (0 with fewer than ``min_seen``)."""
-    r, cell, _ = _cells(P)
+def in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS,
+                bin_deg: float = BIN_DEG, min_seen: int = 1) -> float:
+    """Fraction of points ``P`` (in the frame of the scan whose range image of ``bin_deg`` cells is ``image``) that
+    lie in front of its surface by more than ``margin`` voxels, among those in cells it observed (0 with fewer than
+    ``min_seen``)."""
+    r, cell, _ = _cells(P, bin_deg)
     surface = image[cell]
     seen = np.isfinite(surface)
-    return float(np.mean(r[seen] < surface[seen] - MARGIN_VOXELS * voxel)) if seen.sum() >= min_seen else 0.0
+    return float(np.mean(r[seen] < surface[seen] - margin * voxel)) if seen.sum() >= min_seen else 0.0
 
 
 def _in_front(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, voxel: float) -> float:
     """Fraction of scan j's points, moved into scan i's frame by ``T_ij``, that lie in front of scan i's surface
     among those in cells scan i observed (0 with none)."""
-    return _in_front_of(_image(P_i), P_j @ T_ij[:3, :3].T + T_ij[:3, 3], voxel)
+    return in_front_of(range_image(P_i), P_j @ T_ij[:3, :3].T + T_ij[:3, 3], voxel)
 
 
 def free_space_conflict(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, voxel: float) -> float:
@@ -156,12 +158,13 @@ def placement_conflicts(points: Sequence[np.ndarray], poses: np.ndarray, checked
     centre = boxes.mean(axis=1)
     clash = np.zeros((n, n), dtype=bool)
     for x, a in enumerate(index):
-        image = _image(points[a])
+        image = range_image(points[a])
         near = np.flatnonzero(meet[x])
         near = near[np.argsort(np.linalg.norm(centre[near] - centre[x], axis=1), kind="stable")[:MAX_PARTNERS]]
         for b in index[near]:
             T_ab = np.linalg.solve(poses[a], poses[b])
-            clash[a, b] = _in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel, MIN_IN_VIEW) > CONFLICT
+            clash[a, b] = in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel,
+                                      min_seen=MIN_IN_VIEW) > CONFLICT
     return clash | clash.T
 
 

@@ -3,6 +3,8 @@ those the placement rests on, for one scan or for a group of scans placed wrong 
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
@@ -40,19 +42,28 @@ def contested(graph: PoseGraph, result: SyncResult) -> np.ndarray:
 def _contested_groups(graph: PoseGraph, result: SyncResult, flagged: np.ndarray) -> np.ndarray:
     """``flagged`` with every contested group of the largest part added.
 
-    The groups tried are those the kept edges join in order of decreasing ``w⁰`` (single linkage: scans held
-    by their strongest registrations first), up to half the largest part (a larger group's outside is the
-    smaller one, with the same edges leaving it). A group whose agreeing dropped edges outweigh its kept ones
+    The groups tried are ``linkage_groups``. A group whose agreeing dropped edges outweigh its kept ones
     is not flagged when moving the scans at their other ends would cost less kept weight: the dropped edges
     then accuse those scans (home_at: fragment 32's two strong edges against the 20 scans they leave from).
     """
     main = result.component == 0
     kept = result.weights > 0
-    i, j, w = graph.i, graph.j, graph.weight
-    inside = (w > 0) & main[i] & main[j]
-    half = main.sum() / 2
+    inside = (graph.weight > 0) & main[graph.i] & main[graph.j]
     tolerance = translation_tolerance(graph)
     flagged = flagged.copy()
+    for group in linkage_groups(graph, result):
+        if _outweighed(graph, result.poses, group, inside, kept, tolerance):
+            flagged |= group
+    return flagged
+
+
+def linkage_groups(graph: PoseGraph, result: SyncResult) -> Iterator[np.ndarray]:
+    """(N,) bool masks: the groups of the largest part that its kept edges join in order of decreasing ``w⁰``
+    (single linkage: scans held by their strongest registrations first), each as it forms, up to half the largest
+    part (a larger group's outside is the smaller one, with the same edges leaving it)."""
+    main = result.component == 0
+    i, j, w = graph.i, graph.j, graph.weight
+    half = main.sum() / 2
     parent = np.arange(graph.n)
     members = {k: [k] for k in range(graph.n)}
 
@@ -62,7 +73,7 @@ def _contested_groups(graph: PoseGraph, result: SyncResult, flagged: np.ndarray)
             k = parent[k]
         return k
 
-    joins = np.flatnonzero(kept & inside)
+    joins = np.flatnonzero((result.weights > 0) & (w > 0) & main[i] & main[j])
     for e in joins[np.argsort(-w[joins], kind="stable")]:
         a, b = root(int(i[e])), root(int(j[e]))
         if a == b:
@@ -75,9 +86,7 @@ def _contested_groups(graph: PoseGraph, result: SyncResult, flagged: np.ndarray)
             continue
         group = np.zeros(graph.n, dtype=bool)
         group[members[a]] = True
-        if _outweighed(graph, result.poses, group, inside, kept, tolerance):
-            flagged |= group
-    return flagged
+        yield group
 
 
 def _outweighed(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, inside: np.ndarray, kept: np.ndarray,
@@ -90,7 +99,7 @@ def _outweighed(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, inside: 
     dropped = np.flatnonzero(leaving & ~kept)
     if w[dropped].sum() <= held:  # the agreeing ones cannot outweigh the kept ones either
         return False
-    agreeing = _agreeing(graph, poses, group, dropped, tolerance)
+    agreeing, _ = agreeing_edges(graph, poses, group, dropped, tolerance)
     if w[agreeing].sum() <= held:
         return False
     accused = np.zeros(graph.n, dtype=bool)
@@ -98,10 +107,11 @@ def _outweighed(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, inside: 
     return w[inside & kept & (accused[i] != accused[j])].sum() >= held
 
 
-def _agreeing(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray,
-              tolerance: float) -> np.ndarray:
+def agreeing_edges(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray,
+                   tolerance: float) -> tuple[np.ndarray, np.ndarray]:
     """The largest-weight subset of ``edges`` (each leaving ``group``) that agree on one rigid move of the group
-    in the world: rotations within ``consensus.MAX_DEG`` and the group's centre moved to within ``tolerance``."""
+    in the world: rotations within ``consensus.MAX_DEG`` and the group's centre moved to within ``tolerance``;
+    and that move (4, 4), as its heaviest-supported edge measures it (left-multiplies the group's poses)."""
     i, j = graph.i[edges], graph.j[edges]
     T = graph.T[edges]
     starts = group[i]
@@ -120,4 +130,4 @@ def _agreeing(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.
         if support[k] > best_support:
             best, best_support = s + k, support[k]
     agree = (np.abs(q @ q[best]) >= cos_half) & (np.linalg.norm(moved - moved[best], axis=1) <= tolerance)
-    return edges[agree]
+    return edges[agree], moves[best]

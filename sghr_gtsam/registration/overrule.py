@@ -1,0 +1,153 @@
+"""Groups of scans placed where their own free space says they cannot be, and the registrations that put them there.
+
+Synchronization weighs registrations; look-alike places (repeated desks, symmetric rooms) give wrong ones that agree
+with each other and outweigh the right ones. It cannot tell them apart, but the placed scans can: a scan seen from
+one place says where there is nothing, and a group placed on a look-alike cuts through the free space of the scans
+around it. So each group that synchronization's kept edges hold together (``sync.disputes.linkage_groups``) is
+tried at the move its dropped registrations agree on, and when that move leaves far fewer of its scans in conflict
+with the other scans (``CONFLICT``, registered or not), the kept registrations that hold the group where it is are
+overruled: synchronization runs again without them.
+
+3DMatch studyroom (docs/BENCHMARKS.md): its repeated desks hold fragments 25-33 3 m off, in conflict with 187 of the
+334 scan pairs judged; at the move fragment 33's dropped registration to 34 proposes, 24 of 83.
+
+Fused RGB-D fragments are seen from their first camera but fused over many: their free space is noisier than one
+range image's, so the range image here is coarser (``BIN_DEG``, ``MARGIN_VOXELS``) than the per-pair check's
+(``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..se3 import inv_T, transform_points
+from ..store import Attribute, Stored
+from ..sync.consensus import translation_tolerance
+from ..sync.disputes import agreeing_edges, linkage_groups
+from ..types import PoseGraph, SyncResult
+from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, in_front_of, range_image, viewpoints
+
+BIN_DEG = 3.0
+"""Angular cells of the range image (degrees). On studyroom's registered pairs (judged against its re-fitted GT),
+3° and 6 voxels keep 99 % of the right pairs' conflict below 0.07 where 1° and 3 voxels (the per-pair check's)
+reach 0.21; wrong pairs read 0.13 at the median."""
+MARGIN_VOXELS = 6.0
+"""A point is in front of a surface when nearer along the ray by more than this many voxels."""
+RATIO = 0.5
+"""A move overrules a placement when it leaves at most this fraction of the group's conflicts."""
+MIN_GAIN = 10
+"""... and at least this many conflicting scan pairs fewer (a pair is one scan of the group and one outside)."""
+SUPPORT = 0.25
+"""Moves whose agreeing dropped registrations weigh (``w⁰``) less than this fraction of the kept ones leaving the
+group are not tried: a stray registration is no alternative."""
+CONE_DEG = 80.0
+"""A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
+a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.viewpoints``)."""
+
+
+class _Scans:
+    """The scans that take part (``take``: seen from their origins, ``_takes_part``), their points in their own
+    frames, range images, and boxes under the current poses."""
+
+    def __init__(self, points: Attribute, candidates: np.ndarray, poses: np.ndarray, voxel: float) -> None:
+        self.poses, self.voxel = poses, voxel
+        read = ((int(k), points[k]) for k in candidates)  # one scan at a time, kept only when it takes part
+        self.points = {k: P for k, P in read if _takes_part(P, voxel)}
+        self.take = np.array(sorted(self.points), dtype=np.int64)
+        self.row = {k: x for x, k in enumerate(self.take)}
+        self.images = {k: range_image(P, BIN_DEG) for k, P in self.points.items()}
+        boxes = np.array([self.box(k) for k in self.take]).reshape(-1, 2, 3)
+        self.lo, self.hi = boxes[:, 0], boxes[:, 1]
+
+    def box(self, k: int, move: np.ndarray | None = None) -> np.ndarray:
+        T = self.poses[k] if move is None else move @ self.poses[k]
+        world = transform_points(T, self.points[k])
+        return np.stack([world.min(axis=0), world.max(axis=0)])
+
+    def partners(self, box: np.ndarray, outside: np.ndarray) -> np.ndarray:
+        """The scans of ``take[outside]`` whose boxes meet ``box``, the ``visibility.MAX_PARTNERS`` nearest."""
+        near = np.flatnonzero(outside & np.all(box[0] <= self.hi, axis=1) & np.all(self.lo <= box[1], axis=1))
+        centre = (self.lo[near] + self.hi[near]) / 2
+        order = np.argsort(np.linalg.norm(centre - box.mean(axis=0), axis=1), kind="stable")
+        return self.take[near[order[:MAX_PARTNERS]]]
+
+    def conflict(self, a: int, b: int, T_a: np.ndarray, T_b: np.ndarray) -> float:
+        """The larger of the fractions of each scan's points in the other's free space (0 with fewer than
+        ``MIN_IN_VIEW`` in view)."""
+        out = 0.0
+        for x, y, T_x, T_y in ((a, b, T_a, T_b), (b, a, T_b, T_a)):
+            T = np.linalg.solve(T_x, T_y)
+            out = max(out, in_front_of(self.images[x], transform_points(T, self.points[y]), self.voxel,
+                                       MARGIN_VOXELS, BIN_DEG, MIN_IN_VIEW))
+        return out
+
+
+def _takes_part(P: np.ndarray, voxel: float) -> bool:
+    """Whether scan points ``P`` look seen from their origin: within ``CONE_DEG`` of their mean direction from it
+    (a camera's or a scanner's view), or all around it (``visibility.viewpoints``)."""
+    u = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-300)
+    mean = u.mean(axis=0)
+    if np.linalg.norm(mean) > 1e-9:
+        angle = np.degrees(np.arccos(np.clip(u @ (mean / np.linalg.norm(mean)), -1.0, 1.0)))
+        if np.percentile(angle, 99) <= CONE_DEG:
+            return True
+    return bool(viewpoints([P], voxel, np.zeros((1, 3)))[0])
+
+
+def overruled_edges(features: Stored, graph: PoseGraph, result: SyncResult, voxel: float,
+                    centres: np.ndarray) -> np.ndarray:
+    """(E,) bool: the kept edges of ``graph`` that hold a group of scans where the scans' free space rules it out,
+    against the move that the group's dropped registrations agree on (module docstring). ``result.poses`` and
+    ``features`` in the scans' centred frames (``centres``): a centred scan's origin is no viewpoint, and it does
+    not take part. Of groups that share scans or holding edges, the clearest case is taken (fewest conflicts left,
+    then most removed)."""
+    main = result.component == 0
+    candidates = [k for k in np.flatnonzero(main) if not np.any(centres[k])]
+    scans = _Scans(Attribute(features, "points"), np.array(candidates, dtype=np.int64), result.poses, voxel)
+    take = scans.take
+    current: dict[tuple[int, int], float] = {}
+
+    def conflicts(group: np.ndarray, move: np.ndarray | None) -> int:
+        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it."""
+        outside = ~group[take]
+        count = 0
+        for a in take[group[take]]:
+            row = scans.row[a]
+            box = np.stack([scans.lo[row], scans.hi[row]]) if move is None else scans.box(a, move)
+            for b in scans.partners(box, outside):
+                if move is None:
+                    if (a, b) not in current:
+                        current[a, b] = scans.conflict(a, b, scans.poses[a], scans.poses[b])
+                    value = current[a, b]
+                else:
+                    value = scans.conflict(a, b, move @ scans.poses[a], scans.poses[b])
+                count += value > CONFLICT
+        return count
+
+    kept = result.weights > 0
+    i, j, w = graph.i, graph.j, graph.weight
+    inside = (w > 0) & main[i] & main[j]
+    tolerance = translation_tolerance(graph)
+    found = []
+    for group in linkage_groups(graph, result):
+        leaving = inside & (group[i] != group[j])
+        held = w[leaving & kept].sum()
+        dropped = np.flatnonzero(leaving & ~kept)
+        if not len(dropped):
+            continue
+        agreeing, move = agreeing_edges(graph, result.poses, group, dropped, tolerance)
+        if w[agreeing].sum() < SUPPORT * held:
+            continue
+        before = conflicts(group, None)
+        if before < MIN_GAIN:
+            continue
+        after = conflicts(group, move)
+        if after <= RATIO * before and before - after >= MIN_GAIN:
+            found.append((after / before, -(before - after), group, leaving & kept))
+    # A conflict is explained once: a group's neighbours, tried as a group, see the same edges from the other side.
+    out = np.zeros(graph.num_edges, dtype=bool)
+    taken = np.zeros(graph.n, dtype=bool)
+    for _, _, group, holding in sorted(found, key=lambda f: (f[0], f[1])):
+        if not np.any(taken & group) and not np.any(out & holding):
+            taken |= group
+            out |= holding
+    return out
