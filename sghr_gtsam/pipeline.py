@@ -205,6 +205,8 @@ def _overrule(edges: EdgeSet, graph: PoseGraph, result: SyncResult, features: St
         log(f"free space: {int(overruled.sum())} registrations overruled (they held a group of scans where the "
             f"scans' free space rules it out)")
         graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
+        if recorder:
+            recorder.log_graph(graph, scores)
         with timer.stage("sync"):
             result = _synchronize(graph, config, recorder, progress, "synchronization (overruled edges out)")
     return graph, result
