@@ -40,11 +40,16 @@ def _graph(poses_kept: np.ndarray, poses_dropped: np.ndarray, group: np.ndarray)
     for a in range(N):
         for b in range(a + 1, N):
             if group[a] == group[b]:
-                ij.append((a, b)), T.append(inv_T(poses_kept[a]) @ poses_kept[b])
-                w.append(200.0 if group[a] else 150.0), kept.append(1.0)
+                measured = [(poses_kept, 200.0 if group[a] else 150.0, 1.0)]
             elif near[a, b]:
-                for P, weight, k in ((poses_kept, 100.0, 1.0), (poses_dropped, 60.0, 0.0)):
-                    ij.append((a, b)), T.append(inv_T(P[a]) @ P[b]), w.append(weight), kept.append(k)
+                measured = [(poses_kept, 100.0, 1.0), (poses_dropped, 60.0, 0.0)]
+            else:
+                continue
+            for P, weight, k in measured:
+                ij.append((a, b))
+                T.append(inv_T(P[a]) @ P[b])
+                w.append(weight)
+                kept.append(k)
     ij = np.array(ij)
     graph = PoseGraph(n=N, i=ij[:, 0], j=ij[:, 1], T=np.array(T), weight=np.array(w))
     return graph, SyncResult(poses=poses_kept, weights=np.array(kept), residual_deg=np.zeros(len(ij)),

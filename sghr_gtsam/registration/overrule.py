@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..se3 import inv_T, transform_points
+from ..se3 import transform_points
 from ..store import Attribute, Stored
 from ..sync.consensus import translation_tolerance
 from ..sync.disputes import agreeing_edges, linkage_groups
