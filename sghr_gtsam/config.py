@@ -100,7 +100,8 @@ class Config:
     their next k candidates by overlap score."""
     free_space: bool = True
     """Give weight 0 to registrations that put one scan's surfaces in the space the other saw empty
-    (``registration.visibility``; only scans seen from their frame's origin can be checked)."""
+    (``registration.visibility``; only scans seen from their frame's origin can be checked), and to those that hold
+    a group of scans where the scans' free space rules it out (``registration.overrule``), then synchronize again."""
     rounds: int = 2
     """At most this many rounds of refine / loops / retry, each followed by synchronization; a round that
     changes nothing ends them."""
