@@ -36,7 +36,7 @@ from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
 from .registration.information import STIFFEN, underdetermined
-from .registration.overrule import overruled_edges
+from .registration.overrule import Viewpoints, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
 from .registration.visibility import contradicted_placements
@@ -191,14 +191,14 @@ OVERRULE_ROUNDS = 3
 """Synchronizations without overruled edges after each one with them, at most: each can bring new groups to light."""
 
 
-def _overrule(edges: EdgeSet, graph: PoseGraph, result: SyncResult, features: Stored, centres: np.ndarray,
-              scores: np.ndarray, voxel: float, config: Config, timer: _Timer, log: Log, recorder: Recorder | None,
-              progress: Progress) -> tuple[PoseGraph, SyncResult]:
+def _overrule(views: Viewpoints | None, edges: EdgeSet, graph: PoseGraph, result: SyncResult, features: Stored,
+              centres: np.ndarray, scores: np.ndarray, voxel: float, config: Config, timer: _Timer, log: Log,
+              recorder: Recorder | None, progress: Progress) -> tuple[PoseGraph, SyncResult]:
     """Synchronize again without the edges that hold a group where the scans' free space rules it out
-    (``registration.overrule``; ``config.free_space``), until none is left, at most ``OVERRULE_ROUNDS`` times."""
-    for _ in range(OVERRULE_ROUNDS if config.free_space else 0):
+    (``registration.overrule``; ``views`` None: no check), until none is left, at most ``OVERRULE_ROUNDS`` times."""
+    for _ in range(OVERRULE_ROUNDS if views is not None else 0):
         with timer.stage("free_space"):
-            overruled = overruled_edges(features, graph, result, voxel, centres) & ~edges.overruled
+            overruled = overruled_edges(views, graph, result) & ~edges.overruled
         if not overruled.any():
             break
         edges.overruled |= overruled
@@ -314,8 +314,12 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     with timer.stage("sync"):
         result = _synchronize(graph, config, recorder, progress, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
-    graph, result = _overrule(edges, graph, result, features, centres, scores, voxel, config, timer, log, recorder,
-                              progress)
+    views = None
+    if config.free_space:
+        with timer.stage("free_space"):
+            views = Viewpoints(features, voxel, centres)
+    graph, result = _overrule(views, edges, graph, result, features, centres, scores, voxel, config, timer, log,
+                              recorder, progress)
 
     # Steps 2-4 of the front end, then synchronize again, while they change the graph (at most config.rounds).
     densify = DensifyReport()
@@ -352,8 +356,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
             recorder.log_graph(graph, scores)
         with timer.stage("sync"):
             result = _synchronize(graph, config, recorder, progress, f"synchronization (round {densify.rounds})")
-        graph, result = _overrule(edges, graph, result, features, centres, scores, voxel, config, timer, log,
-                                  recorder, progress)
+        graph, result = _overrule(views, edges, graph, result, features, centres, scores, voxel, config, timer,
+                                  log, recorder, progress)
 
     # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
     main_part = result.component == 0

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sghr_gtsam.registration.overrule import overruled_edges
+from sghr_gtsam.registration.overrule import Viewpoints, overruled_edges
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.synthetic import make_scene
 from sghr_gtsam.synthetic.building import building_layout
@@ -73,23 +73,23 @@ def test_a_room_held_in_the_wrong_place_is_overruled_and_a_right_one_is_not(buil
     from them, it contradicts little that a scan saw: 3 m outwards leaves 7 conflicting pairs, fewer than
     ``MIN_GAIN``, and stays as it is.)"""
     grids, truth, room, voxel = building
-    features = [SimpleNamespace(points=P) for P in grids]
+    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.zeros((N, 3)))
     towards = truth[~room, :3, 3].mean(axis=0) - truth[room, :3, 3].mean(axis=0)
     towards[2] = 0.0
     wrong = _moved(truth, room, sign * degrees, inward * towards / np.linalg.norm(towards))
-    centres = np.zeros((N, 3))
 
     graph, result = _graph(wrong, truth, room)
     holding = (room[graph.i] != room[graph.j]) & (result.weights > 0)
-    np.testing.assert_array_equal(overruled_edges(features, graph, result, voxel, centres), holding)
+    np.testing.assert_array_equal(overruled_edges(views, graph, result), holding)
 
     graph, result = _graph(truth, wrong, room)
-    assert not overruled_edges(features, graph, result, voxel, centres).any()
+    assert not overruled_edges(views, graph, result).any()
 
 
 def test_scans_centred_by_the_pipeline_take_no_part(building):
     """A centred scan's origin is no viewpoint: with every scan centred, nothing is judged."""
     grids, truth, room, voxel = building
     graph, result = _graph(_moved(truth, room, 90.0, np.zeros(3)), truth, room)
-    features = [SimpleNamespace(points=P) for P in grids]
-    assert not overruled_edges(features, graph, result, voxel, np.ones((N, 3))).any()
+    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.ones((N, 3)))
+    assert not views.images
+    assert not overruled_edges(views, graph, result).any()

@@ -39,6 +39,9 @@ MIN_GAIN = 10
 SUPPORT = 0.25
 """Moves whose agreeing dropped registrations weigh (``w⁰``) less than this fraction of the kept ones leaving the
 group are not tried: a stray registration is no alternative."""
+MAX_GROUP = 50
+"""Groups of more scans are not tried: a folded building's halves would cost |group| x ``MAX_PARTNERS`` tests for
+every group the linkage forms on the way (a generated 500-scan building: 152 s against 26 s without the stage)."""
 SAMPLE = 2000
 """Points of a scan, about, whose fraction in another's free space is measured (every n-th point of its grid): a
 fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONFLICT``."""
@@ -47,39 +50,40 @@ CONE_DEG = 80.0
 a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.viewpoints``)."""
 
 
-class _Scans:
-    """The scans that take part (``take``: seen from their origins, ``_takes_part``), their points in their own
-    frames, range images, and boxes under the current poses."""
+class Viewpoints:
+    """What the free space of the scans that take part needs, read once a run (the poses change, the scans do not):
+    per scan k its range image, a sample of its points (``SAMPLE``) and the corners of its box, in its own frame.
+    A scan takes part when seen from its origin (``_takes_part``) and not centred by the pipeline (``centres``
+    (N, 3), ``local_frame.centres``: a centred scan's input-frame origin lies far away and is no viewpoint)."""
 
-    def __init__(self, points: Attribute, candidates: np.ndarray, poses: np.ndarray, voxel: float) -> None:
-        self.poses, self.voxel = poses, voxel
-        read = ((int(k), points[k]) for k in candidates)  # one scan at a time, kept only when it takes part
-        self.points = {k: P for k, P in read if _takes_part(P, voxel)}
-        self.take = np.array(sorted(self.points), dtype=np.int64)
-        self.row = {k: x for x, k in enumerate(self.take)}
-        self.images = {k: range_image(P, BIN_DEG) for k, P in self.points.items()}
-        self.sample = {k: P[::max(1, len(P) // SAMPLE)] for k, P in self.points.items()}
-        boxes = np.array([self.box(k) for k in self.take]).reshape(-1, 2, 3)
-        self.lo, self.hi = boxes[:, 0], boxes[:, 1]
+    def __init__(self, features: Stored, voxel: float, centres: np.ndarray) -> None:
+        self.voxel = voxel
+        self.images: dict[int, np.ndarray] = {}
+        self.samples: dict[int, np.ndarray] = {}
+        self.corners: dict[int, np.ndarray] = {}
+        points = Attribute(features, "points")
+        for k in range(len(points)):
+            if np.any(centres[k]):
+                continue
+            P = points[k]  # one scan at a time
+            if _takes_part(P, voxel):
+                self.images[k] = range_image(P, BIN_DEG)
+                self.samples[k] = P[::max(1, len(P) // SAMPLE)]
+                lo, hi = P.min(axis=0), P.max(axis=0)
+                self.corners[k] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                                            for z in (lo[2], hi[2])])
 
-    def box(self, k: int, move: np.ndarray | None = None) -> np.ndarray:
-        T = self.poses[k] if move is None else move @ self.poses[k]
-        world = transform_points(T, self.points[k])
+    def box(self, k: int, T: np.ndarray) -> np.ndarray:
+        """(2, 3) lower and upper corner of a box that holds scan k under pose ``T``."""
+        world = transform_points(T, self.corners[k])
         return np.stack([world.min(axis=0), world.max(axis=0)])
-
-    def partners(self, box: np.ndarray, outside: np.ndarray) -> np.ndarray:
-        """The scans of ``take[outside]`` whose boxes meet ``box``, the ``visibility.MAX_PARTNERS`` nearest."""
-        near = np.flatnonzero(outside & np.all(box[0] <= self.hi, axis=1) & np.all(self.lo <= box[1], axis=1))
-        centre = (self.lo[near] + self.hi[near]) / 2
-        order = np.argsort(np.linalg.norm(centre - box.mean(axis=0), axis=1), kind="stable")
-        return self.take[near[order[:MAX_PARTNERS]]]
 
     def conflict(self, a: int, b: int, T_a: np.ndarray, T_b: np.ndarray) -> bool:
         """Whether either scan puts more than ``CONFLICT`` of its points (``SAMPLE`` of them) in the other's free
         space, judged on at least ``MIN_IN_VIEW`` points in view."""
         for x, y, T_x, T_y in ((a, b, T_a, T_b), (b, a, T_b, T_a)):
             T = np.linalg.solve(T_x, T_y)
-            if in_front_of(self.images[x], transform_points(T, self.sample[y]), self.voxel, MARGIN_VOXELS, BIN_DEG,
+            if in_front_of(self.images[x], transform_points(T, self.samples[y]), self.voxel, MARGIN_VOXELS, BIN_DEG,
                            MIN_IN_VIEW) > CONFLICT:
                 return True
         return False
@@ -97,29 +101,34 @@ def _takes_part(P: np.ndarray, voxel: float) -> bool:
     return bool(viewpoints([P], voxel, np.zeros((1, 3)))[0])
 
 
-def overruled_edges(features: Stored, graph: PoseGraph, result: SyncResult, voxel: float,
-                    centres: np.ndarray) -> np.ndarray:
-    """(E,) bool: the kept edges of ``graph`` that hold a group of scans where the scans' free space rules it out,
-    against the move that the group's dropped registrations agree on (module docstring). ``result.poses`` and
-    ``features`` in the scans' centred frames (``centres``): a centred scan's origin is no viewpoint, and it does
-    not take part. Of groups that share scans or holding edges, the clearest case is taken (fewest conflicts left,
-    then most removed)."""
+def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
+    """(E,) bool: the kept edges of ``graph`` that hold a group of scans where the scans' free space (``views``)
+    rules it out, against the move that the group's dropped registrations agree on (module docstring).
+    ``result.poses`` in the scans' centred frames, as ``views``. Groups of more than ``MAX_GROUP`` scans are not
+    tried. Of groups that share scans or holding edges, the clearest case is taken (fewest conflicts left, then most
+    removed)."""
     main = result.component == 0
-    candidates = [k for k in np.flatnonzero(main) if not np.any(centres[k])]
-    scans = _Scans(Attribute(features, "points"), np.array(candidates, dtype=np.int64), result.poses, voxel)
-    take = scans.take
+    poses = result.poses
+    take = np.array([k for k in sorted(views.images) if main[k]], dtype=np.int64)
+    boxes = np.array([views.box(k, poses[k]) for k in take]).reshape(-1, 2, 3)
+    lo, hi = boxes[:, 0], boxes[:, 1]
     judged: dict[tuple[int, int, bytes], bool] = {}  # nested groups share their scans, pairs and often their move
+
+    def partners(box: np.ndarray, outside: np.ndarray) -> np.ndarray:
+        """The scans of ``take[outside]`` whose boxes meet ``box``, the ``visibility.MAX_PARTNERS`` nearest."""
+        near = np.flatnonzero(outside & np.all(box[0] <= hi, axis=1) & np.all(lo <= box[1], axis=1))
+        order = np.argsort(np.linalg.norm((lo[near] + hi[near]) / 2 - box.mean(axis=0), axis=1), kind="stable")
+        return take[near[order[:MAX_PARTNERS]]]
 
     def conflicts(group: np.ndarray, move: np.ndarray) -> int:
         """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it."""
         outside = ~group[take]
         count = 0
         for a in take[group[take]]:
-            box = scans.box(a, move)
-            for b in scans.partners(box, outside):
+            for b in partners(views.box(a, move @ poses[a]), outside):
                 key = (int(a), int(b), move.tobytes())
                 if key not in judged:
-                    judged[key] = scans.conflict(a, b, move @ scans.poses[a], scans.poses[b])
+                    judged[key] = views.conflict(a, b, move @ poses[a], poses[b])
                 count += judged[key]
         return count
 
@@ -129,6 +138,8 @@ def overruled_edges(features: Stored, graph: PoseGraph, result: SyncResult, voxe
     tolerance = translation_tolerance(graph)
     found = []
     for group in linkage_groups(graph, result):
+        if group.sum() > MAX_GROUP:
+            continue
         leaving = inside & (group[i] != group[j])
         held = w[leaving & kept].sum()
         dropped = np.flatnonzero(leaving & ~kept)
