@@ -24,7 +24,7 @@ from ..store import Attribute, Stored
 from ..sync.consensus import translation_tolerance
 from ..sync.disputes import agreeing_edges, linkage_groups
 from ..types import PoseGraph, SyncResult
-from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, in_front_of, range_image, viewpoints
+from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, in_front_of, range_image, seen_from_origin
 
 BIN_DEG = 3.0
 """Angular cells of the range image (degrees). On studyroom's registered pairs (judged against its re-fitted GT),
@@ -47,7 +47,7 @@ SAMPLE = 2000
 fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONFLICT``."""
 CONE_DEG = 80.0
 """A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
-a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.viewpoints``)."""
+a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.seen_from_origin``)."""
 
 
 class Viewpoints:
@@ -91,14 +91,14 @@ class Viewpoints:
 
 def _takes_part(P: np.ndarray, voxel: float) -> bool:
     """Whether scan points ``P`` look seen from their origin: within ``CONE_DEG`` of their mean direction from it
-    (a camera's or a scanner's view), or all around it (``visibility.viewpoints``)."""
+    (a camera's or a scanner's view), or all around it (``visibility.seen_from_origin``)."""
     u = P / np.maximum(np.linalg.norm(P, axis=1, keepdims=True), 1e-300)
     mean = u.mean(axis=0)
     if np.linalg.norm(mean) > 1e-9:
         angle = np.degrees(np.arccos(np.clip(u @ (mean / np.linalg.norm(mean)), -1.0, 1.0)))
         if np.percentile(angle, 99) <= CONE_DEG:
             return True
-    return bool(viewpoints([P], voxel, np.zeros((1, 3)))[0])
+    return seen_from_origin(P, voxel)
 
 
 def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
