@@ -36,7 +36,7 @@ from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
 from .registration.edges import EdgeSet
 from .registration.information import STIFFEN, underdetermined
-from .registration.overrule import Viewpoints, overruled_edges
+from .registration.overrule import MIN_AGREEING, Viewpoints, look_alikes, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
 from .registration.visibility import contradicted_placements
@@ -378,6 +378,13 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
+    alike = []
+    if views is not None:
+        with timer.stage("free_space"):
+            alike = [names[k] for k in np.flatnonzero(look_alikes(views, graph, result))]
+    for name in alike:
+        log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
+            f"the scans placed with it, that their free space does not rule out (a look-alike)")
     clashing = []
     if config.free_space:
         with timer.stage("free_space"):
@@ -390,8 +397,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
                     edge_overruled=edges.overruled if config.free_space else None,
                     densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=skipped, features=features, timings=timer.seconds,
-                    global_feature=feature_kind, unverified=weak, contested=disputed, contradicted=clashing,
-                    cache=cache.report() if cache else None)
+                    global_feature=feature_kind, unverified=weak, contested=disputed, ambiguous=alike,
+                    contradicted=clashing, cache=cache.report() if cache else None)
     with timer.stage("covariances"):
         try:
             run.covariances = pose_covariances(run)

@@ -16,6 +16,7 @@ from .types import PoseGraph, SyncResult
 
 FLAGS = {"unregistered": "", "unverified": "pose rests on one registration, or one scan, that no loop checks",
          "contested": "dropped registrations outweigh the kept ones",
+         "ambiguous": "dropped registrations agree on another placement that free space cannot rule out",
          "contradicted": "placed where other scans saw empty space",
          "underdetermined": "not fixed to a voxel in some direction"}
 """Each way a run can doubt a scan (a ``RunResult`` field naming the scans), in the order they are reported,
@@ -31,7 +32,8 @@ class RunResult:
     ``unverified`` have one that rests on a single registration, or a single scan's registrations, that no loop
     checks (``sync.unverified``); scans in
     ``contested`` have one against which the graph holds more registration evidence than for it
-    (``sync.contested``); scans in ``contradicted`` have one that puts them where other scans saw empty space, or
+    (``sync.contested``); scans in ``ambiguous`` have another placement that dropped registrations agree on and the
+    scans' free space cannot rule out (``registration.overrule.look_alikes``); scans in ``contradicted`` have one that puts them where other scans saw empty space, or
     them seeing empty space where others are (``registration.visibility.contradicted_placements``); scans in
     ``underdetermined`` have one their edges leave free in some direction."""
 
@@ -52,6 +54,7 @@ class RunResult:
     global_feature: str = ""
     unverified: list[str] = field(default_factory=list)
     contested: list[str] = field(default_factory=list)
+    ambiguous: list[str] = field(default_factory=list)
     contradicted: list[str] = field(default_factory=list)
     edge_origin: list[str] = field(default_factory=list)
     """Per edge of ``graph``: how it entered (``registration.edges.ORIGINS``)."""

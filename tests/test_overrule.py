@@ -1,6 +1,7 @@
 """Free-space arbitration of group placements (registration/overrule.py), on a generated building's ray-cast scans:
 a room's scans held in the wrong place by kept registrations, while the right ones were dropped, are put back in
-question; the same graph with the room placed right and the wrong registrations dropped is left alone."""
+question, and called look-alikes; the same graph with the room placed right and the wrong registrations dropped is
+left alone."""
 
 from types import SimpleNamespace
 
@@ -11,7 +12,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sghr_gtsam.registration.overrule import Viewpoints, overruled_edges
+from sghr_gtsam.registration.overrule import Viewpoints, look_alikes, overruled_edges
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.synthetic import make_scene
 from sghr_gtsam.synthetic.building import building_layout
@@ -86,6 +87,28 @@ def test_a_room_held_in_the_wrong_place_is_overruled_and_a_right_one_is_not(buil
     assert not overruled_edges(views, graph, result).any()
 
 
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(degrees=st.floats(20, 180), sign=st.sampled_from([-1, 1]), distance=st.floats(1.5, 3))
+def test_a_placement_free_space_cannot_rule_out_is_a_look_alike(building, degrees, sign, distance):
+    """The room held turned and moved away from the other scans, while the dropped registrations agree on the right
+    place: its scans are look-alikes, unless it still conflicts enough for the overrule (then that model is not the
+    last). Moved into the other scans' view instead, free space rules the wrong place out: held right, no scan is a
+    look-alike; held wrong, the overrule acts first."""
+    grids, truth, room, voxel = building
+    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.zeros((N, 3)))
+    towards = truth[~room, :3, 3].mean(axis=0) - truth[room, :3, 3].mean(axis=0)
+    towards[2] = 0.0
+    towards /= np.linalg.norm(towards)
+    graph, result = _graph(_moved(truth, room, sign * degrees, -distance * towards), truth, room)
+    if overruled_edges(views, graph, result).any():
+        assert not look_alikes(views, graph, result).any()
+    else:
+        assert look_alikes(views, graph, result)[room].all()
+    into_view = _moved(truth, room, sign * degrees, distance / 2 * towards)
+    assert not look_alikes(views, *_graph(truth, into_view, room)).any()
+    assert not look_alikes(views, *_graph(into_view, truth, room)).any()
+
+
 def test_scans_centred_by_the_pipeline_take_no_part(building):
     """A centred scan's origin is no viewpoint: with every scan centred, nothing is judged."""
     grids, truth, room, voxel = building
@@ -93,3 +116,4 @@ def test_scans_centred_by_the_pipeline_take_no_part(building):
     views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.ones((N, 3)))
     assert not views.images
     assert not overruled_edges(views, graph, result).any()
+    assert not look_alikes(views, graph, result).any()

@@ -121,6 +121,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "unregistered": result.unregistered,
         "unverified": result.unverified,
         "contested": result.contested,
+        "ambiguous": result.ambiguous,
         "contradicted": result.contradicted,
         "underdetermined": result.underdetermined,
         "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p

@@ -17,6 +17,8 @@ range image's, so the range image here is coarser (``BIN_DEG``, ``MARGIN_VOXELS`
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..se3 import transform_points
@@ -24,7 +26,7 @@ from ..store import Attribute, Stored
 from ..sync.consensus import translation_tolerance
 from ..sync.disputes import agreeing_edges, linkage_groups
 from ..types import PoseGraph, SyncResult
-from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, in_front_of, range_image, seen_from_origin
+from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, range_image, seen_from_origin, seen_in_front_of
 
 BIN_DEG = 3.0
 """Angular cells of the range image (degrees). On studyroom's registered pairs (judged against its re-fitted GT),
@@ -45,6 +47,9 @@ every group the linkage forms on the way (a generated 500-scan building: 152 s a
 SAMPLE = 2000
 """Points of a scan, about, whose fraction in another's free space is measured (every n-th point of its grid): a
 fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONFLICT``."""
+MIN_AGREEING = 3
+"""Dropped registrations that must agree on another placement of a group before ``look_alikes`` calls it one:
+structured look-alikes come backed by 2-4 (issue 11), a lone wrong registration by one."""
 CONE_DEG = 80.0
 """A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
 a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.seen_from_origin``)."""
@@ -78,15 +83,19 @@ class Viewpoints:
         world = transform_points(T, self.corners[k])
         return np.stack([world.min(axis=0), world.max(axis=0)])
 
-    def conflict(self, a: int, b: int, T_a: np.ndarray, T_b: np.ndarray) -> bool:
-        """Whether either scan puts more than ``CONFLICT`` of its points (``SAMPLE`` of them) in the other's free
-        space, judged on at least ``MIN_IN_VIEW`` points in view."""
+    def conflict(self, a: int, b: int, T_a: np.ndarray, T_b: np.ndarray) -> float:
+        """1 when either scan puts more than ``CONFLICT`` of its points (``SAMPLE`` of them) in the other's free
+        space, judged on at least ``MIN_IN_VIEW`` points in view; 0 when neither does; NaN when neither is judged."""
+        out = float("nan")
         for x, y, T_x, T_y in ((a, b, T_a, T_b), (b, a, T_b, T_a)):
-            T = np.linalg.solve(T_x, T_y)
-            if in_front_of(self.images[x], transform_points(T, self.samples[y]), self.voxel, MARGIN_VOXELS, BIN_DEG,
-                           MIN_IN_VIEW) > CONFLICT:
-                return True
-        return False
+            seen, fraction = seen_in_front_of(self.images[x], transform_points(np.linalg.solve(T_x, T_y),
+                                                                               self.samples[y]),
+                                              self.voxel, MARGIN_VOXELS, BIN_DEG)
+            if seen >= MIN_IN_VIEW:
+                if fraction > CONFLICT:
+                    return 1.0
+                out = 0.0
+        return out
 
 
 def _takes_part(P: np.ndarray, voxel: float) -> bool:
@@ -101,18 +110,30 @@ def _takes_part(P: np.ndarray, voxel: float) -> bool:
     return seen_from_origin(P, voxel)
 
 
-def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
-    """(E,) bool: the kept edges of ``graph`` that hold a group of scans where the scans' free space (``views``)
-    rules it out, against the move that the group's dropped registrations agree on (module docstring).
-    ``result.poses`` in the scans' centred frames, as ``views``. Groups of more than ``MAX_GROUP`` scans are not
-    tried. Of groups that share scans or holding edges, the clearest case is taken (fewest conflicts left, then most
-    removed)."""
+@dataclass
+class _Trial:
+    """One group of scans (``linkage_groups``) tried at the move its agreeing dropped registrations propose."""
+
+    group: np.ndarray  # (N,) bool
+    holding: np.ndarray  # (E,) bool: the kept edges leaving it
+    agreeing: int  # dropped registrations agreeing on the move
+    support: float  # their w⁰ over the holding edges'
+    before: int  # scan pairs in conflict (one scan of the group, one outside) where it is
+    after: int  # ... and at the move
+    seen_before: int  # scan pairs judged (boxes meet, ``MIN_IN_VIEW`` points in view) where it is
+    seen_after: int  # ... and at the move
+
+
+def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool = False) -> list[_Trial]:
+    """The groups worth a move: for ``overruled_edges``, those with ``SUPPORT`` and ``MIN_GAIN`` conflicts to
+    remove; with ``alike`` (for ``look_alikes``, once a run: a folded building's groups cost up to ``MAX_GROUP`` x
+    ``MAX_PARTNERS`` tests each) also those with ``MIN_AGREEING`` registrations for the move."""
     main = result.component == 0
     poses = result.poses
     take = np.array([k for k in sorted(views.images) if main[k]], dtype=np.int64)
     boxes = np.array([views.box(k, poses[k]) for k in take]).reshape(-1, 2, 3)
     lo, hi = boxes[:, 0], boxes[:, 1]
-    judged: dict[tuple[int, int, bytes], bool] = {}  # nested groups share their scans, pairs and often their move
+    judged: dict[tuple[int, int, bytes], float] = {}  # nested groups share their scans, pairs and often their move
 
     def partners(box: np.ndarray, outside: np.ndarray) -> np.ndarray:
         """The scans of ``take[outside]`` whose boxes meet ``box``, the ``visibility.MAX_PARTNERS`` nearest."""
@@ -120,23 +141,24 @@ def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> 
         order = np.argsort(np.linalg.norm((lo[near] + hi[near]) / 2 - box.mean(axis=0), axis=1), kind="stable")
         return take[near[order[:MAX_PARTNERS]]]
 
-    def conflicts(group: np.ndarray, move: np.ndarray) -> int:
-        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it."""
+    def conflicts(group: np.ndarray, move: np.ndarray) -> tuple[int, int]:
+        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it, and pairs judged."""
         outside = ~group[take]
-        count = 0
+        verdicts = []
         for a in take[group[take]]:
             for b in partners(views.box(a, move @ poses[a]), outside):
                 key = (int(a), int(b), move.tobytes())
                 if key not in judged:
                     judged[key] = views.conflict(a, b, move @ poses[a], poses[b])
-                count += judged[key]
-        return count
+                verdicts.append(judged[key])
+        verdicts = np.array(verdicts)
+        return int(np.nansum(verdicts)), int(np.isfinite(verdicts).sum())
 
     kept = result.weights > 0
     i, j, w = graph.i, graph.j, graph.weight
     inside = (w > 0) & main[i] & main[j]
     tolerance = translation_tolerance(graph)
-    found = []
+    trials = []
     for group in linkage_groups(graph, result):
         if group.sum() > MAX_GROUP:
             continue
@@ -145,20 +167,53 @@ def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> 
         dropped = np.flatnonzero(leaving & ~kept)
         if not len(dropped):
             continue
-        agreeing, move = agreeing_edges(graph, result.poses, group, dropped, tolerance)
-        if w[agreeing].sum() < SUPPORT * held:
+        agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
+        support = w[agreeing].sum() / held if held > 0 else np.inf
+        many = alike and len(agreeing) >= MIN_AGREEING
+        if support < SUPPORT and not many:
             continue
-        before = conflicts(group, np.eye(4))
-        if before < MIN_GAIN:
+        before, seen_before = conflicts(group, np.eye(4))
+        if before < MIN_GAIN and not many:
             continue
-        after = conflicts(group, move)
-        if after <= RATIO * before and before - after >= MIN_GAIN:
-            found.append((after / before, -(before - after), group, leaving & kept))
+        after, seen_after = conflicts(group, move)
+        trials.append(_Trial(group, leaving & kept, len(agreeing), support, before, after, seen_before, seen_after))
+    return trials
+
+
+def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
+    """(E,) bool: the kept edges of ``graph`` that hold a group of scans where the scans' free space (``views``)
+    rules it out, against the move that the group's dropped registrations agree on (module docstring).
+    ``result.poses`` in the scans' centred frames, as ``views``. Groups of more than ``MAX_GROUP`` scans are not
+    tried. Of groups that share scans or holding edges, the clearest case is taken (fewest conflicts left, then most
+    removed)."""
+    return _overruled(_trials(views, graph, result), graph)
+
+
+def _overruled(trials: list[_Trial], graph: PoseGraph) -> np.ndarray:
+    """``overruled_edges`` of the groups tried."""
+    found = [t for t in trials if t.support >= SUPPORT and t.before >= MIN_GAIN
+             and t.after <= RATIO * t.before and t.before - t.after >= MIN_GAIN]
     # A conflict is explained once: a group's neighbours, tried as a group, see the same edges from the other side.
     out = np.zeros(graph.num_edges, dtype=bool)
     taken = np.zeros(graph.n, dtype=bool)
-    for _, _, group, holding in sorted(found, key=lambda f: (f[0], f[1])):
-        if not np.any(taken & group) and not np.any(out & holding):
-            taken |= group
-            out |= holding
+    for t in sorted(found, key=lambda t: (t.after / t.before, t.after - t.before)):
+        if not np.any(taken & t.group) and not np.any(out & t.holding):
+            taken |= t.group
+            out |= t.holding
+    return out
+
+
+def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
+    """(N,) bool: scans of a group that ``MIN_AGREEING`` or more dropped registrations agree on placing elsewhere,
+    where the scans' free space (``views``) finds no more conflicts than where it is, judged on at least half as
+    many scan pairs (a place nobody saw is no evidence): two placements that the scans cannot tell apart (identical
+    rooms), of which synchronization took the one with more weight. None while ``overruled_edges`` has edges to
+    overrule: that model is not the last."""
+    trials = _trials(views, graph, result, alike=True)
+    out = np.zeros(graph.n, dtype=bool)
+    if _overruled(trials, graph).any():
+        return out
+    for t in trials:
+        if t.agreeing >= MIN_AGREEING and t.after <= t.before and 2 * t.seen_after >= t.seen_before:
+            out |= t.group
     return out

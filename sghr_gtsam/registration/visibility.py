@@ -92,10 +92,18 @@ def in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, margin: float = 
     """Fraction of points ``P`` (in the frame of the scan whose range image of ``bin_deg`` cells is ``image``) that
     lie in front of its surface by more than ``margin`` voxels, among those in cells it observed (0 with fewer than
     ``min_seen``)."""
+    seen, fraction = seen_in_front_of(image, P, voxel, margin, bin_deg)
+    return fraction if seen >= min_seen else 0.0
+
+
+def seen_in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS,
+                     bin_deg: float = BIN_DEG) -> tuple[int, float]:
+    """``in_front_of``'s count of points in observed cells, and the fraction (NaN for none)."""
     r, cell, _ = _cells(P, bin_deg)
     surface = image[cell]
     seen = np.isfinite(surface)
-    return float(np.mean(r[seen] < surface[seen] - margin * voxel)) if seen.sum() >= min_seen else 0.0
+    count = int(seen.sum())
+    return count, float(np.mean(r[seen] < surface[seen] - margin * voxel)) if count else float("nan")
 
 
 def _in_front(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, voxel: float) -> float:
