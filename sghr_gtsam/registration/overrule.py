@@ -119,7 +119,7 @@ class _Trial:
     agreeing: int  # dropped registrations agreeing on the move
     support: float  # their w⁰ over the holding edges'
     before: int  # scan pairs in conflict (one scan of the group, one outside) where it is
-    after: int  # ... and at the move
+    after: int  # ... and at the move (counted up to ``before`` + 1)
     seen_before: int  # scan pairs judged (boxes meet, ``MIN_IN_VIEW`` points in view) where it is
     seen_after: int  # ... and at the move
 
@@ -141,18 +141,21 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
         order = np.argsort(np.linalg.norm((lo[near] + hi[near]) / 2 - box.mean(axis=0), axis=1), kind="stable")
         return take[near[order[:MAX_PARTNERS]]]
 
-    def conflicts(group: np.ndarray, move: np.ndarray) -> tuple[int, int]:
-        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it, and pairs judged."""
+    def conflicts(group: np.ndarray, move: np.ndarray, most: float = np.inf) -> tuple[int, int]:
+        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it, and pairs judged;
+        counting stops above ``most`` (neither rule takes a move with more conflicts than the group has now)."""
         outside = ~group[take]
-        verdicts = []
+        count, seen = 0, 0
         for a in take[group[take]]:
             for b in partners(views.box(a, move @ poses[a]), outside):
                 key = (int(a), int(b), move.tobytes())
                 if key not in judged:
                     judged[key] = views.conflict(a, b, move @ poses[a], poses[b])
-                verdicts.append(judged[key])
-        verdicts = np.array(verdicts)
-        return int(np.nansum(verdicts)), int(np.isfinite(verdicts).sum())
+                if np.isfinite(judged[key]):
+                    count, seen = count + int(judged[key]), seen + 1
+                if count > most:
+                    return count, seen
+        return count, seen
 
     kept = result.weights > 0
     i, j, w = graph.i, graph.j, graph.weight
@@ -175,7 +178,7 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
         before, seen_before = conflicts(group, np.eye(4))
         if before < MIN_GAIN and not many:
             continue
-        after, seen_after = conflicts(group, move)
+        after, seen_after = conflicts(group, move, most=before)
         trials.append(_Trial(group, leaving & kept, len(agreeing), support, before, after, seen_before, seen_after))
     return trials
 
@@ -205,8 +208,8 @@ def _overruled(trials: list[_Trial], graph: PoseGraph) -> np.ndarray:
 
 def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
     """(N,) bool: scans of a group that ``MIN_AGREEING`` or more dropped registrations agree on placing elsewhere,
-    where the scans' free space (``views``) finds no more conflicts than where it is, judged on at least half as
-    many scan pairs (a place nobody saw is no evidence): two placements that the scans cannot tell apart (identical
+    where the scans' free space (``views``) finds no more conflicts than where it is, judged on some scan pairs and
+    on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot tell apart (identical
     rooms), of which synchronization took the one with more weight. None while ``overruled_edges`` has edges to
     overrule: that model is not the last."""
     trials = _trials(views, graph, result, alike=True)
@@ -214,6 +217,6 @@ def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.n
     if _overruled(trials, graph).any():
         return out
     for t in trials:
-        if t.agreeing >= MIN_AGREEING and t.after <= t.before and 2 * t.seen_after >= t.seen_before:
+        if t.agreeing >= MIN_AGREEING and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0:
             out |= t.group
     return out
