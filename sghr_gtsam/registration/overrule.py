@@ -13,7 +13,10 @@ overruled: synchronization runs again without them.
 
 Fused RGB-D fragments are seen from their first camera but fused over many: their free space is noisier than one
 range image's, so the range image here is coarser (``BIN_DEG``, ``MARGIN_VOXELS``) than the per-pair check's
-(``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``)."""
+(``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``).
+
+Identical rooms give no conflict at either placement: there the group's scans are only flagged (``look_alikes``),
+since nothing in the scans says which placement is right (a generated 16-scan hotel, docs/BENCHMARKS.md)."""
 
 from __future__ import annotations
 
