@@ -212,9 +212,9 @@ def _overruled(trials: list[_Trial], graph: PoseGraph) -> np.ndarray:
 def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
     """(N,) bool: scans of a group that ``MIN_AGREEING`` or more dropped registrations agree on placing elsewhere,
     where the scans' free space (``views``) finds no more conflicts than where it is, judged on some scan pairs and
-    on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot tell apart (identical
-    rooms), of which synchronization took the one with more weight. None while ``overruled_edges`` has edges to
-    overrule: that model is not the last."""
+    on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot
+    tell apart (identical rooms), of which synchronization took the one with more weight. None while
+    ``overruled_edges`` has edges to overrule: that model is not the last."""
     trials = _trials(views, graph, result, alike=True)
     out = np.zeros(graph.n, dtype=bool)
     if _overruled(trials, graph).any():
