@@ -378,18 +378,15 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
-    alike = []
-    if views is not None:
+    alike, clashing = [], []
+    if views is not None:  # config.free_space
         with timer.stage("free_space"):
             alike = [names[k] for k in np.flatnonzero(look_alikes(views, graph, result))]
+            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(features, poses, main_part, voxel,
+                                                                                 centres))]
     for name in alike:
         log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
             f"the scans placed with it, that their free space does not rule out (a look-alike)")
-    clashing = []
-    if config.free_space:
-        with timer.stage("free_space"):
-            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(features, poses, main_part, voxel,
-                                                                                 centres))]
     for name in clashing:
         log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
     run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,

@@ -23,13 +23,18 @@ N, SEED = 24, 2
 
 @pytest.fixture(scope="module")
 def building():
-    """The scans' voxel grids (in their sensor frames), GT poses, and the scans of the first room."""
+    """The scans' voxel grids (in their sensor frames), GT poses, the scans of the first room, the scans'
+    ``Viewpoints`` and the level direction from the room towards the other scans."""
     scene = make_scene("building", N, seed=SEED)
     layout = building_layout(N, seed=SEED)
     grids = [np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(P)))
                         .voxel_down_sample(scene.voxel).points) for P in scene.scans]
-    room = next(c for c, cell in enumerate(layout.cells) if cell.kind == "room")
-    return grids, scene.poses, layout.cell_of_scan == room, scene.voxel
+    room = layout.cell_of_scan == next(c for c, cell in enumerate(layout.cells) if cell.kind == "room")
+    views = Viewpoints([SimpleNamespace(points=P) for P in grids], scene.voxel, np.zeros((N, 3)))
+    towards = scene.poses[~room, :3, 3].mean(axis=0) - scene.poses[room, :3, 3].mean(axis=0)
+    towards[2] = 0.0
+    return SimpleNamespace(grids=grids, truth=scene.poses, room=room, voxel=scene.voxel, views=views,
+                           towards=towards / np.linalg.norm(towards))
 
 
 def _graph(poses_kept: np.ndarray, poses_dropped: np.ndarray, group: np.ndarray):
@@ -73,11 +78,8 @@ def test_a_room_held_in_the_wrong_place_is_overruled_and_a_right_one_is_not(buil
     """The room is turned by 20-180° and moved up to 2 m towards the other scans: into their view. (Moved away
     from them, it contradicts little that a scan saw: 3 m outwards leaves 7 conflicting pairs, fewer than
     ``MIN_GAIN``, and stays as it is.)"""
-    grids, truth, room, voxel = building
-    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.zeros((N, 3)))
-    towards = truth[~room, :3, 3].mean(axis=0) - truth[room, :3, 3].mean(axis=0)
-    towards[2] = 0.0
-    wrong = _moved(truth, room, sign * degrees, inward * towards / np.linalg.norm(towards))
+    truth, room, views = building.truth, building.room, building.views
+    wrong = _moved(truth, room, sign * degrees, inward * building.towards)
 
     graph, result = _graph(wrong, truth, room)
     holding = (room[graph.i] != room[graph.j]) & (result.weights > 0)
@@ -94,26 +96,22 @@ def test_a_placement_free_space_cannot_rule_out_is_a_look_alike(building, degree
     place: its scans are look-alikes, unless it still conflicts enough for the overrule (then that model is not the
     last). Moved into the other scans' view instead, free space rules the wrong place out: held right, no scan is a
     look-alike; held wrong, the overrule acts first."""
-    grids, truth, room, voxel = building
-    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.zeros((N, 3)))
-    towards = truth[~room, :3, 3].mean(axis=0) - truth[room, :3, 3].mean(axis=0)
-    towards[2] = 0.0
-    towards /= np.linalg.norm(towards)
-    graph, result = _graph(_moved(truth, room, sign * degrees, -distance * towards), truth, room)
+    truth, room, views = building.truth, building.room, building.views
+    graph, result = _graph(_moved(truth, room, sign * degrees, -distance * building.towards), truth, room)
     if overruled_edges(views, graph, result).any():
         assert not look_alikes(views, graph, result).any()
     else:
         assert look_alikes(views, graph, result)[room].all()
-    into_view = _moved(truth, room, sign * degrees, distance / 2 * towards)
+    into_view = _moved(truth, room, sign * degrees, distance / 2 * building.towards)
     assert not look_alikes(views, *_graph(truth, into_view, room)).any()
     assert not look_alikes(views, *_graph(into_view, truth, room)).any()
 
 
 def test_scans_centred_by_the_pipeline_take_no_part(building):
     """A centred scan's origin is no viewpoint: with every scan centred, nothing is judged."""
-    grids, truth, room, voxel = building
+    truth, room = building.truth, building.room
     graph, result = _graph(_moved(truth, room, 90.0, np.zeros(3)), truth, room)
-    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.ones((N, 3)))
+    views = Viewpoints([SimpleNamespace(points=P) for P in building.grids], building.voxel, np.ones((N, 3)))
     assert not views.images
     assert not overruled_edges(views, graph, result).any()
     assert not look_alikes(views, graph, result).any()
