@@ -41,6 +41,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # data_tools
 from data_tools.other_3dmatch_scenes import GT_DIR as GT_3DMATCH, OTHER_SCENES  # noqa: E402
+from data_tools.scene_gt import data_root  # noqa: E402
 
 
 @dataclass(frozen=True)
@@ -280,7 +281,7 @@ def main() -> None:
         child(*sys.argv[2:6])
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=data_root())
     ap.add_argument("--scenes", nargs="+", default=DEFAULT_SCENES, choices=[*SCENES, *GROUPS])
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="override a Config field (repeatable)")

@@ -27,6 +27,9 @@ from sghr_gtsam.gtsam_api import pose_covariances, sigmas
 from sghr_gtsam.pipeline import Scan, register, run
 from sghr_gtsam.se3 import inv_T
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
+
 GROSS_DEG = 5.0
 
 
@@ -108,7 +111,7 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=1000)
     parser.add_argument("--scans", type=int, default=6)
     parser.add_argument("--real", nargs="*", default=None, help="real scenes instead: kitchen bunny")
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--data", type=Path, default=data_root())
     args = parser.parse_args()
     if args.real is not None:
         real(args.real or ["kitchen", "bunny"], args.data)

@@ -17,6 +17,7 @@ Timings are wall seconds on a shared 2-core machine (other jobs running): median
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -27,6 +28,9 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.config import Config
 from sghr_gtsam.incremental import Session
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
 
 SIGMA = np.r_[np.full(3, np.radians(0.1)), np.full(3, 0.002)]
 
@@ -116,7 +120,7 @@ def main() -> None:
     parser.add_argument("--scans", nargs="*", type=int)
     parser.add_argument("--outliers", type=float, default=0.02)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--data", type=Path, default=data_root())
     args = parser.parse_args()
     if args.real is not None:
         real(args.real or ["kitchen", "bunny"], args.data)

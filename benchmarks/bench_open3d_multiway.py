@@ -36,8 +36,8 @@ from pathlib import Path
 
 import numpy as np
 from bench_3dmatch import SCENES, labels, scene_gt
+from data_tools.scene_gt import data_root
 
-ROOT = Path(__file__).resolve().parents[1]
 _CLOUDS: dict = {}  # per worker process: name -> (raw cloud, down-sampled cloud with normals, FPFH)
 
 
@@ -218,7 +218,7 @@ def print_rows(rows: list[dict]) -> None:
 def main() -> None:
     os.environ.setdefault("OMP_NUM_THREADS", "1")  # before open3d loads: one thread per process
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=data_root())
     ap.add_argument("--scenes", nargs="+", default=["kitchen", "bunny", "home_at"], choices=list(SCENES))
     ap.add_argument("--processes", type=int, default=2)
     ap.add_argument("--json", type=Path, help="also write the raw rows here")

@@ -49,7 +49,7 @@ from scipy.stats import spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
-from data_tools.scene_gt import log_overlaps  # noqa: E402
+from data_tools.scene_gt import data_root, log_overlaps  # noqa: E402
 from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E402
 from sghr_gtsam.features.netvlad import (  # noqa: E402
     DEFAULT_HEAD,
@@ -63,7 +63,7 @@ from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  #
 from sghr_gtsam.io.poses import read_gt_log, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import load_scan  # noqa: E402
 
-DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+DATA = data_root()
 KS = (3, 5)
 THRESHOLD = 0.1
 RANDOM_DRAWS = 1000

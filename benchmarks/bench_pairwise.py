@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -41,7 +40,10 @@ from sghr_gtsam.io.scans import load_scan
 from sghr_gtsam.registration.pairwise import MATCHERS, register_pair
 from sghr_gtsam.se3 import inv_T, relative_errors, transform_points
 
-DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
+
+DATA = data_root()
 # scene: (folder, ground-truth file, rotation bound deg, translation bound in scene units)
 SCENES = {
     "kitchen": ("kitchen", "kitchen/gt/gt_poses.txt", 5.0, 0.2),

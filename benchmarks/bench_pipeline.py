@@ -16,6 +16,8 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
 
 CHILD = r"""
 import json, sys
@@ -47,7 +49,7 @@ SCENES = {"kitchen": ("kitchen", "kitchen/gt", 5.0, 0.2), "bunny": ("bunny", "bu
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=data_root())
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     args = ap.parse_args()
     stages = ["load", "features", "global_graph", "pairwise", "sync", "write", "total"]

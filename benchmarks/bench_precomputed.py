@@ -27,6 +27,8 @@ from sghr_gtsam.io.poses import read_poses
 from sghr_gtsam.se3 import inv_T, relative_errors
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
 
 
 def worst_pair(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
@@ -37,7 +39,7 @@ def worst_pair(poses: np.ndarray, gt: np.ndarray) -> tuple[float, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    ap.add_argument("--data", type=Path, default=data_root())
     args = ap.parse_args()
     ref = args.data / "sghr-reference"
     with tempfile.TemporaryDirectory() as tmp:

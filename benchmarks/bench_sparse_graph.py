@@ -62,6 +62,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
+from data_tools.scene_gt import data_root  # noqa: E402
 from data_tools.simulate import make_training_scene  # noqa: E402
 from sghr_gtsam import pipeline  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
@@ -72,7 +73,7 @@ from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read
 from sghr_gtsam.se3 import inv_T  # noqa: E402
 from sghr_gtsam.types import InputError  # noqa: E402
 
-DATA = Path(os.environ.get("SGHR_DATA", ROOT.parent / "shared" / "data"))
+DATA = data_root()
 # scene: (scan folder, GT folder, max rotation deg, max translation, unit name, unit scale for printing)
 SCENES = {"kitchen": ("kitchen", "kitchen/gt", 5.0, 0.2, "m", 1.0),
           "bunny": ("bunny", "bunny", 1.0, 0.001, "mm", 1000.0)}

@@ -16,13 +16,15 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
 IMPORT = ("import time; t = time.perf_counter(); import matplotlib.figure, matplotlib.collections; "
           "from matplotlib.backends import backend_agg; print(time.perf_counter() - t)")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data")
+    parser.add_argument("--data", type=Path, default=data_root())
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
 

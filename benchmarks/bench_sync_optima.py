@@ -8,6 +8,7 @@ against plain Levenberg–Marquardt (method "lm", which reaches it) elsewhere, a
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -16,13 +17,16 @@ from sghr_gtsam.config import Config
 from sghr_gtsam.io.g2o import isotropic_information, read_g2o, sesync_objective
 from sghr_gtsam.sync import synchronize
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
+from data_tools.scene_gt import data_root  # noqa: E402
+
 GRAPHS = {"sphere2500": 1.687e3, "parking-garage": 1.263e0, "tinyGrid3D": None, "smallGrid3D": None,
           "sphere_bignoise_vertex3": None}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    parser.add_argument("--data", type=Path, default=data_root())
     parser.add_argument("--polish", nargs="*", default=[Config().polish])
     args = parser.parse_args()
     print("| graph | poses / edges | published f* | f (lm) | polish | f | edges kept | parts | seconds |")

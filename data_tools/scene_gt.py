@@ -29,7 +29,8 @@ class SceneGT:
 
 
 def data_root() -> Path:
-    """The shared data: ``$SGHR_DATA`` or ``../shared/data`` beside the repository (as tests/conftest.py)."""
+    """The shared data: ``$SGHR_DATA`` or ``../shared/data`` beside the repository (the default of the tests and
+    the benchmarks)."""
     return Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
 
 

@@ -1,8 +1,9 @@
-import os
 import signal
 from pathlib import Path
 
 import pytest
+
+from data_tools.scene_gt import data_root
 
 # A non-interactive shell starts background jobs with SIGINT ignored, and a Python started so never raises
 # KeyboardInterrupt: the tests that stop runs with SIGINT then failed when pytest ran in the background. Python's
@@ -10,7 +11,7 @@ import pytest
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
-DATA = Path(os.environ.get("SGHR_DATA", Path(__file__).resolve().parents[1].parent / "shared" / "data"))
+DATA = data_root()
 
 
 @pytest.fixture(scope="session")
