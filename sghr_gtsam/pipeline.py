@@ -1,12 +1,14 @@
-"""The SGHR pipeline, stage by stage: scans -> local features -> global features and top-k graph ->
-pairwise registration on graph edges -> history-reweighted IRLS -> gtsam polish -> poses."""
+"""The SGHR pipeline, stage by stage (``_register``): scans -> local features -> global features and top-k graph ->
+pairwise registration on graph edges -> synchronization (history-reweighted IRLS, gtsam polish) -> free space
+overrules look-alike placements -> refinement, loop closure and retries, synchronized again (``_densify``) -> poses
+and the scans the run doubts (``_run_result``)."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -175,41 +177,73 @@ def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, st
     return keep
 
 
-def _pose_graph(edges: EdgeSet, features: Stored, centres: np.ndarray, scores: np.ndarray, voxel: float,
-                config: Config, timer: _Timer, log: Log) -> PoseGraph:
-    """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
-    if config.free_space:
-        with timer.stage("free_space"):
-            edges.check_free_space(features, voxel, centres)
-        checked = int(np.isfinite(edges.conflict).sum())
-        log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations contradicted "
-            f"({len(edges.pairs) - checked} not checkable: scans not seen from their origins)")
-    return edges.pose_graph(len(features), scores, config.min_inliers, config.initial_weight)
-
-
 OVERRULE_ROUNDS = 3
 """Synchronizations without overruled edges after each one with them, at most: each can bring new groups to light."""
 
 
-def _overrule(views: Viewpoints | None, edges: EdgeSet, graph: PoseGraph, result: SyncResult, features: Stored,
-              centres: np.ndarray, scores: np.ndarray, voxel: float, config: Config, timer: _Timer, log: Log,
-              recorder: Recorder | None, progress: Progress) -> tuple[PoseGraph, SyncResult]:
-    """Synchronize again without the edges that hold a group where the scans' free space rules it out
-    (``registration.overrule``; ``views`` None: no check), until none is left, at most ``OVERRULE_ROUNDS`` times."""
-    for _ in range(OVERRULE_ROUNDS if views is not None else 0):
-        with timer.stage("free_space"):
-            overruled = overruled_edges(views, graph, result) & ~edges.overruled
-        if not overruled.any():
-            break
-        edges.overruled |= overruled
-        log(f"free space: {int(overruled.sum())} registrations overruled (they held a group of scans where the "
-            f"scans' free space rules it out)")
-        graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
-        if recorder:
-            recorder.log_graph(graph, scores)
-        with timer.stage("sync"):
-            result = _synchronize(graph, config, recorder, progress, "synchronization (overruled edges out)")
-    return graph, result
+@dataclass
+class _Stages:
+    """What the stages after the local features share in one ``register``: the usable scans and their stored
+    features, the run's settings and observers, and what the early stages learn for the later ones."""
+
+    scans: list[Scan]
+    features: Stored
+    centres: np.ndarray  # (N, 3): where each scan was centred (``local_frame``)
+    voxel: float
+    config: Config
+    store: Store
+    timer: _Timer
+    log: Log
+    recorder: Recorder | None
+    progress: Progress
+    cache: Cache | None
+    scores: np.ndarray | None = None  # (N, N) overlap scores, from the global graph on
+    views: Viewpoints | None = None  # the scans' free space (``config.free_space``), from the first synchronization on
+
+    def pose_graph(self, edges: EdgeSet) -> PoseGraph:
+        """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
+        if self.config.free_space:
+            with self.timer.stage("free_space"):
+                edges.check_free_space(self.features, self.voxel, self.centres)
+            checked = int(np.isfinite(edges.conflict).sum())
+            self.log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
+                     f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their origins)")
+        graph = edges.pose_graph(len(self.features), self.scores, self.config.min_inliers, self.config.initial_weight)
+        if self.recorder:
+            self.recorder.log_graph(graph, self.scores)
+        return graph
+
+    def synchronize(self, graph: PoseGraph, label: str) -> SyncResult:
+        """Synchronize ``graph`` by ``config``'s method, each iteration shown (``label``) and recorded."""
+        config, recorder = self.config, self.recorder
+        with self.timer.stage("sync"):
+            with self.progress.stage(label, config.iters) as tick:
+                def observe(record: IterationRecord) -> None:
+                    if recorder:
+                        recorder.on_iteration(record)
+                    tick(record)
+
+                result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
+                                     polish=config.polish, min_weight=config.min_weight, on_iteration=observe)
+            if recorder:
+                recorder.log_sync(result)
+        return result
+
+    def overrule(self, edges: EdgeSet, graph: PoseGraph, result: SyncResult) -> tuple[PoseGraph, SyncResult]:
+        """Synchronize again without the edges that hold a group where the scans' free space rules it out
+        (``registration.overrule``; no ``views``: no check), until none is left, at most ``OVERRULE_ROUNDS``
+        times."""
+        for _ in range(OVERRULE_ROUNDS if self.views is not None else 0):
+            with self.timer.stage("free_space"):
+                overruled = overruled_edges(self.views, graph, result) & ~edges.overruled
+            if not overruled.any():
+                break
+            edges.overruled |= overruled
+            self.log(f"free space: {int(overruled.sum())} registrations overruled (they held a group of scans where "
+                     f"the scans' free space rules it out)")
+            graph = self.pose_graph(edges)
+            result = self.synchronize(graph, "synchronization (overruled edges out)")
+        return graph, result
 
 
 def _also_recorded(log: Log, recorder: Recorder) -> Log:
@@ -269,6 +303,35 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
               recorder: Recorder | None, log: Log, skipped: dict[str, str], timer: _Timer, scores: np.ndarray | None,
               progress: Progress, cache: Cache | None) -> RunResult:
     """``register`` from the features on: ``scans`` checked and centred (at ``centres``)."""
+    scans, centres, features, counts = _local_features(scans, centres, voxel, config, store, skipped, timer, log,
+                                                       progress)
+    if recorder:
+        recorder.log_scans([s.name for s in scans], Attribute(features, "points"))
+    run = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
+    top_k, run.scores, feature_kind = _global_graph(run, counts, scores)
+
+    edges = EdgeSet()
+    with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
+        edges.add(top_k, register_edges(features, top_k, voxel, config, tick, cache), "top-k")
+    log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
+    graph = run.pose_graph(edges)
+    if not np.any(graph.weight > 0):
+        raise InputError("no pair of scans could be registered (do the scans overlap?)")
+    result = run.synchronize(graph, "synchronization")
+    log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
+    if config.free_space:
+        with timer.stage("free_space"):
+            run.views = Viewpoints(features, voxel, centres)
+    graph, result = run.overrule(edges, graph, result)
+    graph, result, densify, first_weak = _densify(run, edges, graph, result)
+    return _run_result(run, edges, graph, result, densify, first_weak, skipped, feature_kind)
+
+
+def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,
+                    skipped: dict[str, str], timer: _Timer, log: Log,
+                    progress: Progress) -> tuple[list[Scan], np.ndarray, Stored, list[int]]:
+    """The scans with features, their centres, their features in ``store`` and their counts of descriptors; the
+    others go to ``skipped``."""
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
     # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
     keys = [scan_key(s, voxel, config) for s in scans]
@@ -285,57 +348,48 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     if len(scans) < 2:
         raise _too_few(scans, skipped)
     features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, radii, scans))
-    names = [s.name for s in scans]
-    if recorder:
-        recorder.log_scans(names, Attribute(features, "points"))
+    return scans, centres, features, counts
 
-    with timer.stage("global_graph"):
+
+def _global_graph(run: _Stages, counts: list[int],
+                  scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
+    """The top-k pairs to register (bridged across parts with ``config.connect``), the (N, N) overlap scores
+    (the caller's ``scores``, or from the global features) and what made them."""
+    config, n = run.config, len(run.scans)
+    with run.timer.stage("global_graph"):
         if scores is None:
-            F, feature_kind = _global_features(features, counts, config)
+            F, feature_kind = _global_features(run.features, counts, config)
             top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
-            scores, feature_kind = _given_scores(scores, len(scans)), "overlap scores given by the caller"
+            scores, feature_kind = _given_scores(scores, n), "overlap scores given by the caller"
             top_k = top_k_edges(scores, config.k)
         if config.connect:
             top_k = bridge_components(top_k, scores)
-    n, n_all = len(scans), len(scans) * (len(scans) - 1) // 2
-    log(f"features: {timer.seconds['features']:.2f} s; pose graph: {len(top_k)} of {n_all} pairs "
-        f"(top-{config.k}) in {timer.seconds['global_graph']:.2f} s")
+    run.log(f"features: {run.timer.seconds['features']:.2f} s; pose graph: {len(top_k)} of {n * (n - 1) // 2} "
+            f"pairs (top-{config.k}) in {run.timer.seconds['global_graph']:.2f} s")
+    return top_k, scores, feature_kind
 
-    edges = EdgeSet()
-    with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
-        edges.add(top_k, register_edges(features, top_k, voxel, config, tick, cache), "top-k")
-    log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
-    graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
-    if recorder:
-        recorder.log_graph(graph, scores)
-    if not np.any(graph.weight > 0):
-        raise InputError("no pair of scans could be registered (do the scans overlap?)")
-    with timer.stage("sync"):
-        result = _synchronize(graph, config, recorder, progress, "synchronization")
-    log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
-    views = None
-    if config.free_space:
-        with timer.stage("free_space"):
-            views = Viewpoints(features, voxel, centres)
-    graph, result = _overrule(views, edges, graph, result, features, centres, scores, voxel, config, timer, log,
-                              recorder, progress)
 
-    # Steps 2-4 of the front end, then synchronize again, while they change the graph (at most config.rounds).
+def _densify(run: _Stages, edges: EdgeSet, graph: PoseGraph,
+             result: SyncResult) -> tuple[PoseGraph, SyncResult, DensifyReport, np.ndarray]:
+    """Steps 2-4 of the front end (refine, close loops, retry weak scans), then synchronize again, while they
+    change the graph (at most ``config.rounds`` times); also the (N,) scans weak after the first synchronization."""
+    config, timer, progress = run.config, run.timer, run.progress
+    features, voxel, cache = run.features, run.voxel, run.cache
     densify = DensifyReport()
     # Retries go to scans beyond a bridge only: also retrying those beyond one scan took three of five simulated
     # rooms past the 40 % budget of global registrations (docs/BENCHMARKS.md, session 20).
-    first_weak = weak_scans(n, graph.i, graph.j, result.weights > 0, result.component,
+    first_weak = weak_scans(len(run.scans), graph.i, graph.j, result.weights > 0, result.component,
                             unverified(graph, result, one_scan=False))
     pyramids = None
     for _ in range(config.rounds):
         changed = 0
         if (config.refine or config.loops) and pyramids is None:
             grid_keys = [pyramid_key(key) for key in features.keys]
-            with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
-                store.map(PYRAMIDS, scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
-                          keep=lambda p: None)
-            pyramids = store.sequence(PYRAMIDS, grid_keys, _again(scan_pyramid, voxel, scans))
+            with timer.stage("pyramids"), progress.stage("pyramids", len(run.scans)) as tick:
+                run.store.map(PYRAMIDS, scan_pyramid, voxel, run.scans, grid_keys, config.workers, tick, config.ray,
+                              keep=lambda p: None)
+            pyramids = run.store.sequence(PYRAMIDS, grid_keys, _again(scan_pyramid, voxel, run.scans))
         if config.refine:
             with timer.stage("refine"):
                 changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress, cache)
@@ -344,25 +398,27 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
                 changed += close_loops(features, pyramids, edges, result, voxel, config, densify, progress, cache)
         if config.retry:
             with timer.stage("retry"):
-                changed += retry_weak(features, scores, edges, result, unverified(graph, result, one_scan=False),
+                changed += retry_weak(features, run.scores, edges, result, unverified(graph, result, one_scan=False),
                                       voxel, config, densify, progress, cache)
         if not changed:
             break
         densify.rounds += 1
-        graph = _pose_graph(edges, features, centres, scores, voxel, config, timer, log)
-        log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
-            f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
-        if recorder:
-            recorder.log_graph(graph, scores)
-        with timer.stage("sync"):
-            result = _synchronize(graph, config, recorder, progress, f"synchronization (round {densify.rounds})")
-        graph, result = _overrule(views, edges, graph, result, features, centres, scores, voxel, config, timer,
-                                  log, recorder, progress)
+        graph = run.pose_graph(edges)
+        run.log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
+                f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
+        result = run.synchronize(graph, f"synchronization (round {densify.rounds})")
+        graph, result = run.overrule(edges, graph, result)
+    return graph, result, densify, first_weak
 
-    # Anchor the world at the first scan of the largest part; other parts have no reliable pose.
+
+def _run_result(run: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, densify: DensifyReport,
+                first_weak: np.ndarray, skipped: dict[str, str], feature_kind: str) -> RunResult:
+    """The last synchronization's poses anchored at the first scan of the largest part, the scans it doubts
+    (flags), the covariances, back in the input frame."""
+    log, names, n = run.log, [s.name for s in run.scans], len(run.scans)
     main_part = result.component == 0
     main = np.flatnonzero(main_part)
-    poses = inv_T(result.poses[main[0]])[None] @ result.poses
+    poses = inv_T(result.poses[main[0]])[None] @ result.poses  # the other parts have no reliable pose
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     for name in unregistered:
         log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
@@ -379,37 +435,38 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
     alike, clashing = [], []
-    if views is not None:  # config.free_space
-        with timer.stage("free_space"):
-            alike = [names[k] for k in np.flatnonzero(look_alikes(views, graph, result))]
-            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(features, poses, main_part, voxel,
-                                                                                 centres))]
+    if run.views is not None:  # config.free_space
+        with run.timer.stage("free_space"):
+            alike = [names[k] for k in np.flatnonzero(look_alikes(run.views, graph, result))]
+            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(run.features, poses, main_part,
+                                                                                 run.voxel, run.centres))]
     for name in alike:
         log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
             f"the scans placed with it, that their free space does not rule out (a look-alike)")
     for name in clashing:
         log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
-    run = RunResult(names=names, poses=poses, voxel=float(voxel), scores=scores, graph=graph, pairs=edges.pairs,
-                    edge_origin=edges.origin, edge_conflict=edges.conflict if config.free_space else None,
-                    edge_overruled=edges.overruled if config.free_space else None,
+    free_space = run.config.free_space
+    out = RunResult(names=names, poses=poses, voxel=float(run.voxel), scores=run.scores, graph=graph,
+                    pairs=edges.pairs, edge_origin=edges.origin, edge_conflict=edges.conflict if free_space else None,
+                    edge_overruled=edges.overruled if free_space else None,
                     densify=densify.as_dict(), sync=result, unregistered=unregistered,
-                    skipped=skipped, features=features, timings=timer.seconds,
+                    skipped=skipped, features=run.features, timings=run.timer.seconds,
                     global_feature=feature_kind, unverified=weak, contested=disputed, ambiguous=alike,
-                    contradicted=clashing, cache=cache.report() if cache else None)
-    with timer.stage("covariances"):
+                    contradicted=clashing, cache=run.cache.report() if run.cache else None)
+    with run.timer.stage("covariances"):
         try:
-            run.covariances = pose_covariances(run)
+            out.covariances = pose_covariances(out)
         except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
-            run.covariances = np.full((n, 6, 6), np.nan)
+            out.covariances = np.full((n, 6, 6), np.nan)
             log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
-    run.underdetermined = _underdetermined(run, main[0])
-    for name in run.underdetermined:
+    out.underdetermined = _underdetermined(out, main[0])
+    for name in out.underdetermined:
         log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
-    if recorder:
-        recorder.log_final(poses, run.flags)
-        recorder.log_covariances(poses, run.covariances)
-    local_frame.to_input_frame(run, centres)
-    return run
+    if run.recorder:
+        run.recorder.log_final(poses, out.flags)
+        run.recorder.log_covariances(poses, out.covariances)
+    local_frame.to_input_frame(out, run.centres)
+    return out
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:
@@ -434,21 +491,6 @@ def _underdetermined(run: RunResult, anchor: int) -> list[str]:
         pass
     flagged = underdetermined(covariances, Attribute(run.features, "points"), run.voxel, others, stiffened)
     return [run.names[k] for k in np.flatnonzero(flagged)]
-
-
-def _synchronize(graph: PoseGraph, config: Config, recorder: Recorder | None, progress: Progress = QUIET,
-                 label: str = "synchronization") -> SyncResult:
-    with progress.stage(label, config.iters) as tick:
-        def observe(record: IterationRecord) -> None:
-            if recorder:
-                recorder.on_iteration(record)
-            tick(record)
-
-        result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
-                             polish=config.polish, min_weight=config.min_weight, on_iteration=observe)
-    if recorder:
-        recorder.log_sync(result)
-    return result
 
 
 def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
