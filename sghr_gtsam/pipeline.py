@@ -307,24 +307,24 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
                                                        progress)
     if recorder:
         recorder.log_scans([s.name for s in scans], Attribute(features, "points"))
-    run = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
-    top_k, run.scores, feature_kind = _global_graph(run, counts, scores)
+    stages = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
+    top_k, stages.scores, feature_kind = _global_graph(stages, counts, scores)
 
     edges = EdgeSet()
     with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
         edges.add(top_k, register_edges(features, top_k, voxel, config, tick, cache), "top-k")
     log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
-    graph = run.pose_graph(edges)
+    graph = stages.pose_graph(edges)
     if not np.any(graph.weight > 0):
         raise InputError("no pair of scans could be registered (do the scans overlap?)")
-    result = run.synchronize(graph, "synchronization")
+    result = stages.synchronize(graph, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
     if config.free_space:
         with timer.stage("free_space"):
-            run.views = Viewpoints(features, voxel, centres)
-    graph, result = run.overrule(edges, graph, result)
-    graph, result, densify, first_weak = _densify(run, edges, graph, result)
-    return _run_result(run, edges, graph, result, densify, first_weak, skipped, feature_kind)
+            stages.views = Viewpoints(features, voxel, centres)
+    graph, result = stages.overrule(edges, graph, result)
+    graph, result, densify, first_weak = _densify(stages, edges, graph, result)
+    return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)
 
 
 def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,
@@ -351,45 +351,46 @@ def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config
     return scans, centres, features, counts
 
 
-def _global_graph(run: _Stages, counts: list[int],
+def _global_graph(stages: _Stages, counts: list[int],
                   scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
     """The top-k pairs to register (bridged across parts with ``config.connect``), the (N, N) overlap scores
     (the caller's ``scores``, or from the global features) and what made them."""
-    config, n = run.config, len(run.scans)
-    with run.timer.stage("global_graph"):
+    config, n = stages.config, len(stages.scans)
+    with stages.timer.stage("global_graph"):
         if scores is None:
-            F, feature_kind = _global_features(run.features, counts, config)
+            F, feature_kind = _global_features(stages.features, counts, config)
             top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
             scores, feature_kind = _given_scores(scores, n), "overlap scores given by the caller"
             top_k = top_k_edges(scores, config.k)
         if config.connect:
             top_k = bridge_components(top_k, scores)
-    run.log(f"features: {run.timer.seconds['features']:.2f} s; pose graph: {len(top_k)} of {n * (n - 1) // 2} "
-            f"pairs (top-{config.k}) in {run.timer.seconds['global_graph']:.2f} s")
+    seconds = stages.timer.seconds
+    stages.log(f"features: {seconds['features']:.2f} s; pose graph: {len(top_k)} of {n * (n - 1) // 2} pairs "
+               f"(top-{config.k}) in {seconds['global_graph']:.2f} s")
     return top_k, scores, feature_kind
 
 
-def _densify(run: _Stages, edges: EdgeSet, graph: PoseGraph,
+def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
              result: SyncResult) -> tuple[PoseGraph, SyncResult, DensifyReport, np.ndarray]:
     """Steps 2-4 of the front end (refine, close loops, retry weak scans), then synchronize again, while they
     change the graph (at most ``config.rounds`` times); also the (N,) scans weak after the first synchronization."""
-    config, timer, progress = run.config, run.timer, run.progress
-    features, voxel, cache = run.features, run.voxel, run.cache
+    config, timer, progress = stages.config, stages.timer, stages.progress
+    scans, features, voxel, cache = stages.scans, stages.features, stages.voxel, stages.cache
     densify = DensifyReport()
     # Retries go to scans beyond a bridge only: also retrying those beyond one scan took three of five simulated
     # rooms past the 40 % budget of global registrations (docs/BENCHMARKS.md, session 20).
-    first_weak = weak_scans(len(run.scans), graph.i, graph.j, result.weights > 0, result.component,
+    first_weak = weak_scans(len(scans), graph.i, graph.j, result.weights > 0, result.component,
                             unverified(graph, result, one_scan=False))
     pyramids = None
     for _ in range(config.rounds):
         changed = 0
         if (config.refine or config.loops) and pyramids is None:
             grid_keys = [pyramid_key(key) for key in features.keys]
-            with timer.stage("pyramids"), progress.stage("pyramids", len(run.scans)) as tick:
-                run.store.map(PYRAMIDS, scan_pyramid, voxel, run.scans, grid_keys, config.workers, tick, config.ray,
-                              keep=lambda p: None)
-            pyramids = run.store.sequence(PYRAMIDS, grid_keys, _again(scan_pyramid, voxel, run.scans))
+            with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
+                stages.store.map(PYRAMIDS, scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
+                                 keep=lambda p: None)
+            pyramids = stages.store.sequence(PYRAMIDS, grid_keys, _again(scan_pyramid, voxel, scans))
         if config.refine:
             with timer.stage("refine"):
                 changed += refine_edges(features, pyramids, edges, result, voxel, config, densify, progress, cache)
@@ -398,24 +399,24 @@ def _densify(run: _Stages, edges: EdgeSet, graph: PoseGraph,
                 changed += close_loops(features, pyramids, edges, result, voxel, config, densify, progress, cache)
         if config.retry:
             with timer.stage("retry"):
-                changed += retry_weak(features, run.scores, edges, result, unverified(graph, result, one_scan=False),
+                changed += retry_weak(features, stages.scores, edges, result, unverified(graph, result, one_scan=False),
                                       voxel, config, densify, progress, cache)
         if not changed:
             break
         densify.rounds += 1
-        graph = run.pose_graph(edges)
-        run.log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
-                f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
-        result = run.synchronize(graph, f"synchronization (round {densify.rounds})")
-        graph, result = run.overrule(edges, graph, result)
+        graph = stages.pose_graph(edges)
+        stages.log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
+                   f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
+        result = stages.synchronize(graph, f"synchronization (round {densify.rounds})")
+        graph, result = stages.overrule(edges, graph, result)
     return graph, result, densify, first_weak
 
 
-def _run_result(run: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, densify: DensifyReport,
+def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, densify: DensifyReport,
                 first_weak: np.ndarray, skipped: dict[str, str], feature_kind: str) -> RunResult:
     """The last synchronization's poses anchored at the first scan of the largest part, the scans it doubts
     (flags), the covariances, back in the input frame."""
-    log, names, n = run.log, [s.name for s in run.scans], len(run.scans)
+    log, names, n = stages.log, [s.name for s in stages.scans], len(stages.scans)
     main_part = result.component == 0
     main = np.flatnonzero(main_part)
     poses = inv_T(result.poses[main[0]])[None] @ result.poses  # the other parts have no reliable pose
@@ -435,25 +436,25 @@ def _run_result(run: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResu
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
     alike, clashing = [], []
-    if run.views is not None:  # config.free_space
-        with run.timer.stage("free_space"):
-            alike = [names[k] for k in np.flatnonzero(look_alikes(run.views, graph, result))]
-            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(run.features, poses, main_part,
-                                                                                 run.voxel, run.centres))]
+    if stages.views is not None:  # config.free_space
+        with stages.timer.stage("free_space"):
+            alike = [names[k] for k in np.flatnonzero(look_alikes(stages.views, graph, result))]
+            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(stages.features, poses, main_part,
+                                                                                 stages.voxel, stages.centres))]
     for name in alike:
         log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
             f"the scans placed with it, that their free space does not rule out (a look-alike)")
     for name in clashing:
         log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
-    free_space = run.config.free_space
-    out = RunResult(names=names, poses=poses, voxel=float(run.voxel), scores=run.scores, graph=graph,
+    free_space = stages.config.free_space
+    out = RunResult(names=names, poses=poses, voxel=float(stages.voxel), scores=stages.scores, graph=graph,
                     pairs=edges.pairs, edge_origin=edges.origin, edge_conflict=edges.conflict if free_space else None,
                     edge_overruled=edges.overruled if free_space else None,
                     densify=densify.as_dict(), sync=result, unregistered=unregistered,
-                    skipped=skipped, features=run.features, timings=run.timer.seconds,
+                    skipped=skipped, features=stages.features, timings=stages.timer.seconds,
                     global_feature=feature_kind, unverified=weak, contested=disputed, ambiguous=alike,
-                    contradicted=clashing, cache=run.cache.report() if run.cache else None)
-    with run.timer.stage("covariances"):
+                    contradicted=clashing, cache=stages.cache.report() if stages.cache else None)
+    with stages.timer.stage("covariances"):
         try:
             out.covariances = pose_covariances(out)
         except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
@@ -462,10 +463,10 @@ def _run_result(run: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResu
     out.underdetermined = _underdetermined(out, main[0])
     for name in out.underdetermined:
         log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
-    if run.recorder:
-        run.recorder.log_final(poses, out.flags)
-        run.recorder.log_covariances(poses, out.covariances)
-    local_frame.to_input_frame(out, run.centres)
+    if stages.recorder:
+        stages.recorder.log_final(poses, out.flags)
+        stages.recorder.log_covariances(poses, out.covariances)
+    local_frame.to_input_frame(out, stages.centres)
     return out
 
 
