@@ -69,6 +69,8 @@ class Viewpoints:
         self.images: dict[int, np.ndarray] = {}
         self.samples: dict[int, np.ndarray] = {}
         self.corners: dict[int, np.ndarray] = {}
+        self._judged: dict[tuple[int, int, bytes], float] = {}
+        self._under: np.ndarray | None = None
         points = Attribute(features, "points")
         for k in range(len(points)):
             if np.any(centres[k]):
@@ -85,6 +87,14 @@ class Viewpoints:
         """(2, 3) lower and upper corner of a box that holds scan k under pose ``T``."""
         world = transform_points(T, self.corners[k])
         return np.stack([world.min(axis=0), world.max(axis=0)])
+
+    def judged(self, poses: np.ndarray) -> dict[tuple[int, int, bytes], float]:
+        """The ``conflict`` of each scan pair judged so far under ``poses``, keyed by the two scans and the move of
+        the first one's group: kept while the poses stay the same (``look_alikes`` after the overrule's last pass
+        on the same model judges no pair again), started afresh when they change."""
+        if self._under is None or not np.array_equal(self._under, poses):
+            self._under, self._judged = poses.copy(), {}
+        return self._judged
 
     def conflict(self, a: int, b: int, T_a: np.ndarray, T_b: np.ndarray) -> float:
         """1 when either scan puts more than ``CONFLICT`` of its points (``SAMPLE`` of them) in the other's free
@@ -136,7 +146,7 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
     take = np.array([k for k in sorted(views.images) if main[k]], dtype=np.int64)
     boxes = np.array([views.box(k, poses[k]) for k in take]).reshape(-1, 2, 3)
     lo, hi = boxes[:, 0], boxes[:, 1]
-    judged: dict[tuple[int, int, bytes], float] = {}  # nested groups share their scans, pairs and often their move
+    judged = views.judged(poses)  # nested groups share their scans, pairs and often their move
 
     def partners(box: np.ndarray, outside: np.ndarray) -> np.ndarray:
         """The scans of ``take[outside]`` whose boxes meet ``box``, the ``visibility.MAX_PARTNERS`` nearest."""
