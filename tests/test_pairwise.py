@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.features.local import compute_features, default_voxel
 from sghr_gtsam.io.poses import read_poses
 from sghr_gtsam.io.scans import load_scan
-from sghr_gtsam.registration.estimators import sc2_estimate
+from sghr_gtsam.registration.estimators import _first_stage, sc2_estimate
 from sghr_gtsam.registration.information import registration_information
 from sghr_gtsam.registration.pairwise import register_pair
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors, transform_points
@@ -110,6 +110,25 @@ def test_sc2_recovers_a_transform_among_outliers(seed, inlier_fraction):
     assert rot < 0.5 and trans < 0.5 * voxel, (rot, trans)
     assert np.all(est.inliers[good]) and np.sum(est.inliers[~good]) <= 0.02 * n
     np.testing.assert_array_equal(sc2_estimate(p_i, p_j, voxel).T, est.T)  # deterministic
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(3, 120), density=st.floats(0.02, 0.9), k1=st.integers(1, 40))
+def test_sc2_first_stage_ranks_each_seed_by_its_definition(seed, n, density, k1):
+    """The batched first stage (one product for every seed) picks, per seed, the correspondences compatible with
+    it ranked by how many are compatible with both, ties by index, padded with the seed: the per-seed definition
+    on its compatible set alone (``sc2_estimate`` asks for at most as many as there are correspondences)."""
+    k1 = min(k1, n)
+    rng = np.random.default_rng(seed)
+    C = (rng.random((n, n)) < density).astype(np.float32)
+    C = np.maximum(C, C.T)
+    np.fill_diagonal(C, 1.0)
+    seeds = rng.choice(n, size=min(n, 10), replace=False)
+    for s, picked in zip(seeds, _first_stage(C, seeds, k1)):
+        nbr = np.flatnonzero(C[s])
+        both = C[np.ix_(nbr, nbr)].sum(axis=1)
+        ranked = nbr[sorted(range(len(nbr)), key=lambda m: (-both[m], m))][:k1]
+        np.testing.assert_array_equal(picked, np.concatenate([ranked, np.full(k1 - len(ranked), s)]))
 
 
 def test_sc2_with_too_few_correspondences_is_the_identity():

@@ -109,7 +109,7 @@ def sc2_estimate(p_i: np.ndarray, p_j: np.ndarray, voxel: float, params: SC2Para
     count = min(params.max_seeds, max(1, round(params.seed_fraction * len(keep))))
     seeds = _pick_seeds(eig, a_k, params.nms_radius, count)
     k1 = min(params.k1, len(keep))
-    first = np.stack([_first_stage(C, s, k1) for s in seeds])  # (M, k1)
+    first = _first_stage(C, seeds, k1)  # (M, k1)
     # Second stage: rank the set by second-order compatibility with the seed within the set alone.
     local = C[first[:, :, None], first[:, None, :]]  # (M, k1, k1)
     row = C[seeds[:, None], first]  # (M, k1): the seed's row
@@ -137,16 +137,16 @@ def sc2_estimate(p_i: np.ndarray, p_j: np.ndarray, voxel: float, params: SC2Para
     return Estimate(best, r < params.inlier)
 
 
-def _first_stage(C: np.ndarray, seed: int, k1: int) -> np.ndarray:
-    """The ``k1`` correspondences of highest second-order compatibility with ``seed``: compatible with
-    it, ranked by how many correspondences are compatible with both. Only the seed's compatible set
-    enters the count, so this is a small sub-matrix sum, not a row of C @ C."""
-    nbr = np.flatnonzero(C[seed])
-    sc2 = C[np.ix_(nbr, nbr)].sum(axis=1)
-    top = nbr[np.argsort(-sc2, kind="stable")[:k1]]
-    if len(top) < k1:  # fewer compatible than k1: pad with the seed (its weight stays one vote)
-        top = np.concatenate([top, np.full(k1 - len(top), seed)])
-    return top
+def _first_stage(C: np.ndarray, seeds: np.ndarray, k1: int) -> np.ndarray:
+    """(M, k1): per seed, the ``k1`` correspondences of highest second-order compatibility with it: compatible
+    with it, ranked by how many correspondences are compatible with both (ties by index). A seed with fewer than
+    ``k1`` compatible ones is padded with itself (its weight stays one vote)."""
+    rows = C[seeds]  # (M, N), 0/1
+    # Row s of rows @ C counts, for every l, the correspondences compatible with both s and l (C is symmetric);
+    # counts below 2^24 are exact in float32, so any summation order gives the same ranking.
+    sc2 = rows @ C
+    top = np.argsort(np.where(rows > 0, -sc2, np.inf), axis=1, kind="stable")[:, :k1]
+    return np.where(np.arange(k1) < rows.sum(axis=1, keepdims=True), top, seeds[:, None])
 
 
 def _compatibility(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:

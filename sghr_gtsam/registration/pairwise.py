@@ -19,7 +19,7 @@ from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
 from sghr_gtsam.types import InputError
 
 from .estimators import sc2_estimate
-from .information import Information, registration_information
+from .information import Information, nearest_points, registration_information
 
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
 # matching is 4-6x faster than exact search and registers the same pairs (+-1) on the kitchen and
@@ -211,12 +211,12 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     cells = np.floor(p_i[agree] / (COVERAGE_CELL * voxel)).astype(np.int64)
     max_distance = icp_distance * voxel
     q = source_j.points
-    _, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], GICP_THREADS)
-    sq_dist = np.asarray(sq_dist)
+    search = nearest_points(target_i, q, T)
+    sq_dist = search[1]
     close = sq_dist < max_distance**2
     n = int(np.count_nonzero(close))
     if information is None:
-        information = registration_information(target_i, source_j, T, max_distance)
+        information = registration_information(target_i, source_j, T, max_distance, search)
     return PairResult(
         T=T,
         inliers=int(np.count_nonzero(agree)),
