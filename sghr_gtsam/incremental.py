@@ -114,7 +114,6 @@ class Session:
         if self._head is None:
             self._head = load_default_head(cfg.overlap_head)
         F = global_features(self._head, [f.descriptors], seed=cfg.seed)[0]
-        node = len(self.features)
         self.features.append(f)
         self._F.append(F)
         scores = (np.array([F @ G for G in self._F[:-1]]) + 1.0) / 2.0

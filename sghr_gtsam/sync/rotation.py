@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order, connected_components as _cc, minimum_spanning_tree
 from scipy.sparse.linalg import LinearOperator, lobpcg, splu
 
-from ..se3 import project_to_so3, rotation_angle
+from ..se3 import project_to_so3
 
 DENSE_NODES = 128
 """Parts with fewer nodes use a dense eigendecomposition: a 90×90 ``eigh`` takes under a millisecond, while
