@@ -131,7 +131,7 @@ def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
 
 
 def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray,
-                    step: float, base: float | None = None) -> Information:
+                    step: float, base: float) -> Information:
     """``information`` of ``T exp(ξ)`` with the directions the pair's geometry does not fix (a plane's three, a
     corridor's one, a cylinder's two) bounded only by the overlap's extent, and their number.
 
@@ -142,14 +142,13 @@ def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: n
     spurious stiffness. Directions are tried from the least informative (generalized eigenvectors of the
     information in ``displacement_metric``) until one is fixed. A free one gets the information of a
     displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap),
-    or ``FREE_FLOOR`` times the best direction's when that is more (see there). ``base``: the mean squared residual
-    of ``q`` at ``T`` when the caller has it (``_mean_square`` otherwise)."""
+    or ``FREE_FLOOR`` times the best direction's when that is more (see there). ``base``: the mean squared
+    point-to-plane residual of ``q`` at ``T``, which the caller has already measured."""
     A = displacement_metric(q)
     try:
         values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
     except np.linalg.LinAlgError:  # collinear points (A singular) or a non-finite information: nothing to test
         return Information(information, 0, np.zeros((6, 6)), information)
-    base = _mean_square(target_i, q, T) if base is None else base
     free = 0
     for k in range(6):
         xi = step * vectors[:, k]
@@ -195,11 +194,11 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray, max_
     scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``. Both grids
     must be those ``T`` was aligned on: its residuals there are what σ̂ and the sum measure. The directions
     free under a move of ``max_distance`` (``free_directions``) are counted and bounded only by the overlap.
-    ``search``: ``nearest_points`` of ``source_j`` at ``T``, when the caller has it."""
+    ``search``: ``nearest_points`` of ``source_j``'s points moved by ``T``, when the caller has it."""
     q = source_j.points
     R, t = T[:3, :3], T[:3, 3]
     moved = q @ R.T + t
-    nearest, sq_dist = nearest_points(target_i, q, T) if search is None else search
+    nearest, sq_dist = nearest_points(target_i, moved) if search is None else search
     close = sq_dist < max_distance**2
     if np.count_nonzero(close) < MIN_PAIRS:
         return None
@@ -212,11 +211,11 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray, max_
                            float(residuals @ residuals) / len(residuals))
 
 
-def nearest_points(target_i: Grid, q: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each of ``q`` (m, 3) under ``T``, the index of its nearest point of ``target_i`` and their squared
-    distance: what ``registration_information`` and ``pairwise.score_pair`` both search (once, when the caller
-    passes it on)."""
-    nearest, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(q @ T[:3, :3].T + T[:3, 3], GICP_THREADS)
+def nearest_points(target_i: Grid, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each of ``moved`` (m, 3, in scan i's frame), the index of its nearest point of ``target_i`` and their
+    squared distance: what ``registration_information`` and ``pairwise.score_pair`` both search (once, when the
+    caller passes it on)."""
+    nearest, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(moved, GICP_THREADS)
     return np.asarray(nearest), np.asarray(sq_dist)
 
 

@@ -211,7 +211,7 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     cells = np.floor(p_i[agree] / (COVERAGE_CELL * voxel)).astype(np.int64)
     max_distance = icp_distance * voxel
     q = source_j.points
-    search = nearest_points(target_i, q, T)
+    search = nearest_points(target_i, q @ T[:3, :3].T + T[:3, 3])
     sq_dist = search[1]
     close = sq_dist < max_distance**2
     n = int(np.count_nonzero(close))
