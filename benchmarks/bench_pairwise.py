@@ -4,10 +4,7 @@ many pairs land within the error bounds of ground truth, the time a pair takes, 
 count r_ij (and the inliers' coverage, ``PairResult.coverage``) separates right pairs from wrong ones.
 
     python benchmarks/bench_pairwise.py [--matchers sc2,kiss,ransac] [--scenes kitchen,bunny,home_at,...]
-        [--descriptors fpfh,cylinder] [--pairs] [--negatives 40]
-
-Each matcher runs on each local descriptor (``Config.descriptor``); a row is named ``matcher/descriptor``
-when more than one descriptor is given.
+        [--pairs] [--negatives 40]
 
 3DMatch scenes (home_at, hotel_uc, studyroom): every gt.log pair (the benchmark's pairs, GT overlap >= 30 %) is
 registered and scored by the paper's protocol (``evaluate.registration_recall``: rmse <= 0.2 m under the pair's
@@ -36,7 +33,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from sghr_gtsam.config import DESCRIPTORS
 from sghr_gtsam.evaluate import registration_recall
 from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
 from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_poses
@@ -88,38 +84,25 @@ def gt_overlap(fi: ScanFeatures, fj: ScanFeatures, T_ij: np.ndarray, radius: flo
     return float(max(a, b))
 
 
-def _features(scans: list[np.ndarray], voxel: float, descriptor: str) -> tuple[list[ScanFeatures], float]:
-    """The scans' features and the seconds a scan took."""
-    t0 = time.perf_counter()
-    feats = [compute_features(s, voxel, descriptor=descriptor) for s in scans]
-    return feats, (time.perf_counter() - t0) / len(scans)
-
-
-def _runs(matchers: list[str], descriptors: list[str]) -> list[tuple[str, str, str]]:
-    """(row label, matcher, descriptor) of every matcher on every descriptor."""
-    return [(m if len(descriptors) == 1 else f"{m}/{d}", m, d) for d in descriptors for m in matchers]
-
-
-def run_scene(name: str, matchers: list[str], descriptors: list[str], show_pairs: bool) -> None:
+def run_scene(name: str, matchers: list[str], show_pairs: bool) -> None:
     folder, gt_file, rot_bound, trans_bound = SCENES[name]
     t0 = time.perf_counter()
     names, poses = read_poses(DATA / gt_file)
     scans = [load_scan(DATA / folder / n) for n in names]
     t_load = time.perf_counter() - t0
     voxel = default_voxel(scans)
-    by_descriptor = {d: _features(scans, voxel, d) for d in descriptors}
-    feats = by_descriptor[descriptors[0]][0]
+    t0 = time.perf_counter()
+    feats = [compute_features(s, voxel) for s in scans]
+    t_feat = time.perf_counter() - t0
     pairs = list(itertools.combinations(range(len(scans)), 2))
     gt = {(i, j): inv_T(poses[i]) @ poses[j] for i, j in pairs}
     overlap = {p: gt_overlap(feats[p[0]], feats[p[1]], gt[p], OVERLAP_RADIUS * voxel) for p in pairs}
     n_ov = sum(o > MIN_OVERLAP for o in overlap.values())
-    seconds = ", ".join(f"{d} {t:.3f} s" for d, (_, t) in by_descriptor.items())
     print(f"\n== {name}: {len(scans)} scans, voxel {voxel:.4g} (grid {np.mean([len(f) for f in feats]):.0f} points "
-          f"a scan), load {t_load:.2f} s, features a scan: {seconds}; {len(pairs)} pairs, "
+          f"a scan), load {t_load:.2f} s, features {t_feat / len(scans):.3f} s a scan; {len(pairs)} pairs, "
           f"{n_ov} with GT overlap > {MIN_OVERLAP}; right = within {rot_bound:g} deg / {trans_bound:g}")
 
-    for label, matcher, descriptor in _runs(matchers, descriptors):
-        feats = by_descriptor[descriptor][0]
+    for matcher in matchers:
         rows = []
         for i, j in pairs:
             res = register_pair(feats[i], feats[j], voxel, matcher=matcher)
@@ -129,11 +112,11 @@ def run_scene(name: str, matchers: list[str], descriptors: list[str], show_pairs
             rows.append(Row(i, j, overlap[(i, j)], rot, trans, res.inliers,
                             res.inliers / min(len(feats[i]), len(feats[j])), res.coverage, res.seconds, kind))
         if show_pairs:
-            print(f"  {label}: pair, GT overlap, rotation error (deg), translation error, r_ij, frac, seconds")
+            print(f"  {matcher}: pair, GT overlap, rotation error (deg), translation error, r_ij, frac, seconds")
             for r in sorted(rows, key=lambda r: -r.overlap):
                 print(f"    {names[r.i]:>14} {names[r.j]:>14}  {r.overlap:4.2f}  {r.rot_deg:7.2f}  {r.trans:8.4f}  "
                       f"{r.inliers:5d}  {r.frac:.4f}  {r.seconds:.2f}  {r.kind}")
-        summarize(label, rows, voxel)
+        summarize(matcher, rows, voxel)
 
 
 def summarize(matcher: str, rows: list[Row], voxel: float) -> None:
@@ -170,28 +153,27 @@ def paper_rmse(T_est: np.ndarray, T_gt: np.ndarray, info: np.ndarray) -> float:
     return float(registration_recall([0, 2], np.stack([np.eye(4), T_est]), {(0, 2): T_gt}, {(0, 2): info}).rmse[0])
 
 
-def run_3dmatch(name: str, matchers: list[str], descriptors: list[str], show_pairs: bool, negatives: int) -> None:
+def run_3dmatch(name: str, matchers: list[str], show_pairs: bool, negatives: int) -> None:
     folder = DATA / "3dmatch-scenes" / name
     gt_dir = DATA / "3dmatch-test-gt" / "3DMatch" / MATCH_SCENES[name]
     names, poses = read_poses(folder / "gt_poses.txt")
     log, info = read_gt_log(gt_dir / "gt.log"), read_gt_info(gt_dir / "gt.info")
     scans = [load_scan(folder / n) for n in names]
     voxel = default_voxel(scans)
-    by_descriptor = {d: _features(scans, voxel, d) for d in descriptors}
-    feats = by_descriptor[descriptors[0]][0]
-    seconds = ", ".join(f"{d} {t:.3f} s" for d, (_, t) in by_descriptor.items())
+    t0 = time.perf_counter()
+    feats = [compute_features(s, voxel) for s in scans]
+    t_feat = time.perf_counter() - t0
     others = [p for p in itertools.combinations(range(len(scans)), 2) if p not in log]
     rng = np.random.default_rng(0)
     extra = [others[k] for k in sorted(rng.choice(len(others), min(negatives, len(others)), replace=False))]
     print(f"\n== {name}: {len(scans)} fragments, voxel {voxel:.4g} (grid {np.mean([len(f) for f in feats]):.0f} points "
-          f"a scan), features a scan: {seconds}; {len(log)} gt.log pairs "
+          f"a scan), features {t_feat / len(scans):.3f} s a scan; {len(log)} gt.log pairs "
           f"({sum(abs(i - j) > 1 for i, j in log)} with |i-j| > 1), {len(extra)} negatives")
     print("| matcher | right / gt.log pairs | right / pairs \\|i-j\\|>1 | rot err median (deg) | trans err median (m) "
           "| < 5 deg & 0.2 m | CPU s a pair median (mean) |")
     print("|---|---|---|---|---|---|---|")
     tables = {}
-    for label, matcher, descriptor in _runs(matchers, descriptors):
-        feats = by_descriptor[descriptor][0]
+    for matcher in matchers:
         rows = []  # (i, j, in gt.log, right, far, rot, trans, r_ij, cpu, coverage)
         for i, j in sorted(log) + extra:
             t0 = time.process_time()
@@ -209,17 +191,17 @@ def run_3dmatch(name: str, matchers: list[str], descriptors: list[str], show_pai
         cpu = np.array([r[8] for r in g])
         n_right = sum(r[3] for r in g)
         n_gap = sum(r[3] for r in far_gap)
-        print(f"| {label} | {n_right}/{len(g)} = {n_right / len(g):.3f} | {n_gap}/{len(far_gap)} = "
+        print(f"| {matcher} | {n_right}/{len(g)} = {n_right / len(g):.3f} | {n_gap}/{len(far_gap)} = "
               f"{n_gap / len(far_gap):.3f} | {np.median(rot):.2f} | {np.median(tr):.3f} | "
               f"{np.mean((rot < 5) & (tr < 0.2)):.3f} | {np.median(cpu):.3f} ({cpu.mean():.3f}) |")
         if show_pairs:
             for r in rows:
                 print(f"    {r[0]:3d} {r[1]:3d} gt.log {r[2]!s:5} right {r[3]!s:5} rot {r[5]:7.2f} trans {r[6]:6.3f} "
                       f"r_ij {r[7]:4d} coverage {r[9]:3d} cpu {r[8]:.3f}")
-        tables[label] = rows
-    for label, rows in tables.items():
+        tables[matcher] = rows
+    for matcher, rows in tables.items():
         for column, score in ((7, "r_ij"), (9, "coverage")):
-            separation_table(f"{name}, {label}", score,
+            separation_table(f"{name}, {matcher}", score,
                              [(r[column], "right" if r[3] else "far" if r[4] else "near") for r in rows])
 
 
@@ -239,18 +221,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--matchers", default=",".join(MATCHERS))
     parser.add_argument("--scenes", default=",".join([*SCENES, *MATCH_SCENES]))
-    parser.add_argument("--descriptors", default="fpfh", help=f"any of {','.join(DESCRIPTORS)}")
     parser.add_argument("--pairs", action="store_true", help="also list every pair")
     parser.add_argument("--negatives", type=int, default=40, help="3DMatch pairs outside gt.log a scene (r_ij table)")
     args = parser.parse_args()
     if not (DATA / "MANIFEST.md").is_file():
         sys.exit(f"real data not found at {DATA} (set SGHR_DATA)")
-    matchers, descriptors = args.matchers.split(","), args.descriptors.split(",")
     for scene in args.scenes.split(","):
         if scene in MATCH_SCENES:
-            run_3dmatch(scene, matchers, descriptors, args.pairs, args.negatives)
+            run_3dmatch(scene, args.matchers.split(","), args.pairs, args.negatives)
         else:
-            run_scene(scene, matchers, descriptors, args.pairs)
+            run_scene(scene, args.matchers.split(","), args.pairs)
 
 
 if __name__ == "__main__":

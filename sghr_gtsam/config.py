@@ -12,7 +12,6 @@ from pathlib import Path
 from .types import InputError
 
 MATCHERS = ("sc2", "kiss", "ransac")
-DESCRIPTORS = ("fpfh", "cylinder")
 """Pairwise estimators (``registration.pairwise.register_pair``)."""
 NOISE_MODELS = ("information", "isotropic")
 """Edge noise models of the gtsam graph (``gtsam_api.noise_model``)."""
@@ -55,10 +54,6 @@ class Config:
     """Normal-estimation radius, in voxels."""
     fpfh_radius: float = 5.0
     """FPFH feature radius, in voxels."""
-    descriptor: str = "fpfh"
-    """Local descriptor that pairs are matched on: 'fpfh', or 'cylinder' (``features.cylinder``: the surface
-    within 12 voxels in a cylinder about the normal, invariant to the turn about it). The global feature is
-    built from FPFH either way (the shipped overlap head takes FPFH)."""
     features: str | None = None
     """Folder of precomputed local features, per scan ``<stem>.kpts.npy`` (K×3 keypoints in the scan's
     frame) and ``<stem>.desc.npy`` (K×D descriptors), in the folder or any sub-folder (the SGHR authors'
@@ -165,9 +160,9 @@ class Config:
         from .sync import METHODS, POLISHES
         from .sync.irls import REWEIGHTS
 
-        choices = {"descriptor": DESCRIPTORS, "global_feature": ("vlad", "learned"), "matcher": MATCHERS,
-                   "method": tuple(METHODS), "polish": tuple(POLISHES), "reweight": REWEIGHTS,
-                   "initial_weight": ("s*r", "s", "r"), "noise_model": NOISE_MODELS, "kernel": KERNELS}
+        choices = {"global_feature": ("vlad", "learned"), "matcher": MATCHERS, "method": tuple(METHODS),
+                   "polish": tuple(POLISHES), "reweight": REWEIGHTS, "initial_weight": ("s*r", "s", "r"),
+                   "noise_model": NOISE_MODELS, "kernel": KERNELS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")

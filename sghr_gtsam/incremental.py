@@ -108,13 +108,12 @@ class Session:
         start = time.perf_counter()
         cfg = self.config
         try:
-            f = compute_features(np.asarray(points, dtype=float), self.voxel, cfg.normal_radius, cfg.fpfh_radius,
-                                 descriptor=cfg.descriptor)
+            f = compute_features(np.asarray(points, dtype=float), self.voxel, cfg.normal_radius, cfg.fpfh_radius)
         except InputError as e:
             raise InputError(f"{name}: {e}") from None
         if self._head is None:
             self._head = load_default_head(cfg.overlap_head)
-        F = global_features(self._head, [f.global_descriptors], seed=cfg.seed)[0]
+        F = global_features(self._head, [f.descriptors], seed=cfg.seed)[0]
         self.features.append(f)
         self._F.append(F)
         scores = (np.array([F @ G for G in self._F[:-1]]) + 1.0) / 2.0

@@ -124,7 +124,7 @@ def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
 def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
     """Unit global features (N, D) of the scans (``counts``: their descriptors), read one at a time, and what made
     them."""
-    descriptors = Attribute(features, "global_descriptors")
+    descriptors = Attribute(features, "descriptors")
     dim = descriptors[0].shape[1]
     kind = f"{dim}-d " + ("FPFH" if features[0].fpfh is not None else "given descriptors")
     if config.overlap_head or config.global_feature == "learned":
@@ -335,7 +335,7 @@ def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
     # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
     keys = [scan_key(s, voxel, config) for s in scans]
-    radii = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
+    radii = (voxel, config.normal_radius, config.fpfh_radius)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
         counts = store.map(FEATURES, scan_features, radii, scans, keys, config.workers, tick, config.ray,
                            keep=lambda f: f if isinstance(f, str) else len(f.descriptors))

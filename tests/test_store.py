@@ -45,7 +45,7 @@ def _stored(room, cache, voxel=0.08):
     """The room's features and pyramids written through a ``Store`` and read back as ``Stored`` sequences."""
     config = Config(voxel=voxel)
     box = Store(cache)
-    radii = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
+    radii = (voxel, config.normal_radius, config.fpfh_radius)
     keys = [scan_key(s, voxel, config) for s in room]
     grid_keys = [pyramid_key(k) for k in keys]
     box.map(FEATURES, scan_features, radii, room, keys, 1, None, None, keep=lambda f: None)
@@ -82,7 +82,7 @@ def test_lru_keeps_within_its_bound_and_drops_the_least_recently_used():
 
 def test_items_read_back_are_the_computed_ones_to_the_bit(room, tmp_path):
     voxel, config = 0.08, Config(voxel=0.08)
-    radii = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
+    radii = (voxel, config.normal_radius, config.fpfh_radius)
     _, features, pyramids = _stored(room, Cache(tmp_path))
     for k, scan in enumerate(room):
         computed, read = scan_features(radii, scan), features[k]

@@ -14,7 +14,6 @@ import small_gicp
 from scipy.spatial import cKDTree
 
 from sghr_gtsam.cache import Kind
-from sghr_gtsam.features.cylinder import cylinder_descriptors
 from sghr_gtsam.types import InputError, Keypoints, Scan
 
 # small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
@@ -42,10 +41,10 @@ class ScanFeatures:
 
     ``points`` (M, 3) float64 voxel-grid centroids; ``normals`` (M, 3) unit normals oriented towards
     the scan's origin; ``voxel`` the grid size. Matching: ``keypoints`` (K, 3) float64 and their
-    ``descriptors`` (K, D) float32: ``points`` and ``fpfh`` (M, 33), or ``points`` and their
-    ``features.cylinder`` descriptors, or given ones (then ``fpfh`` is None: not computed). Search structures,
-    built from the arrays on first use in whichever process uses them (they are neither stored nor pickled: a task
-    that only reads the points builds none): ``descriptor_tree`` (k-d tree on ``descriptors``), ``cloud`` (``points`` with GICP covariances,
+    ``descriptors`` (K, D) float32, which are ``points`` and ``fpfh`` (M, 33) unless they were given
+    (then ``fpfh`` is None: not computed). Search structures, built from the arrays on first use in whichever
+    process uses them (they are neither stored nor pickled: a task that only reads the points builds none):
+    ``descriptor_tree`` (k-d tree on ``descriptors``), ``cloud`` (``points`` with GICP covariances,
     small_gicp) and its k-d tree ``cloud_tree``.
     """
 
@@ -62,11 +61,6 @@ class ScanFeatures:
 
     def __len__(self) -> int:
         return len(self.points)
-
-    @property
-    def global_descriptors(self) -> np.ndarray:
-        """What the scan's global feature is built from: FPFH when computed, else the given descriptors."""
-        return self.descriptors if self.fpfh is None else self.fpfh
 
     @property
     def descriptor_tree(self) -> cKDTree:
@@ -109,18 +103,15 @@ def _encode_features(f: ScanFeatures | str) -> dict[str, np.ndarray] | None:
     out = {"points": f.points, "normals": f.normals, "voxel": np.float64(f.voxel)}
     if f.fpfh is not None:
         out["fpfh"] = f.fpfh
-    if f.fpfh is None or f.descriptors is not f.fpfh:  # given, or matched on other descriptors of the grid
-        out["descriptors"] = f.descriptors
-    if f.keypoints is not f.points:
-        out["keypoints"] = f.keypoints
+    else:
+        out["keypoints"], out["descriptors"] = f.keypoints, f.descriptors
     return out
 
 
 def _decode_features(a: dict[str, np.ndarray]) -> ScanFeatures:
     fpfh = a.get("fpfh")
-    descriptors = a["descriptors"] if "descriptors" in a else fpfh
-    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), a.get("keypoints", a["points"]),
-                        descriptors)
+    keypoints, descriptors = (a["points"], fpfh) if fpfh is not None else (a["keypoints"], a["descriptors"])
+    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
 
 
 FEATURES = Kind("features", _encode_features, _decode_features)
@@ -147,10 +138,9 @@ def compute_features(
     fpfh_radius: float = 5.0,
     given: Keypoints | None = None,
     sensor: np.ndarray | None = None,
-    descriptor: str = "fpfh",
 ) -> ScanFeatures:
     """Voxel grid, normals and FPFH of one scan (its GICP covariances on first use); radii in voxels (as in
-    ``Config``). Pairs are matched on ``descriptor`` ('fpfh' or 'cylinder': ``features.cylinder``) of the grid.
+    ``Config``).
     With ``given`` keypoints and descriptors no FPFH is computed and pairs are matched on those;
     ``InputError`` when the keypoints do not lie on the scan (another frame or unit).
 
@@ -182,8 +172,7 @@ def compute_features(
             pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
         )
         fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
-        matched = fpfh if descriptor == "fpfh" else cylinder_descriptors(grid, voxel, sensor)
-        return ScanFeatures(grid, np.asarray(pcd.normals), fpfh, float(voxel), grid, matched)
+        return ScanFeatures(grid, np.asarray(pcd.normals), fpfh, float(voxel), grid, fpfh)
     features = ScanFeatures(grid, np.asarray(pcd.normals), None, float(voxel), given.points, given.descriptors)
     _, sq_dist = features.cloud_tree.batch_nearest_neighbor_search(given.points, GICP_THREADS)
     off = float(np.sqrt(np.median(sq_dist))) / voxel
@@ -193,15 +182,15 @@ def compute_features(
     return features
 
 
-def scan_features(shared: tuple[float, float, float, str], scan: Scan) -> ScanFeatures | str:
-    """An executor task: ``compute_features`` of ``scan`` (``shared``: voxel, normal and FPFH radii, descriptor),
-    read where the task runs, so that its full-resolution points live only there, with normals towards the origin of
-    its input frame (``-scan.centre``). The reason, as a string, when it has none (a stray point far away: too many
-    voxels; given keypoints off the scan)."""
-    voxel, normal_radius, fpfh_radius, descriptor = shared
+def scan_features(shared: tuple[float, float, float], scan: Scan) -> ScanFeatures | str:
+    """An executor task: ``compute_features`` of ``scan`` (``shared``: voxel, normal and FPFH radii), read where
+    the task runs, so that its full-resolution points live only there, with normals towards the origin of its input
+    frame (``-scan.centre``). The reason, as a string, when it has none (a stray point far away: too many voxels;
+    given keypoints off the scan)."""
+    voxel, normal_radius, fpfh_radius = shared
     points, given = scan.read()
     try:
-        return compute_features(points, voxel, normal_radius, fpfh_radius, given, -scan.centre, descriptor)
+        return compute_features(points, voxel, normal_radius, fpfh_radius, given, sensor=-scan.centre)
     except InputError as e:
         return str(e)
 
