@@ -124,8 +124,7 @@ def displacement_metric(points: np.ndarray) -> np.ndarray:
 def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
     """Mean squared point-to-plane residual of ``q`` under ``T``, each point against its nearest target point."""
     moved = q @ T[:3, :3].T + T[:3, 3]
-    nearest, _ = target_i.cloud_tree.batch_nearest_neighbor_search(moved, GICP_THREADS)
-    nearest = np.asarray(nearest)
+    nearest, _ = nearest_points(target_i, moved)
     r = np.einsum("mk,mk->m", moved - target_i.points[nearest], target_i.normals[nearest])
     return float(r @ r) / len(r)
 
