@@ -1,0 +1,346 @@
+"""A local descriptor learned on simulated rooms against FPFH, on the gt.log pairs of real 3DMatch scenes (issue 10,
+step 1: "a learned local descriptor ... trained here on simulated scans"). Not used by the pipeline.
+
+    python benchmarks/bench_learned_descriptor.py data DIR [--scenes 160]       # ~10 min on 2 cores
+    python benchmarks/bench_learned_descriptor.py train DIR WEIGHTS [--minutes 22]
+    python benchmarks/bench_learned_descriptor.py eval WEIGHTS [--scenes studyroom home_at ...] [--data ROOT]
+    python benchmarks/bench_learned_descriptor.py calibrate WEIGHTS [--scenes 6]
+
+**Patch.** Every grid point (``compute_features``: the pipeline's voxel grid, normals oriented to the sensor) is
+described by its neighbours within ``RADIUS`` voxels (at most ``NEIGHBOURS``) in a cylinder about its normal:
+``RINGS`` radial × ``LEVELS`` height (±``RADIUS``) × ``SECTORS`` azimuth bins, three channels a bin (share of the
+neighbours, their mean normal·axis, their mean normal·radial). The azimuth origin is arbitrary (a function of the
+normal alone); the network's circular convolutions over azimuth and its max over it make the descriptor invariant to
+turning the patch about its normal by whole sectors, so no reference direction in the tangent plane is needed.
+
+**Data.** Rooms of ``data_tools.simulate.make_training_scene`` (dataset seed ``DATA_SEED``, which no benchmark
+scores: ``bench_sparse_graph`` uses 2), 12–19 scans each; per scene up to ``PAIRS_A_SCENE`` pairs of GT overlap
+> 0.25, per pair ``PER_PAIR`` grid points with a grid point of the other scan within 0.6 voxel under GT. Every
+tenth scene is held out.
+
+**Training.** InfoNCE (temperature 0.07) over the correspondences of one pair (the other points of the pair are
+the negatives, as in matching), 8 pairs a step, Adam 1e-3, for a fixed number of minutes; the weights kept are the
+best on the held-out pairs (top-1 among a pair's ``PER_PAIR``).
+
+**Evaluation** (``eval``): every gt.log pair of each scene is matched (``mutual_matches``) and registered
+(``register_pair``, sc2) on FPFH and on the learned descriptor, from the same grid; a pair is right when the paper's
+rmse under its gt.info is ≤ 0.2 m. Also the mutual matches within 2 voxels of GT (median over pairs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import multiprocessing as mp
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as nnf
+from scipy.spatial import cKDTree
+from torch import nn
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_pairwise, when imported from elsewhere
+from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
+from data_tools.scene_gt import data_root  # noqa: E402
+from bench_pairwise import MATCH_SCENES, paper_rmse  # noqa: E402
+
+RADIUS = 7.5  # voxels
+NEIGHBOURS = 256
+RINGS, LEVELS, SECTORS, CHANNELS = 5, 6, 8, 3
+DATA_SEED = 99
+PAIRS_A_SCENE = 30
+PER_PAIR = 128
+
+
+def encode(points: np.ndarray, normals: np.ndarray, voxel: float, rows: np.ndarray, tree: cKDTree,
+           chunk: int = 8000) -> np.ndarray:
+    """(len(rows), CHANNELS, RINGS, LEVELS, SECTORS) float32 cylinder patches of ``points[rows]``."""
+    radius = RADIUS * voxel
+    bins = RINGS * LEVELS * SECTORS
+    out = np.zeros((len(rows), CHANNELS, RINGS, LEVELS, SECTORS), np.float32)
+    padded_p, padded_n = np.vstack([points, np.zeros((1, 3))]), np.vstack([normals, np.zeros((1, 3))])
+    for s in range(0, len(rows), chunk):
+        q = rows[s:s + chunk]
+        _, nb = tree.query(points[q], k=NEIGHBOURS, distance_upper_bound=radius, workers=2)
+        valid = nb < len(points)
+        d = padded_p[nb] - points[q][:, None]
+        z = normals[q]
+        a = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+        x = a - (a * z).sum(1, keepdims=True) * z
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+        y = np.cross(z, x)
+        h, u, w = (np.einsum("bkc,bc->bk", d, e) for e in (z, x, y))
+        rho = np.hypot(u, w)
+        ring = np.clip((rho / radius * RINGS).astype(int), 0, RINGS - 1)
+        level = np.clip(((h / radius + 1) / 2 * LEVELS).astype(int), 0, LEVELS - 1)
+        sector = ((np.arctan2(w, u) + np.pi) / (2 * np.pi) * SECTORS).astype(int) % SECTORS
+        n = padded_n[nb]
+        outward = (u[..., None] * x[:, None] + w[..., None] * y[:, None]) / np.maximum(rho, 1e-9)[..., None]
+        flat = (np.arange(len(q))[:, None] * bins + (ring * LEVELS + level) * SECTORS + sector)[valid]
+        size = len(q) * bins
+        count = np.bincount(flat, minlength=size).reshape(len(q), bins)
+        along = np.bincount(flat, weights=np.einsum("bkc,bc->bk", n, z)[valid], minlength=size)
+        radial = np.bincount(flat, weights=(n * outward).sum(-1)[valid], minlength=size)
+        per_bin = np.maximum(count, 1)
+        share = count / np.maximum(valid.sum(1), 1)[:, None] * bins / 8.0
+        block = np.stack([share, along.reshape(len(q), bins) / per_bin, radial.reshape(len(q), bins) / per_bin], 1)
+        out[s:s + chunk] = block.reshape(len(q), CHANNELS, RINGS, LEVELS, SECTORS)
+    return out
+
+
+class Net(nn.Module):
+    """Circular convolutions over the sectors, a max over them, then a unit 32-d descriptor."""
+
+    def __init__(self, width: int = 64, dim: int = 32):
+        super().__init__()
+        cin = CHANNELS * RINGS * LEVELS
+        self.convs = nn.ModuleList([nn.Conv1d(c, width, 3, padding=1, padding_mode="circular")
+                                    for c in (cin, width, width)])
+        self.norms = nn.ModuleList([nn.GroupNorm(8, width) for _ in range(3)])
+        self.head = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, dim))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.float()
+        x = torch.cat([torch.log1p(8 * x[:, :1]), x[:, 1:]], 1).reshape(len(x), -1, SECTORS)
+        for conv, norm in zip(self.convs, self.norms):
+            x = nnf.relu(norm(conv(x)))
+        return nnf.normalize(self.head(x.max(-1).values), dim=1)
+
+
+def describe(net: Net, points: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray:
+    X = encode(points, normals, voxel, np.arange(len(points)), cKDTree(points))
+    with torch.no_grad():
+        return np.concatenate([net(torch.from_numpy(X[s:s + 4096])).numpy() for s in range(0, len(X), 4096)])
+
+
+# --- data -----------------------------------------------------------------------------------------------------
+
+
+def _scene(args: tuple[Path, int]) -> int:
+    from data_tools.simulate import make_training_scene
+    from sghr_gtsam.features.local import compute_features
+
+    folder, index = args
+    path = folder / f"scene_{index:04d}.npz"
+    if path.exists():
+        return index
+    rng = np.random.default_rng(index)
+    scene = make_training_scene("room", int(rng.integers(12, 20)), [index, DATA_SEED, 1])
+    v = scene.voxel
+    feats = [compute_features(P, v) for P in scene.scans]
+    trees = [cKDTree(f.points) for f in feats]
+    pairs = [(i, j) for i in range(len(feats)) for j in range(i + 1, len(feats)) if scene.overlap[i, j] > 0.25]
+    rng.shuffle(pairs)
+    a, b, pair = [], [], []
+    for k, (i, j) in enumerate(pairs[:PAIRS_A_SCENE]):
+        T = np.linalg.inv(scene.poses[i]) @ scene.poses[j]
+        dist, nearest = trees[i].query(feats[j].points @ T[:3, :3].T + T[:3, 3])
+        close = np.flatnonzero(dist < 0.6 * v)
+        if len(close) < PER_PAIR:
+            continue
+        pick = rng.choice(close, PER_PAIR, replace=False)
+        a.append(encode(feats[i].points, feats[i].normals, v, nearest[pick], trees[i]))
+        b.append(encode(feats[j].points, feats[j].normals, v, pick, trees[j]))
+        pair.append(np.full(PER_PAIR, k))
+    if a:
+        np.savez(path, a=np.concatenate(a).astype(np.float16), b=np.concatenate(b).astype(np.float16),
+                 pair=np.concatenate(pair))
+    return index
+
+
+def make_data(folder: Path, scenes: int) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    # spawn: open3d's OpenMP pool deadlocks in a forked child
+    with mp.get_context("spawn").Pool(2) as pool:
+        for done, _ in enumerate(pool.imap_unordered(_scene, [(folder, k) for k in range(scenes)]), 1):
+            print(f"\r{done}/{scenes} scenes", end="", flush=True)
+    print()
+
+
+# --- training -------------------------------------------------------------------------------------------------
+
+
+def _load(files: list[str]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    a, b, groups, start = [], [], [], 0
+    for f in files:
+        d = np.load(f)
+        a.append(d["a"])
+        b.append(d["b"])
+        for p in np.unique(d["pair"]):
+            groups.append(start + np.flatnonzero(d["pair"] == p))
+        start += len(d["pair"])
+    return np.concatenate(a), np.concatenate(b), groups
+
+
+def _top1(net: Net, a: np.ndarray, b: np.ndarray, groups: list[np.ndarray]) -> float:
+    net.eval()
+    with torch.no_grad():
+        hits = [(torch.argmax(net(torch.from_numpy(a[g])) @ net(torch.from_numpy(b[g])).T, 1)
+                 == torch.arange(len(g))).float().mean().item() for g in groups]
+    net.train()
+    return float(np.mean(hits))
+
+
+def train(folder: Path, weights: Path, minutes: float) -> None:
+    torch.manual_seed(0)
+    files = sorted(glob.glob(str(folder / "scene_*.npz")))
+    held = [f for f in files if int(f[-8:-4]) % 10 == 9]
+    a, b, groups = _load([f for f in files if f not in held])
+    va, vb, vgroups = _load(held)
+    print(f"{len(files) - len(held)} scenes, {len(a)} correspondences; {len(held)} held out")
+    net = Net()
+    opt = torch.optim.Adam(net.parameters(), 1e-3)
+    rng = np.random.default_rng(0)
+    started, step, best = time.time(), 0, -1.0
+    while time.time() - started < minutes * 60:
+        loss = 0.0
+        for g in rng.choice(len(groups), 8, replace=False):
+            fa, fb = net(torch.from_numpy(a[groups[g]])), net(torch.from_numpy(b[groups[g]]))
+            logits = fa @ fb.T / 0.07
+            t = torch.arange(len(fa))
+            loss = loss + 0.5 * (nnf.cross_entropy(logits, t) + nnf.cross_entropy(logits.T, t))
+        opt.zero_grad()
+        (loss / 8).backward()
+        opt.step()
+        step += 1
+        if step % 200 == 0:
+            top1 = _top1(net, va, vb, vgroups)
+            print(f"step {step}, {time.time() - started:.0f} s: held-out top-1 {top1:.3f}", flush=True)
+            if top1 > best:
+                best = top1
+                torch.save(net.state_dict(), weights)
+    print(f"best held-out top-1 {best:.3f}")
+
+
+# --- evaluation -----------------------------------------------------------------------------------------------
+
+
+def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
+    from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
+    from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_poses
+    from sghr_gtsam.io.scans import load_scan
+    from sghr_gtsam.registration.pairwise import mutual_matches, register_pair
+
+    torch.set_num_threads(2)
+    net = Net()
+    net.load_state_dict(torch.load(weights))
+    net.eval()
+    print("| scene | descriptor | right / gt.log pairs | right / pairs \\|i−j\\| > 1 | mutual matches within 2 voxels "
+          "of GT, median | pairs with ≥ 15 of them | s a scan to describe | CPU s a pair |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in scenes:
+        folder = root / "3dmatch-scenes" / name
+        gt_dir = root / "3dmatch-test-gt" / "3DMatch" / {**MATCH_SCENES, **OTHER_SCENES}[name]
+        names, _ = read_poses(folder / "gt_poses.txt")
+        log, info = read_gt_log(gt_dir / "gt.log"), read_gt_info(gt_dir / "gt.info")
+        scans = [load_scan(folder / n) for n in names]
+        voxel = default_voxel(scans)
+        t0 = time.perf_counter()
+        fpfh = [compute_features(s, voxel) for s in scans]
+        seconds = {"FPFH": (time.perf_counter() - t0) / len(scans)}
+        t0 = time.perf_counter()
+        learned = [ScanFeatures(f.points, f.normals, None, voxel, f.points, describe(net, f.points, f.normals, voxel))
+                   for f in fpfh]
+        seconds["learned"] = (time.perf_counter() - t0) / len(scans)
+        right = {}
+        for label, feats in (("FPFH", fpfh), ("learned", learned)):
+            good, ok, cpu = [], [], 0.0
+            for (i, j), T_gt in sorted(log.items()):
+                a, b = mutual_matches(feats[i], feats[j])
+                moved = feats[j].keypoints[b] @ T_gt[:3, :3].T + T_gt[:3, 3]
+                good.append(int((np.linalg.norm(feats[i].keypoints[a] - moved, axis=1) < 2 * voxel).sum()))
+                t0 = time.process_time()
+                T = register_pair(feats[i], feats[j], voxel).T
+                cpu += time.process_time() - t0
+                ok.append(paper_rmse(T, T_gt, info[(i, j)]) <= 0.2)
+            far = [k for k, (i, j) in enumerate(sorted(log)) if abs(i - j) > 1]
+            right[label] = np.array(ok)
+            print(f"| {name} | {label} | {sum(ok)}/{len(ok)} | {sum(ok[k] for k in far)}/{len(far)} | "
+                  f"{np.median(good):.0f} | {np.mean(np.array(good) >= 15):.3f} | {seconds[label]:.2f} | "
+                  f"{cpu / len(ok):.3f} |", flush=True)
+        f, lr = right["FPFH"], right["learned"]
+        print(f"|   | right with both {np.sum(f & lr)}, FPFH only {np.sum(f & ~lr)}, learned only {np.sum(~f & lr)}, "
+              f"neither {np.sum(~f & ~lr)} | | | | | | |")
+
+
+def calibrate(weights: Path, scenes: int, min_inliers: int) -> None:
+    """Inlier counts of right and wrong registrations on held-out simulated rooms, each descriptor: what count
+    admits as many wrong ones for the learned descriptor as ``min_inliers`` does for FPFH (no real scan used)."""
+    from data_tools.simulate import make_training_scene
+    from sghr_gtsam.features.local import ScanFeatures, compute_features
+    from sghr_gtsam.registration.pairwise import register_pair
+    from sghr_gtsam.se3 import relative_errors
+
+    torch.set_num_threads(2)
+    net = Net()
+    net.load_state_dict(torch.load(weights))
+    net.eval()
+    counts: dict[str, list[tuple[bool, int]]] = {"FPFH": [], "learned": []}
+    for index in range(9, 10 * scenes, 10):  # the held-out scenes of ``train``
+        rng = np.random.default_rng(index)
+        scene = make_training_scene("room", int(rng.integers(12, 20)), [index, DATA_SEED, 1])
+        v = scene.voxel
+        fpfh = [compute_features(P, v) for P in scene.scans]
+        learned = [ScanFeatures(f.points, f.normals, None, v, f.points, describe(net, f.points, f.normals, v))
+                   for f in fpfh]
+        n = len(fpfh)
+        pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
+        near = [p for p in pairs if scene.overlap[p] > 0.25][:10]
+        apart = [p for p in pairs if scene.overlap[p] < 0.02][:10]
+        for i, j in near + apart:
+            T_gt = np.linalg.inv(scene.poses[i]) @ scene.poses[j]
+            for label, feats in (("FPFH", fpfh), ("learned", learned)):
+                res = register_pair(feats[i], feats[j], v)
+                rot, trans = relative_errors(res.T, T_gt)
+                counts[label].append((bool(scene.overlap[i, j] > 0.25 and rot < 5 and trans < 10 * v), res.inliers))
+    wrong_fpfh = np.array([c for ok, c in counts["FPFH"] if not ok])
+    admitted = np.mean(wrong_fpfh >= min_inliers)
+    wrong_learned = np.sort([c for ok, c in counts["learned"] if not ok])
+    threshold = int(np.quantile(wrong_learned, 1 - admitted, method="higher")) if admitted > 0 else wrong_learned[-1] + 1
+    print("| descriptor | right registrations: count, inliers median | wrong: count, inliers median / 90 % "
+          "| wrong admitted at the threshold | right admitted |")
+    print("|---|---|---|---|---|")
+    for label, threshold_ in (("FPFH", min_inliers), ("learned", threshold)):
+        c = np.array(counts[label])
+        ok, inl = c[:, 0].astype(bool), c[:, 1]
+        print(f"| {label} (threshold {threshold_}) | {ok.sum()}, {np.median(inl[ok]):.0f} | {(~ok).sum()}, "
+              f"{np.median(inl[~ok]):.0f} / {np.quantile(inl[~ok], 0.9):.0f} | {np.mean(inl[~ok] >= threshold_):.3f} | "
+              f"{np.mean(inl[ok] >= threshold_):.3f} |")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("data")
+    d.add_argument("folder", type=Path)
+    d.add_argument("--scenes", type=int, default=160)
+    t = sub.add_parser("train")
+    t.add_argument("folder", type=Path)
+    t.add_argument("weights", type=Path)
+    t.add_argument("--minutes", type=float, default=22.0)
+    e = sub.add_parser("eval")
+    e.add_argument("weights", type=Path)
+    e.add_argument("--scenes", nargs="+", default=list(MATCH_SCENES), choices=[*MATCH_SCENES, *OTHER_SCENES])
+    e.add_argument("--data", type=Path, default=data_root(),
+                   help="the shared data, or a folder made by data_tools.other_3dmatch_scenes for the other scenes")
+    c = sub.add_parser("calibrate")
+    c.add_argument("weights", type=Path)
+    c.add_argument("--scenes", type=int, default=6, help="held-out rooms")
+    c.add_argument("--min-inliers", type=int, default=15, help="FPFH's threshold (Config.min_inliers)")
+    args = ap.parse_args()
+    if args.command == "data":
+        make_data(args.folder, args.scenes)
+    elif args.command == "calibrate":
+        calibrate(args.weights, args.scenes, args.min_inliers)
+    elif args.command == "train":
+        train(args.folder, args.weights, args.minutes)
+    else:
+        evaluate(args.weights, args.scenes, args.data)
+
+
+if __name__ == "__main__":
+    main()
