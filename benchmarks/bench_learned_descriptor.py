@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_pairwise, when imported from elsewhere
 from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
-from bench_pairwise import MATCH_SCENES, paper_rmse  # noqa: E402
+from bench_pairwise import MATCH_SCENES, load_3dmatch, paper_rmse  # noqa: E402
 
 RADIUS = 7.5  # voxels
 NEIGHBOURS = 256
@@ -220,9 +220,7 @@ def train(folder: Path, weights: Path, minutes: float) -> None:
 
 
 def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
-    from sghr_gtsam.features.local import ScanFeatures, compute_features, default_voxel
-    from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_poses
-    from sghr_gtsam.io.scans import load_scan
+    from sghr_gtsam.features.local import ScanFeatures, compute_features
     from sghr_gtsam.registration.pairwise import mutual_matches, register_pair
 
     torch.set_num_threads(2)
@@ -233,12 +231,7 @@ def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
           "of GT, median | pairs with ≥ 15 of them | s a scan to describe | CPU s a pair |")
     print("|---|---|---|---|---|---|---|---|")
     for name in scenes:
-        folder = root / "3dmatch-scenes" / name
-        gt_dir = root / "3dmatch-test-gt" / "3DMatch" / {**MATCH_SCENES, **OTHER_SCENES}[name]
-        names, _ = read_poses(folder / "gt_poses.txt")
-        log, info = read_gt_log(gt_dir / "gt.log"), read_gt_info(gt_dir / "gt.info")
-        scans = [load_scan(folder / n) for n in names]
-        voxel = default_voxel(scans)
+        _, log, info, scans, voxel = load_3dmatch(root, name, {**MATCH_SCENES, **OTHER_SCENES}[name])
         t0 = time.perf_counter()
         fpfh = [compute_features(s, voxel) for s in scans]
         seconds = {"FPFH": (time.perf_counter() - t0) / len(scans)}

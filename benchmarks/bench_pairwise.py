@@ -153,13 +153,17 @@ def paper_rmse(T_est: np.ndarray, T_gt: np.ndarray, info: np.ndarray) -> float:
     return float(registration_recall([0, 2], np.stack([np.eye(4), T_est]), {(0, 2): T_gt}, {(0, 2): info}).rmse[0])
 
 
-def run_3dmatch(name: str, matchers: list[str], show_pairs: bool, negatives: int) -> None:
-    folder = DATA / "3dmatch-scenes" / name
-    gt_dir = DATA / "3dmatch-test-gt" / "3DMatch" / MATCH_SCENES[name]
+def load_3dmatch(root: Path, name: str, gt_name: str) -> tuple[np.ndarray, dict, dict, list[np.ndarray], float]:
+    """A 3DMatch scene under ``root`` (the shared data's layout): GT poses, gt.log, gt.info, scans, default voxel."""
+    folder = root / "3dmatch-scenes" / name
+    gt_dir = root / "3dmatch-test-gt" / "3DMatch" / gt_name
     names, poses = read_poses(folder / "gt_poses.txt")
-    log, info = read_gt_log(gt_dir / "gt.log"), read_gt_info(gt_dir / "gt.info")
     scans = [load_scan(folder / n) for n in names]
-    voxel = default_voxel(scans)
+    return poses, read_gt_log(gt_dir / "gt.log"), read_gt_info(gt_dir / "gt.info"), scans, default_voxel(scans)
+
+
+def run_3dmatch(name: str, matchers: list[str], show_pairs: bool, negatives: int) -> None:
+    poses, log, info, scans, voxel = load_3dmatch(DATA, name, MATCH_SCENES[name])
     t0 = time.perf_counter()
     feats = [compute_features(s, voxel) for s in scans]
     t_feat = time.perf_counter() - t0
