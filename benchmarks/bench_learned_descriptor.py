@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_pairwise, when imported from elsewhere
 from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
-from bench_pairwise import MATCH_SCENES, load_3dmatch, paper_rmse  # noqa: E402
+from bench_pairwise import MATCH_SCENES, PAPER_RMSE, load_3dmatch, paper_rmse  # noqa: E402
 
 RADIUS = 7.5  # voxels
 NEIGHBOURS = 256
@@ -54,6 +54,7 @@ RINGS, LEVELS, SECTORS, CHANNELS = 5, 6, 8, 3
 DATA_SEED = 99
 PAIRS_A_SCENE = 30
 PER_PAIR = 128
+HOLD_OUT = 10  # every tenth room is held out of training
 
 
 def encode(points: np.ndarray, normals: np.ndarray, voxel: float, rows: np.ndarray, tree: cKDTree,
@@ -117,19 +118,40 @@ def describe(net: Net, points: np.ndarray, normals: np.ndarray, voxel: float) ->
         return np.concatenate([net(torch.from_numpy(X[s:s + 4096])).numpy() for s in range(0, len(X), 4096)])
 
 
+def _trained(weights: Path) -> Net:
+    torch.set_num_threads(2)
+    net = Net()
+    net.load_state_dict(torch.load(weights))
+    return net.eval()
+
+
+def _learned(net: Net, fpfh: list) -> list:
+    """The scans of ``fpfh`` (``ScanFeatures``) with the learned descriptors of the same grid points."""
+    from sghr_gtsam.features.local import ScanFeatures
+
+    return [ScanFeatures(f.points, f.normals, None, f.voxel, f.points, describe(net, f.points, f.normals, f.voxel))
+            for f in fpfh]
+
+
+def _room(index: int):
+    """Simulated room ``index`` of the data set, and the generator that drew its scan count."""
+    from data_tools.simulate import make_training_scene
+
+    rng = np.random.default_rng(index)
+    return make_training_scene("room", int(rng.integers(12, 20)), [index, DATA_SEED, 1]), rng
+
+
 # --- data -----------------------------------------------------------------------------------------------------
 
 
 def _scene(args: tuple[Path, int]) -> int:
-    from data_tools.simulate import make_training_scene
     from sghr_gtsam.features.local import compute_features
 
     folder, index = args
     path = folder / f"scene_{index:04d}.npz"
     if path.exists():
         return index
-    rng = np.random.default_rng(index)
-    scene = make_training_scene("room", int(rng.integers(12, 20)), [index, DATA_SEED, 1])
+    scene, rng = _room(index)
     v = scene.voxel
     feats = [compute_features(P, v) for P in scene.scans]
     trees = [cKDTree(f.points) for f in feats]
@@ -188,7 +210,7 @@ def _top1(net: Net, a: np.ndarray, b: np.ndarray, groups: list[np.ndarray]) -> f
 def train(folder: Path, weights: Path, minutes: float) -> None:
     torch.manual_seed(0)
     files = sorted(glob.glob(str(folder / "scene_*.npz")))
-    held = [f for f in files if int(f[-8:-4]) % 10 == 9]
+    held = [f for f in files if int(f[-8:-4]) % HOLD_OUT == HOLD_OUT - 1]
     a, b, groups = _load([f for f in files if f not in held])
     va, vb, vgroups = _load(held)
     print(f"{len(files) - len(held)} scenes, {len(a)} correspondences; {len(held)} held out")
@@ -220,13 +242,10 @@ def train(folder: Path, weights: Path, minutes: float) -> None:
 
 
 def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
-    from sghr_gtsam.features.local import ScanFeatures, compute_features
-    from sghr_gtsam.registration.pairwise import mutual_matches, register_pair
+    from sghr_gtsam.features.local import compute_features
+    from sghr_gtsam.registration.pairwise import register_pair
 
-    torch.set_num_threads(2)
-    net = Net()
-    net.load_state_dict(torch.load(weights))
-    net.eval()
+    net = _trained(weights)
     print("| scene | descriptor | right / gt.log pairs | right / pairs \\|i−j\\| > 1 | mutual matches within 2 voxels "
           "of GT, median | pairs with ≥ 15 of them | s a scan to describe | CPU s a pair |")
     print("|---|---|---|---|---|---|---|---|")
@@ -236,21 +255,20 @@ def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
         fpfh = [compute_features(s, voxel) for s in scans]
         seconds = {"FPFH": (time.perf_counter() - t0) / len(scans)}
         t0 = time.perf_counter()
-        learned = [ScanFeatures(f.points, f.normals, None, voxel, f.points, describe(net, f.points, f.normals, voxel))
-                   for f in fpfh]
+        learned = _learned(net, fpfh)
         seconds["learned"] = (time.perf_counter() - t0) / len(scans)
         right = {}
+        far = [k for k, (i, j) in enumerate(sorted(log)) if abs(i - j) > 1]
         for label, feats in (("FPFH", fpfh), ("learned", learned)):
             good, ok, cpu = [], [], 0.0
             for (i, j), T_gt in sorted(log.items()):
-                a, b = mutual_matches(feats[i], feats[j])
+                t0 = time.process_time()
+                res = register_pair(feats[i], feats[j], voxel)
+                cpu += time.process_time() - t0
+                a, b = res.matches
                 moved = feats[j].keypoints[b] @ T_gt[:3, :3].T + T_gt[:3, 3]
                 good.append(int((np.linalg.norm(feats[i].keypoints[a] - moved, axis=1) < 2 * voxel).sum()))
-                t0 = time.process_time()
-                T = register_pair(feats[i], feats[j], voxel).T
-                cpu += time.process_time() - t0
-                ok.append(paper_rmse(T, T_gt, info[(i, j)]) <= 0.2)
-            far = [k for k, (i, j) in enumerate(sorted(log)) if abs(i - j) > 1]
+                ok.append(paper_rmse(res.T, T_gt, info[(i, j)]) <= PAPER_RMSE)
             right[label] = np.array(ok)
             print(f"| {name} | {label} | {sum(ok)}/{len(ok)} | {sum(ok[k] for k in far)}/{len(far)} | "
                   f"{np.median(good):.0f} | {np.mean(np.array(good) >= 15):.3f} | {seconds[label]:.2f} | "
@@ -264,23 +282,17 @@ def calibrate(weights: Path, scenes: int, min_inliers: int) -> None:
     """Inlier counts of right and wrong registrations on held-out simulated rooms, each descriptor: what count
     admits as many wrong ones for the learned descriptor as ``min_inliers`` does for FPFH (no real scan used). Per
     room up to 10 pairs of GT overlap > 0.25 and 10 under 0.02; right: overlap > 0.25 and within 5° / 10 voxels."""
-    from data_tools.simulate import make_training_scene
-    from sghr_gtsam.features.local import ScanFeatures, compute_features
+    from sghr_gtsam.features.local import compute_features
     from sghr_gtsam.registration.pairwise import register_pair
     from sghr_gtsam.se3 import relative_errors
 
-    torch.set_num_threads(2)
-    net = Net()
-    net.load_state_dict(torch.load(weights))
-    net.eval()
+    net = _trained(weights)
     counts: dict[str, list[tuple[bool, int]]] = {"FPFH": [], "learned": []}
-    for index in range(9, 10 * scenes, 10):  # the held-out scenes of ``train``
-        rng = np.random.default_rng(index)
-        scene = make_training_scene("room", int(rng.integers(12, 20)), [index, DATA_SEED, 1])
+    for index in range(HOLD_OUT - 1, HOLD_OUT * scenes, HOLD_OUT):  # the held-out rooms of ``train``
+        scene, _ = _room(index)
         v = scene.voxel
         fpfh = [compute_features(P, v) for P in scene.scans]
-        learned = [ScanFeatures(f.points, f.normals, None, v, f.points, describe(net, f.points, f.normals, v))
-                   for f in fpfh]
+        learned = _learned(net, fpfh)
         n = len(fpfh)
         pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
         near = [p for p in pairs if scene.overlap[p] > 0.25][:10]
@@ -328,12 +340,12 @@ def main() -> None:
     args = ap.parse_args()
     if args.command == "data":
         make_data(args.folder, args.scenes)
-    elif args.command == "calibrate":
-        calibrate(args.weights, args.scenes, args.min_inliers)
     elif args.command == "train":
         train(args.folder, args.weights, args.minutes)
-    else:
+    elif args.command == "eval":
         evaluate(args.weights, args.scenes, args.data)
+    else:
+        calibrate(args.weights, args.scenes, args.min_inliers)
 
 
 if __name__ == "__main__":
