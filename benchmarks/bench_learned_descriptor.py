@@ -40,97 +40,26 @@ import numpy as np
 import torch
 import torch.nn.functional as nnf
 from scipy.spatial import cKDTree
-from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_pairwise, when imported from elsewhere
+from sghr_gtsam.features.learned import (PatchNet, encode_patches, learned_descriptors, load_patch_net,  # noqa: E402
+                                         torch_network)
+from sghr_gtsam.features.local import ScanFeatures, compute_features  # noqa: E402
 from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 from bench_pairwise import MATCH_SCENES, PAPER_RMSE, load_3dmatch, paper_rmse  # noqa: E402
 
-RADIUS = 7.5  # voxels
-NEIGHBOURS = 256
-RINGS, LEVELS, SECTORS, CHANNELS = 5, 6, 8, 3
 DATA_SEED = 99
 PAIRS_A_SCENE = 30
 PER_PAIR = 128
 HOLD_OUT = 10  # every tenth room is held out of training
 
 
-def encode(points: np.ndarray, normals: np.ndarray, voxel: float, rows: np.ndarray, tree: cKDTree,
-           chunk: int = 8000) -> np.ndarray:
-    """(len(rows), CHANNELS, RINGS, LEVELS, SECTORS) float32 cylinder patches of ``points[rows]``."""
-    radius = RADIUS * voxel
-    bins = RINGS * LEVELS * SECTORS
-    out = np.zeros((len(rows), CHANNELS, RINGS, LEVELS, SECTORS), np.float32)
-    padded_p, padded_n = np.vstack([points, np.zeros((1, 3))]), np.vstack([normals, np.zeros((1, 3))])
-    for s in range(0, len(rows), chunk):
-        q = rows[s:s + chunk]
-        _, nb = tree.query(points[q], k=NEIGHBOURS, distance_upper_bound=radius, workers=2)
-        valid = nb < len(points)
-        d = padded_p[nb] - points[q][:, None]
-        z = normals[q]
-        a = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-        x = a - (a * z).sum(1, keepdims=True) * z
-        x /= np.linalg.norm(x, axis=1, keepdims=True)
-        y = np.cross(z, x)
-        h, u, w = (np.einsum("bkc,bc->bk", d, e) for e in (z, x, y))
-        rho = np.hypot(u, w)
-        ring = np.clip((rho / radius * RINGS).astype(int), 0, RINGS - 1)
-        level = np.clip(((h / radius + 1) / 2 * LEVELS).astype(int), 0, LEVELS - 1)
-        sector = ((np.arctan2(w, u) + np.pi) / (2 * np.pi) * SECTORS).astype(int) % SECTORS
-        n = padded_n[nb]
-        outward = (u[..., None] * x[:, None] + w[..., None] * y[:, None]) / np.maximum(rho, 1e-9)[..., None]
-        flat = (np.arange(len(q))[:, None] * bins + (ring * LEVELS + level) * SECTORS + sector)[valid]
-        size = len(q) * bins
-        count = np.bincount(flat, minlength=size).reshape(len(q), bins)
-        along = np.bincount(flat, weights=np.einsum("bkc,bc->bk", n, z)[valid], minlength=size)
-        radial = np.bincount(flat, weights=(n * outward).sum(-1)[valid], minlength=size)
-        per_bin = np.maximum(count, 1)
-        share = count / np.maximum(valid.sum(1), 1)[:, None] * bins / 8.0
-        block = np.stack([share, along.reshape(len(q), bins) / per_bin, radial.reshape(len(q), bins) / per_bin], 1)
-        out[s:s + chunk] = block.reshape(len(q), CHANNELS, RINGS, LEVELS, SECTORS)
-    return out
-
-
-class Net(nn.Module):
-    """Circular convolutions over the sectors, a max over them, then a unit 32-d descriptor."""
-
-    def __init__(self, width: int = 64, dim: int = 32):
-        super().__init__()
-        cin = CHANNELS * RINGS * LEVELS
-        self.convs = nn.ModuleList([nn.Conv1d(c, width, 3, padding=1, padding_mode="circular")
-                                    for c in (cin, width, width)])
-        self.norms = nn.ModuleList([nn.GroupNorm(8, width) for _ in range(3)])
-        self.head = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, dim))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = x.float()
-        x = torch.cat([torch.log1p(8 * x[:, :1]), x[:, 1:]], 1).reshape(len(x), -1, SECTORS)
-        for conv, norm in zip(self.convs, self.norms):
-            x = nnf.relu(norm(conv(x)))
-        return nnf.normalize(self.head(x.max(-1).values), dim=1)
-
-
-def describe(net: Net, points: np.ndarray, normals: np.ndarray, voxel: float) -> np.ndarray:
-    X = encode(points, normals, voxel, np.arange(len(points)), cKDTree(points))
-    with torch.no_grad():
-        return np.concatenate([net(torch.from_numpy(X[s:s + 4096])).numpy() for s in range(0, len(X), 4096)])
-
-
-def _trained(weights: Path) -> Net:
-    torch.set_num_threads(2)
-    net = Net()
-    net.load_state_dict(torch.load(weights))
-    return net.eval()
-
-
-def _learned(net: Net, fpfh: list) -> list:
+def _learned(net: PatchNet, fpfh: list) -> list:
     """The scans of ``fpfh`` (``ScanFeatures``) with the learned descriptors of the same grid points."""
-    from sghr_gtsam.features.local import ScanFeatures
-
-    return [ScanFeatures(f.points, f.normals, None, f.voxel, f.points, describe(net, f.points, f.normals, f.voxel))
-            for f in fpfh]
+    return [ScanFeatures(f.points, f.normals, f.fpfh, f.voxel, f.points,
+                         learned_descriptors(f.points, f.normals, f.voxel, net, workers=2)) for f in fpfh]
 
 
 def _room(index: int):
@@ -145,7 +74,6 @@ def _room(index: int):
 
 
 def _scene(args: tuple[Path, int]) -> int:
-    from sghr_gtsam.features.local import compute_features
 
     folder, index = args
     path = folder / f"scene_{index:04d}.npz"
@@ -165,8 +93,8 @@ def _scene(args: tuple[Path, int]) -> int:
         if len(close) < PER_PAIR:
             continue
         pick = rng.choice(close, PER_PAIR, replace=False)
-        a.append(encode(feats[i].points, feats[i].normals, v, nearest[pick], trees[i]))
-        b.append(encode(feats[j].points, feats[j].normals, v, pick, trees[j]))
+        a.append(encode_patches(feats[i].points, feats[i].normals, v, nearest[pick], trees[i], workers=1))
+        b.append(encode_patches(feats[j].points, feats[j].normals, v, pick, trees[j], workers=1))
         pair.append(np.full(PER_PAIR, k))
     if a:
         np.savez(path, a=np.concatenate(a).astype(np.float16), b=np.concatenate(b).astype(np.float16),
@@ -198,7 +126,7 @@ def _load(files: list[str]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
     return np.concatenate(a), np.concatenate(b), groups
 
 
-def _top1(net: Net, a: np.ndarray, b: np.ndarray, groups: list[np.ndarray]) -> float:
+def _top1(net: torch.nn.Module, a: np.ndarray, b: np.ndarray, groups: list[np.ndarray]) -> float:
     net.eval()
     with torch.no_grad():
         hits = [(torch.argmax(net(torch.from_numpy(a[g])) @ net(torch.from_numpy(b[g])).T, 1)
@@ -214,7 +142,7 @@ def train(folder: Path, weights: Path, minutes: float) -> None:
     a, b, groups = _load([f for f in files if f not in held])
     va, vb, vgroups = _load(held)
     print(f"{len(files) - len(held)} scenes, {len(a)} correspondences; {len(held)} held out")
-    net = Net()
+    net = torch_network()
     opt = torch.optim.Adam(net.parameters(), 1e-3)
     rng = np.random.default_rng(0)
     started, step, best = time.time(), 0, -1.0
@@ -234,7 +162,8 @@ def train(folder: Path, weights: Path, minutes: float) -> None:
             print(f"step {step}, {time.time() - started:.0f} s: held-out top-1 {top1:.3f}", flush=True)
             if top1 > best:
                 best = top1
-                torch.save(net.state_dict(), weights)
+                state = {k: v.detach().numpy().copy() for k, v in net.state_dict().items()}
+                np.savez(weights, **PatchNet.from_state(state).state())
     print(f"best held-out top-1 {best:.3f}")
 
 
@@ -242,10 +171,9 @@ def train(folder: Path, weights: Path, minutes: float) -> None:
 
 
 def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
-    from sghr_gtsam.features.local import compute_features
     from sghr_gtsam.registration.pairwise import register_pair
 
-    net = _trained(weights)
+    net = load_patch_net(weights)
     print("| scene | descriptor | right / gt.log pairs | right / pairs \\|i−j\\| > 1 | mutual matches within 2 voxels "
           "of GT, median | pairs with ≥ 15 of them | s a scan to describe | CPU s a pair |")
     print("|---|---|---|---|---|---|---|---|")
@@ -282,11 +210,10 @@ def calibrate(weights: Path, scenes: int, min_inliers: int) -> None:
     """Inlier counts of right and wrong registrations on held-out simulated rooms, each descriptor: what count
     admits as many wrong ones for the learned descriptor as ``min_inliers`` does for FPFH (no real scan used). Per
     room up to 10 pairs of GT overlap > 0.25 and 10 under 0.02; right: overlap > 0.25 and within 5° / 10 voxels."""
-    from sghr_gtsam.features.local import compute_features
     from sghr_gtsam.registration.pairwise import register_pair
     from sghr_gtsam.se3 import relative_errors
 
-    net = _trained(weights)
+    net = load_patch_net(weights)
     counts: dict[str, list[tuple[bool, int]]] = {"FPFH": [], "learned": []}
     for index in range(HOLD_OUT - 1, HOLD_OUT * scenes, HOLD_OUT):  # the held-out rooms of ``train``
         scene, _ = _room(index)

@@ -34,9 +34,9 @@ if TYPE_CHECKING:
 FORMAT = 1
 """Bumped when what a file holds changes meaning."""
 KINDS = ("features", "pyramids", "pairs", "refined")
-_SOURCES = ("features/local.py", "registration/pairwise.py", "registration/estimators.py",
-            "registration/information.py", "registration/refine.py")
-"""The modules whose code (and constants) make the cached results."""
+_SOURCES = ("features/local.py", "features/learned.py", "weights/patch_rooms.npz", "registration/pairwise.py",
+            "registration/estimators.py", "registration/information.py", "registration/refine.py")
+"""The modules whose code (and constants) and the weights that make the cached results."""
 _LIBRARIES = ("numpy", "scipy", "open3d-cpu", "small-gicp", "kiss-matcher")
 _STALE_SECONDS = 60.0
 """A write's temporary file older than this belongs to a killed run (a write takes milliseconds)."""
@@ -74,11 +74,11 @@ def _key(*parts: Any) -> str:
 
 
 def scan_key(scan: "Scan", voxel: float, config: "Config") -> str:
-    """A scan's features: its points, given keypoints and centre, the voxel and the radii."""
+    """A scan's features: its points, given keypoints and centre, the voxel, the radii and the descriptor."""
     given = scan.keypoints
     return _key("scan", scan.statistics().digest, None if given is None else given.points,
                 None if given is None else given.descriptors, scan.centre, float(voxel), config.normal_radius,
-                config.fpfh_radius)
+                config.fpfh_radius, config.descriptor)
 
 
 def pyramid_key(scan: str) -> str | None:

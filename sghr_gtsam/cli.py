@@ -202,6 +202,9 @@ def run(
     polish: Optional[str] = typer.Option(None, help=_POLISH_HELP + _default(_DEFAULT.polish)),
     global_feature: Optional[str] = typer.Option(None, help="Overlap scores: vlad (scene codebook) or learned "
                                                  "(shipped head)." + _default(_DEFAULT.global_feature)),
+    descriptor: Optional[str] = typer.Option(None, help="Local descriptor pairs are matched on: fpfh or learned "
+                                             "(trained on simulated rooms; more pairs right on 3DMatch, slower)."
+                                             + _default(_DEFAULT.descriptor)),
     features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
@@ -222,7 +225,7 @@ def run(
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
                  workers=workers, ray=ray, record=record, cache=cache, global_feature=global_feature,
-                 features=features and str(features),
+                 descriptor=descriptor, features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
     _start_workers(cfg)
     from .pipeline import run as run_pipeline

@@ -19,6 +19,14 @@ KERNELS = ("none", "huber", "cauchy", "tls")
 """Robust kernels of the gtsam graph (``gtsam_api``)."""
 
 
+MIN_INLIERS = {"fpfh": 15, "learned": 31}
+"""``Config.min_inliers`` by descriptor (given descriptors use FPFH's): one more than the most inliers a wrong
+pair reached among all pairs of the kitchen and the bunny (benchmarks/bench_pairwise.py, sc2; FPFH 14, the learned
+descriptor 30); right FPFH pairs reach down to 9 there. On the 3DMatch home_at 5 of 45 grossly wrong FPFH pairs
+reach 15-27 (chance agreement between alike objects)."""
+DESCRIPTORS = tuple(MIN_INLIERS)
+"""Local descriptors (``features.local.compute_features``)."""
+
 _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
 
 
@@ -54,6 +62,10 @@ class Config:
     """Normal-estimation radius, in voxels."""
     fpfh_radius: float = 5.0
     """FPFH feature radius, in voxels."""
+    descriptor: str = "fpfh"
+    """Local descriptor that pairs are matched on: 'fpfh' (open3d's FPFH of the voxel grid) or 'learned' (a
+    network trained on simulated rooms, ``features.learned``: more pairs right on every 3DMatch test scene,
+    docs/BENCHMARKS.md, at 0.4-2 s more a scan). The top-k graph is built on FPFH either way."""
     features: str | None = None
     """Folder of precomputed local features, per scan ``<stem>.kpts.npy`` (K×3 keypoints in the scan's
     frame) and ``<stem>.desc.npy`` (K×D descriptors), in the folder or any sub-folder (the SGHR authors'
@@ -84,11 +96,9 @@ class Config:
     right on the 3DMatch scenes and the kitchen at about the same cost (docs/BENCHMARKS.md)."""
     icp_distance: float = 1.5
     """ICP correspondence distance, in voxels."""
-    min_inliers: int = 15
+    min_inliers: int | None = None
     """A pair whose final transform agrees with fewer descriptor matches than this counts as not
-    registered (initial weight 0). Measured (benchmarks/bench_pairwise.py, sc2): wrong pairs have <= 14
-    inliers on the kitchen and the bunny, right ones >= 20 on the bunny (the kitchen's go down to 9); on
-    the 3DMatch home_at 5 of 45 grossly wrong pairs reach 15-27 (chance agreement between alike objects)."""
+    registered (initial weight 0). None: the descriptor's own bar (``MIN_INLIERS``; ``inlier_bar``)."""
 
     # --- after the first synchronization (registration.densify) ------------------------------------
     refine: bool = True
@@ -160,7 +170,7 @@ class Config:
         from .sync import METHODS, POLISHES
         from .sync.irls import REWEIGHTS
 
-        choices = {"global_feature": ("vlad", "learned"), "matcher": MATCHERS, "method": tuple(METHODS),
+        choices = {"descriptor": DESCRIPTORS, "global_feature": ("vlad", "learned"), "matcher": MATCHERS, "method": tuple(METHODS),
                    "polish": tuple(POLISHES), "reweight": REWEIGHTS, "initial_weight": ("s*r", "s", "r"),
                    "noise_model": NOISE_MODELS, "kernel": KERNELS}
         for name, allowed in choices.items():
@@ -179,12 +189,20 @@ class Config:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive finite number; got {value!r}")
-        if self.min_inliers < 0 or self.seed < 0:
-            name = "min_inliers" if self.min_inliers < 0 else "seed"
+        if self.features is not None and self.descriptor != "fpfh":
+            raise InputError(f"descriptor {self.descriptor!r} describes the voxel grid, and --features gives the "
+                             "descriptors to match: choose one")
+        if self.inlier_bar < 0 or self.seed < 0:
+            name = "min_inliers" if self.inlier_bar < 0 else "seed"
             raise InputError(f"{name} must be a non-negative integer; got {getattr(self, name)!r}")
         if not 0 <= self.min_weight < 1:
             raise InputError(f"min_weight must be a fraction in [0, 1); got {self.min_weight!r}")
         return self
+
+    @property
+    def inlier_bar(self) -> int:
+        """``min_inliers``, or the descriptor's own bar when it is None (``MIN_INLIERS``)."""
+        return MIN_INLIERS[self.descriptor] if self.min_inliers is None else self.min_inliers
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2)

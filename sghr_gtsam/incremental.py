@@ -108,12 +108,13 @@ class Session:
         start = time.perf_counter()
         cfg = self.config
         try:
-            f = compute_features(np.asarray(points, dtype=float), self.voxel, cfg.normal_radius, cfg.fpfh_radius)
+            f = compute_features(np.asarray(points, dtype=float), self.voxel, cfg.normal_radius, cfg.fpfh_radius,
+                                 descriptor=cfg.descriptor)
         except InputError as e:
             raise InputError(f"{name}: {e}") from None
         if self._head is None:
             self._head = load_default_head(cfg.overlap_head)
-        F = global_features(self._head, [f.descriptors], seed=cfg.seed)[0]
+        F = global_features(self._head, [f.fpfh], seed=cfg.seed)[0]
         self.features.append(f)
         self._F.append(F)
         scores = (np.array([F @ G for G in self._F[:-1]]) + 1.0) / 2.0
@@ -123,15 +124,15 @@ class Session:
         for i in np.argsort(-scores, kind="stable")[: cfg.k]:
             pair = register_pair(self.features[i], f, self.voxel, matcher=cfg.matcher,
                                  icp_distance=cfg.icp_distance, seed=cfg.seed)
-            if pair.inliers >= cfg.min_inliers and cfg.refine:
+            if pair.inliers >= cfg.inlier_bar and cfg.refine:
                 # The batch's refinement, from the registration itself: the session has no synchronized
                 # guess before the scan is placed, and from either start ICP lands in the same basin.
                 refined, near = refine_pair(self.features[i], f, self._pyramids[i], pyramid, pair.T, self.voxel,
                                             cfg.icp_distance, pair.matches)
-                if confirms(refined, near, cfg.min_inliers):
+                if confirms(refined, near, cfg.inlier_bar):
                     pair = refined
             self.pairs.append(pair)
-            if pair.inliers >= cfg.min_inliers and pair.information is not None:
+            if pair.inliers >= cfg.inlier_bar and pair.information is not None:
                 found.append((int(i), pair.T, float(scores[i] * pair.inliers), pair.information))
         front = time.perf_counter() - start
         step = self.add_node(name, found)

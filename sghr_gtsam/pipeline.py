@@ -124,9 +124,11 @@ def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
 def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
     """Unit global features (N, D) of the scans (``counts``: their descriptors), read one at a time, and what made
     them."""
-    descriptors = Attribute(features, "descriptors")
+    # FPFH, also when pairs are matched on learned descriptors: the codebook and the shipped head rank overlaps on it
+    fpfh = features[0].fpfh is not None
+    descriptors = Attribute(features, "fpfh" if fpfh else "descriptors")
     dim = descriptors[0].shape[1]
-    kind = f"{dim}-d " + ("FPFH" if features[0].fpfh is not None else "given descriptors")
+    kind = f"{dim}-d " + ("FPFH" if fpfh else "given descriptors")
     if config.overlap_head or config.global_feature == "learned":
         head = load_default_head(config.overlap_head)
         path = config.overlap_head or DEFAULT_HEAD
@@ -208,7 +210,7 @@ class _Stages:
             checked = int(np.isfinite(edges.conflict).sum())
             self.log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
                      f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their origins)")
-        graph = edges.pose_graph(len(self.features), self.scores, self.config.min_inliers, self.config.initial_weight)
+        graph = edges.pose_graph(len(self.features), self.scores, self.config.inlier_bar, self.config.initial_weight)
         if self.recorder:
             self.recorder.log_graph(graph, self.scores)
         return graph
@@ -335,9 +337,9 @@ def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
     # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
     keys = [scan_key(s, voxel, config) for s in scans]
-    radii = (voxel, config.normal_radius, config.fpfh_radius)
+    shared = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        counts = store.map(FEATURES, scan_features, radii, scans, keys, config.workers, tick, config.ray,
+        counts = store.map(FEATURES, scan_features, shared, scans, keys, config.workers, tick, config.ray,
                            keep=lambda f: f if isinstance(f, str) else len(f.descriptors))
     for s, count in zip(scans, counts):
         if isinstance(count, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
@@ -347,7 +349,7 @@ def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config
     scans, centres, counts = [scans[k] for k in usable], centres[usable], [counts[k] for k in usable]
     if len(scans) < 2:
         raise _too_few(scans, skipped)
-    features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, radii, scans))
+    features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, shared, scans))
     return scans, centres, features, counts
 
 

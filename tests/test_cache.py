@@ -39,7 +39,7 @@ def test_keys_change_with_every_parameter_and_the_content():
                scan_key(replace(scan, centre=np.array([0.0, 0.0, 1.0])), 0.05, config),
                scan_key(replace(scan, keypoints=Keypoints(P[:10], rng.random((10, 4)))), 0.05, config)]
     changed += [scan_key(scan, 0.05, replace(config, **{name: value}))
-                for name, value in (("normal_radius", 2.5), ("fpfh_radius", 4.0))]
+                for name, value in (("normal_radius", 2.5), ("fpfh_radius", 4.0), ("descriptor", "learned"))]
     assert len({base, *changed}) == len(changed) + 1
     pair = pair_key(base, changed[0], config)
     others = [pair_key(changed[0], base, config)] + [pair_key(base, changed[0], replace(config, **{name: value}))

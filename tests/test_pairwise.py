@@ -8,8 +8,6 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.features.local import compute_features, default_voxel
-from sghr_gtsam.io.poses import read_poses
-from sghr_gtsam.io.scans import load_scan
 from sghr_gtsam.registration.estimators import _first_stage, sc2_estimate
 from sghr_gtsam.registration.information import registration_information
 from sghr_gtsam.registration.pairwise import register_pair
@@ -138,22 +136,6 @@ def test_sc2_with_too_few_correspondences_is_the_identity():
 
 
 # --- real data ------------------------------------------------------------------------------------
-
-
-def _scene(data_dir, folder, gt_file):
-    names, poses = read_poses(data_dir / gt_file)
-    scans = {n: load_scan(data_dir / folder / n) for n in names}
-    return dict(zip(names, poses)), scans, default_voxel(list(scans.values()))
-
-
-@pytest.fixture(scope="module")
-def kitchen(data_dir):
-    return _scene(data_dir, "kitchen", "kitchen/gt/gt_poses.txt")
-
-
-@pytest.fixture(scope="module")
-def bunny(data_dir):
-    return _scene(data_dir, "bunny", "bunny/gt_poses.txt")
 
 
 @pytest.mark.data

@@ -129,6 +129,6 @@ def test_initial_weight_ablations_use_score_or_inliers_alone():
     s = runs["s*r"].scores[g.i, g.j]
     r = np.array([p.inliers for p in runs["s*r"].pairs], dtype=float)
     assert (r > 0).any()
-    np.testing.assert_allclose(runs["r"].graph.weight, np.where(r >= Config().min_inliers, r, 0.0))
-    np.testing.assert_allclose(runs["s"].graph.weight, np.where(r >= Config().min_inliers, s, 0.0))
+    np.testing.assert_allclose(runs["r"].graph.weight, np.where(r >= Config().inlier_bar, r, 0.0))
+    np.testing.assert_allclose(runs["s"].graph.weight, np.where(r >= Config().inlier_bar, s, 0.0))
     np.testing.assert_allclose(g.weight, runs["s"].graph.weight * runs["r"].graph.weight)

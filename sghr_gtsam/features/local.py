@@ -14,6 +14,7 @@ import small_gicp
 from scipy.spatial import cKDTree
 
 from sghr_gtsam.cache import Kind
+from sghr_gtsam.features.learned import learned_descriptors
 from sghr_gtsam.types import InputError, Keypoints, Scan
 
 # small_gicp parallelises with OpenMP, whose threads spin while waiting: on a shared 2-core machine
@@ -101,17 +102,19 @@ def _encode_features(f: ScanFeatures | str) -> dict[str, np.ndarray] | None:
     if isinstance(f, str):  # a scan without features: its reason is not stored
         return None
     out = {"points": f.points, "normals": f.normals, "voxel": np.float64(f.voxel)}
-    if f.fpfh is not None:
-        out["fpfh"] = f.fpfh
+    if f.fpfh is None:
+        out["keypoints"] = f.keypoints
     else:
-        out["keypoints"], out["descriptors"] = f.keypoints, f.descriptors
+        out["fpfh"] = f.fpfh
+    if f.descriptors is not f.fpfh:  # given, or learned on the grid
+        out["descriptors"] = f.descriptors
     return out
 
 
 def _decode_features(a: dict[str, np.ndarray]) -> ScanFeatures:
     fpfh = a.get("fpfh")
-    keypoints, descriptors = (a["points"], fpfh) if fpfh is not None else (a["keypoints"], a["descriptors"])
-    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, descriptors)
+    keypoints = a["points"] if fpfh is not None else a["keypoints"]
+    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, a.get("descriptors", fpfh))
 
 
 FEATURES = Kind("features", _encode_features, _decode_features)
@@ -138,9 +141,11 @@ def compute_features(
     fpfh_radius: float = 5.0,
     given: Keypoints | None = None,
     sensor: np.ndarray | None = None,
+    descriptor: str = "fpfh",
 ) -> ScanFeatures:
     """Voxel grid, normals and FPFH of one scan (its GICP covariances on first use); radii in voxels (as in
-    ``Config``).
+    ``Config``). Pairs are matched on the FPFH, or with ``descriptor`` 'learned' on ``features.learned``'s
+    descriptors of the same grid points (the FPFH is kept for the global feature).
     With ``given`` keypoints and descriptors no FPFH is computed and pairs are matched on those;
     ``InputError`` when the keypoints do not lie on the scan (another frame or unit).
 
@@ -155,6 +160,8 @@ def compute_features(
         raise InputError(f"points must be (N, 3), got shape {points.shape}")
     if not voxel > 0:
         raise InputError(f"voxel must be positive, got {voxel}")
+    if descriptor not in ("fpfh", "learned"):
+        raise InputError(f"unknown descriptor {descriptor!r} (fpfh, learned)")
     points = points[np.isfinite(points).all(axis=1)]
     if not len(points):
         raise InputError("no finite points")
@@ -172,7 +179,9 @@ def compute_features(
             pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
         )
         fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
-        return ScanFeatures(grid, np.asarray(pcd.normals), fpfh, float(voxel), grid, fpfh)
+        normals = np.asarray(pcd.normals)
+        matched = fpfh if descriptor == "fpfh" else learned_descriptors(grid, normals, voxel, workers=query_threads())
+        return ScanFeatures(grid, normals, fpfh, float(voxel), grid, matched)
     features = ScanFeatures(grid, np.asarray(pcd.normals), None, float(voxel), given.points, given.descriptors)
     _, sq_dist = features.cloud_tree.batch_nearest_neighbor_search(given.points, GICP_THREADS)
     off = float(np.sqrt(np.median(sq_dist))) / voxel
@@ -182,15 +191,16 @@ def compute_features(
     return features
 
 
-def scan_features(shared: tuple[float, float, float], scan: Scan) -> ScanFeatures | str:
-    """An executor task: ``compute_features`` of ``scan`` (``shared``: voxel, normal and FPFH radii), read where
-    the task runs, so that its full-resolution points live only there, with normals towards the origin of its input
-    frame (``-scan.centre``). The reason, as a string, when it has none (a stray point far away: too many voxels;
-    given keypoints off the scan)."""
-    voxel, normal_radius, fpfh_radius = shared
+def scan_features(shared: tuple[float, float, float, str], scan: Scan) -> ScanFeatures | str:
+    """An executor task: ``compute_features`` of ``scan`` (``shared``: voxel, normal and FPFH radii, descriptor),
+    read where the task runs, so that its full-resolution points live only there, with normals towards the origin of
+    its input frame (``-scan.centre``). The reason, as a string, when it has none (a stray point far away: too many
+    voxels; given keypoints off the scan)."""
+    voxel, normal_radius, fpfh_radius, descriptor = shared
     points, given = scan.read()
     try:
-        return compute_features(points, voxel, normal_radius, fpfh_radius, given, sensor=-scan.centre)
+        return compute_features(points, voxel, normal_radius, fpfh_radius, given, sensor=-scan.centre,
+                                descriptor=descriptor)
     except InputError as e:
         return str(e)
 

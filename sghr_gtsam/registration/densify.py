@@ -68,7 +68,7 @@ def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncR
     changed = 0
     for e, result, ok in zip(todo, results, near):
         edges.refined[e] = True
-        if confirms(result, ok, config.min_inliers):
+        if confirms(result, ok, config.inlier_bar):
             edges.replace(e, result)
             changed += 1
     report.refine_tried += len(todo)
@@ -102,7 +102,7 @@ def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncRe
         results, near = register_from_guesses(features, pyramids, ij, guesses, voxel, config, known, tick, cache)
     closed = 0
     for (a, b), result, ok in zip(ij, results, near):
-        if not confirms(result, ok, config.min_inliers):
+        if not confirms(result, ok, config.inlier_bar):
             continue
         closed += 1
         e = index.get((int(a), int(b)))
@@ -132,7 +132,7 @@ def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncR
     report._tried.update(map(tuple, ij.tolist()))
     with progress.stage("retry", len(ij)) as tick:
         results = register_edges(features, ij, voxel, config, tick, cache)
-    good = [k for k, p in enumerate(results) if p.inliers >= config.min_inliers]
+    good = [k for k, p in enumerate(results) if p.inliers >= config.inlier_bar]
     edges.add(ij[good], [results[k] for k in good], "retry")
     report.retry_tried += len(ij)
     report.retry_registered += len(good)
