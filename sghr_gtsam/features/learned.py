@@ -45,33 +45,33 @@ def encode_patches(points: np.ndarray, normals: np.ndarray, voxel: float, rows: 
     radius = RADIUS * voxel
     bins = RINGS * LEVELS * SECTORS
     out = np.zeros((len(rows), CHANNELS, RINGS, LEVELS, SECTORS), np.float32)
-    padded_p, padded_n = np.vstack([points, np.zeros((1, 3))]), np.vstack([normals, np.zeros((1, 3))])
     for s in range(0, len(rows), CHUNK):
         q = rows[s:s + CHUNK]
         _, nb = tree.query(points[q], k=min(NEIGHBOURS, len(points)), distance_upper_bound=radius, workers=workers)
         nb = nb.reshape(len(q), -1)
         valid = nb < len(points)
-        d = padded_p[nb] - points[q][:, None]
+        patch, slot = np.nonzero(valid)  # the neighbours found, flat: their patch and rank
+        neighbour = nb[patch, slot]
         z = normals[q]
         a = np.where(np.abs(z[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
         x = a - (a * z).sum(1, keepdims=True) * z
         x /= np.linalg.norm(x, axis=1, keepdims=True)
-        y = np.cross(z, x)
-        h, u, w = (np.einsum("bkc,bc->bk", d, e) for e in (z, x, y))
-        rho = np.hypot(u, w)
-        ring = np.clip((rho / radius * RINGS).astype(int), 0, RINGS - 1)
-        level = np.clip(((h / radius + 1) / 2 * LEVELS).astype(int), 0, LEVELS - 1)
-        sector = ((np.arctan2(w, u) + np.pi) / (2 * np.pi) * SECTORS).astype(int) % SECTORS
-        n = padded_n[nb]
-        outward = (u[..., None] * x[:, None] + w[..., None] * y[:, None]) / np.maximum(rho, 1e-9)[..., None]
-        flat = (np.arange(len(q))[:, None] * bins + (ring * LEVELS + level) * SECTORS + sector)[valid]
+        frame = np.stack([z, x, np.cross(z, x)], 1)[patch]  # rows: the patch's axis z and its tangents x, y
+        h, u, w = np.einsum("eij,ej->ie", frame, points[neighbour] - points[q][patch])
+        n = np.einsum("eij,ej->ie", frame, normals[neighbour])  # the neighbour's normal in the patch's frame
+        rho = np.sqrt(u * u + w * w)
+        ring = np.minimum((rho * (RINGS / radius)).astype(np.int64), RINGS - 1)
+        level = np.clip(((h / radius + 1) * (LEVELS / 2)).astype(np.int64), 0, LEVELS - 1)
+        sector = ((np.arctan2(w, u) + np.pi) / (2 * np.pi) * SECTORS).astype(np.int64) % SECTORS
+        radial = (n[1] * u + n[2] * w) / np.maximum(rho, 1e-9)
+        flat = patch * bins + (ring * LEVELS + level) * SECTORS + sector
         size = len(q) * bins
         count = np.bincount(flat, minlength=size).reshape(len(q), bins)
-        along = np.bincount(flat, weights=np.einsum("bkc,bc->bk", n, z)[valid], minlength=size)
-        radial = np.bincount(flat, weights=(n * outward).sum(-1)[valid], minlength=size)
+        along = np.bincount(flat, weights=n[0], minlength=size).reshape(len(q), bins)
+        outward = np.bincount(flat, weights=radial, minlength=size).reshape(len(q), bins)
         per_bin = np.maximum(count, 1)
-        share = count / np.maximum(valid.sum(1), 1)[:, None] * bins / 8.0
-        block = np.stack([share, along.reshape(len(q), bins) / per_bin, radial.reshape(len(q), bins) / per_bin], 1)
+        share = count / np.maximum(valid.sum(1), 1)[:, None] * (bins / 8.0)
+        block = np.stack([share, along / per_bin, outward / per_bin], 1)
         out[s:s + CHUNK] = block.reshape(len(q), CHANNELS, RINGS, LEVELS, SECTORS)
     return out
 
@@ -115,9 +115,16 @@ class PatchNet:
             # circular convolution, kernel 3: tap k reads sector t + k - 1, so its product is shifted by 1 - k
             taps = [(x.reshape(b * length, -1) @ w[:, :, k].T).reshape(b, length, -1) for k in range(3)]
             y = np.roll(taps[0], 1, axis=1) + taps[1] + np.roll(taps[2], -1, axis=1) + bias
-            y = y.reshape(b, length, GROUPS, -1)
-            y = (y - y.mean((1, 3), keepdims=True)) / np.sqrt(y.var((1, 3), keepdims=True) + _NORM_EPS)
-            x = np.maximum(y.reshape(b, length, -1) * gamma + beta, 0.0)
+            # GroupNorm: each group's mean and variance over its channels and the sectors, as one scale and shift
+            # a channel (sums over the sectors first: a strided reduction over both axes is 5x slower)
+            per_group = len(w) // GROUPS
+            cells = length * per_group
+            mean = y.sum(1, dtype=np.float64).reshape(b, GROUPS, per_group).sum(2) / cells
+            var = np.maximum((y * y).sum(1, dtype=np.float64).reshape(b, GROUPS, per_group).sum(2) / cells
+                             - mean * mean, 0.0)
+            scale = (np.repeat(1.0 / np.sqrt(var + _NORM_EPS), per_group, axis=1) * gamma).astype(np.float32)
+            shift = (beta - np.repeat(mean, per_group, axis=1) * scale).astype(np.float32)
+            x = np.maximum(y * scale[:, None] + shift[:, None], 0.0)
         x = x.max(1)
         (w1, b1), (w2, b2) = self.head
         x = np.maximum(x @ w1.T + b1, 0.0) @ w2.T + b2
