@@ -1,17 +1,16 @@
-"""A local descriptor learned on simulated rooms against FPFH, on the gt.log pairs of real 3DMatch scenes (issue 10,
-step 1: "a learned local descriptor ... trained here on simulated scans"). Not used by the pipeline.
+"""The learned local descriptor (``sghr_gtsam.features.learned``, ``Config.descriptor = "learned"``): its training
+data and training on simulated rooms, its inlier bar, and FPFH against it on the gt.log pairs of real 3DMatch scenes
+(issue 10, step 1: "a learned local descriptor ... trained here on simulated scans").
 
     python benchmarks/bench_learned_descriptor.py data DIR [--scenes 160]       # ~10 min on 2 cores
-    python benchmarks/bench_learned_descriptor.py train DIR WEIGHTS [--minutes 22]
-    python benchmarks/bench_learned_descriptor.py eval WEIGHTS [--scenes studyroom home_at ...] [--data ROOT]
-    python benchmarks/bench_learned_descriptor.py calibrate WEIGHTS [--scenes 6]
+    python benchmarks/bench_learned_descriptor.py train DIR WEIGHTS.npz [--minutes 22]
+    python benchmarks/bench_learned_descriptor.py bars [--weights W]            # config.MIN_INLIERS
+    python benchmarks/bench_learned_descriptor.py eval [--weights W] [--scenes studyroom home_at ...] [--data ROOT]
+    python benchmarks/bench_learned_descriptor.py calibrate [--weights W] [--scenes 6]
 
-**Patch.** Every grid point (``compute_features``: the pipeline's voxel grid, normals oriented to the sensor) is
-described by its neighbours within ``RADIUS`` voxels (at most ``NEIGHBOURS``) in a cylinder about its normal:
-``RINGS`` radial × ``LEVELS`` height (±``RADIUS``) × ``SECTORS`` azimuth bins, three channels a bin (share of the
-neighbours, their mean normal·axis, their mean normal·radial). The azimuth origin is arbitrary (a function of the
-normal alone); the network's circular convolutions over azimuth and its max over it make the descriptor invariant to
-turning the patch about its normal by whole sectors, so no reference direction in the tangent plane is needed.
+Without ``--weights`` the shipped network (``sghr_gtsam/weights/patch_rooms.npz``) is used.
+
+**Patch and network**: ``sghr_gtsam.features.learned`` (``encode_patches``, ``torch_network``).
 
 **Data.** Rooms of ``data_tools.simulate.make_training_scene`` (dataset seed ``DATA_SEED``, which no benchmark
 scores: ``bench_sparse_graph`` uses 2), 12–19 scans each; per scene up to ``PAIRS_A_SCENE`` pairs of GT overlap
@@ -21,6 +20,9 @@ tenth scene is held out.
 **Training.** InfoNCE (temperature 0.07) over the correspondences of one pair (the other points of the pair are
 the negatives, as in matching), 8 pairs a step, Adam 1e-3, for a fixed number of minutes; the weights kept are the
 best on the held-out pairs (top-1 among a pair's ``PER_PAIR``).
+
+**Bars** (``bars``): every pair of the kitchen and the bunny, each descriptor; the bar is one more than the most
+inliers a wrong pair reaches (``config.MIN_INLIERS``).
 
 **Evaluation** (``eval``): every gt.log pair of each scene is matched (``mutual_matches``) and registered
 (``register_pair``, sc2) on FPFH and on the learned descriptor, from the same grid; a pair is right when the paper's
@@ -170,7 +172,7 @@ def train(folder: Path, weights: Path, minutes: float) -> None:
 # --- evaluation -----------------------------------------------------------------------------------------------
 
 
-def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
+def evaluate(weights: Path | None, scenes: list[str], root: Path) -> None:
     from sghr_gtsam.registration.pairwise import register_pair
 
     net = load_patch_net(weights)
@@ -206,7 +208,7 @@ def evaluate(weights: Path, scenes: list[str], root: Path) -> None:
               f"neither {np.sum(~f & ~lr)} | | | | | | |")
 
 
-def calibrate(weights: Path, scenes: int, min_inliers: int) -> None:
+def calibrate(weights: Path | None, scenes: int, min_inliers: int) -> None:
     """Inlier counts of right and wrong registrations on held-out simulated rooms, each descriptor: what count
     admits as many wrong ones for the learned descriptor as ``min_inliers`` does for FPFH (no real scan used). Per
     room up to 10 pairs of GT overlap > 0.25 and 10 under 0.02; right: overlap > 0.25 and within 5° / 10 voxels."""
@@ -245,6 +247,45 @@ def calibrate(weights: Path, scenes: int, min_inliers: int) -> None:
               f"{np.mean(inl[ok] >= threshold_):.3f} |")
 
 
+def bars(weights: Path | None) -> None:
+    """The inlier bar of each descriptor (``config.MIN_INLIERS``): every pair of the kitchen and the bunny
+    registered (sc2), right within 5° / 0.2 m (kitchen) and 1° / 1 mm (bunny); the bar is one more than the most
+    inliers a wrong pair reaches."""
+    import itertools
+
+    from bench_pairwise import SCENES
+
+    from sghr_gtsam.config import MIN_INLIERS
+    from sghr_gtsam.features.local import default_voxel
+    from sghr_gtsam.io.poses import read_poses
+    from sghr_gtsam.io.scans import load_scan
+    from sghr_gtsam.registration.pairwise import register_pair
+    from sghr_gtsam.se3 import inv_T, relative_errors
+
+    net = load_patch_net(weights)
+    counts: dict[str, list[tuple[bool, int]]] = {"FPFH": [], "learned": []}
+    for name in ("kitchen", "bunny"):
+        folder, gt_file, rot_bound, trans_bound = SCENES[name]
+        names, poses = read_poses(data_root() / gt_file)
+        scans = [load_scan(data_root() / folder / n) for n in names]
+        voxel = default_voxel(scans)
+        fpfh = [compute_features(s, voxel) for s in scans]
+        for label, feats in (("FPFH", fpfh), ("learned", _learned(net, fpfh))):
+            for i, j in itertools.combinations(range(len(scans)), 2):
+                res = register_pair(feats[i], feats[j], voxel)
+                rot, trans = relative_errors(res.T, inv_T(poses[i]) @ poses[j])
+                counts[label].append((bool(rot < rot_bound and trans < trans_bound), res.inliers))
+    print("| descriptor | right registrations | their inliers, lowest five | wrong | their inliers, highest five | "
+          "bar (1 + the most) | right admitted | MIN_INLIERS |")
+    print("|---|---|---|---|---|---|---|---|")
+    for label, c in counts.items():
+        right = sorted(n for ok, n in c if ok)
+        wrong = sorted(n for ok, n in c if not ok)
+        bar = wrong[-1] + 1
+        print(f"| {label} | {len(right)} | {right[:5]} | {len(wrong)} | {wrong[-5:]} | {bar} | "
+              f"{sum(n >= bar for n in right)} | {MIN_INLIERS[label.lower()]} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="command", required=True)
@@ -256,14 +297,16 @@ def main() -> None:
     t.add_argument("weights", type=Path)
     t.add_argument("--minutes", type=float, default=22.0)
     e = sub.add_parser("eval")
-    e.add_argument("weights", type=Path)
+    e.add_argument("--weights", type=Path, help="a trained network (default: the shipped one)")
     e.add_argument("--scenes", nargs="+", default=list(MATCH_SCENES), choices=[*MATCH_SCENES, *OTHER_SCENES])
     e.add_argument("--data", type=Path, default=data_root(),
                    help="the shared data, or a folder made by data_tools.other_3dmatch_scenes for the other scenes")
     c = sub.add_parser("calibrate")
-    c.add_argument("weights", type=Path)
+    c.add_argument("--weights", type=Path, help="a trained network (default: the shipped one)")
     c.add_argument("--scenes", type=int, default=6, help="held-out rooms")
     c.add_argument("--min-inliers", type=int, default=15, help="FPFH's threshold (Config.min_inliers)")
+    r = sub.add_parser("bars")
+    r.add_argument("--weights", type=Path, help="a trained network (default: the shipped one)")
     args = ap.parse_args()
     if args.command == "data":
         make_data(args.folder, args.scenes)
@@ -271,6 +314,8 @@ def main() -> None:
         train(args.folder, args.weights, args.minutes)
     elif args.command == "eval":
         evaluate(args.weights, args.scenes, args.data)
+    elif args.command == "bars":
+        bars(args.weights)
     else:
         calibrate(args.weights, args.scenes, args.min_inliers)
 
