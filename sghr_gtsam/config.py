@@ -64,8 +64,9 @@ class Config:
     """FPFH feature radius, in voxels."""
     descriptor: str = "fpfh"
     """Local descriptor that pairs are matched on: 'fpfh' (open3d's FPFH of the voxel grid) or 'learned' (a
-    network trained on simulated rooms, ``features.learned``: more pairs right on every 3DMatch test scene,
-    docs/BENCHMARKS.md, at 0.4-2 s more a scan). The top-k graph is built on FPFH either way."""
+    network trained on simulated rooms, ``features.learned``). The learned one registers more gt.log pairs right
+    on every 3DMatch test scene, and gives better whole models on home_at and studyroom but worse ones on mit_lab
+    and hotel_umd3, in twice the time (docs/BENCHMARKS.md). The top-k graph is built on FPFH either way."""
     features: str | None = None
     """Folder of precomputed local features, per scan ``<stem>.kpts.npy`` (K×3 keypoints in the scan's
     frame) and ``<stem>.desc.npy`` (K×D descriptors), in the folder or any sub-folder (the SGHR authors'

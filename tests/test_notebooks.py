@@ -26,6 +26,9 @@ def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     assert all(cached[stage]["computed"] == 0 < cached[stage]["cached"] for stage in ("features", "pairs", "refined"))
     np.testing.assert_array_equal(ns["again"].poses, ns["result"].poses)
     assert ns["score"].within == ns["score"].scans == 8 and ns["score"].unflagged_wrong == []
+    learned = ns["learned_score"]  # the same room matched on the learned descriptor
+    assert learned.within == learned.scans == 8 and learned.unflagged_wrong == []
+    assert ns["learned_config"].inlier_bar > ns["config"].inlier_bar
     assert "unregistered: [] | unverified: [] | contested: []" in capsys.readouterr().out
     assert not ns["work"].exists()  # the notebook removes its temporary folder
 
