@@ -45,12 +45,12 @@ def _stored(room, cache, voxel=0.08):
     """The room's features and pyramids written through a ``Store`` and read back as ``Stored`` sequences."""
     config = Config(voxel=voxel)
     box = Store(cache)
-    radii = (voxel, config.normal_radius, config.fpfh_radius)
+    settings = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
     keys = [scan_key(s, voxel, config) for s in room]
     grid_keys = [pyramid_key(k) for k in keys]
-    box.map(FEATURES, scan_features, radii, room, keys, 1, None, None, keep=lambda f: None)
+    box.map(FEATURES, scan_features, settings, room, keys, 1, None, None, keep=lambda f: None)
     box.map(PYRAMIDS, scan_pyramid, voxel, room, grid_keys, 1, None, None, keep=lambda p: None)
-    return (box, box.sequence(FEATURES, keys, lambda k: scan_features(radii, room[k])),
+    return (box, box.sequence(FEATURES, keys, lambda k: scan_features(settings, room[k])),
             box.sequence(PYRAMIDS, grid_keys, lambda k: scan_pyramid(voxel, room[k])))
 
 
@@ -82,10 +82,10 @@ def test_lru_keeps_within_its_bound_and_drops_the_least_recently_used():
 
 def test_items_read_back_are_the_computed_ones_to_the_bit(room, tmp_path):
     voxel, config = 0.08, Config(voxel=0.08)
-    radii = (voxel, config.normal_radius, config.fpfh_radius)
+    settings = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
     _, features, pyramids = _stored(room, Cache(tmp_path))
     for k, scan in enumerate(room):
-        computed, read = scan_features(radii, scan), features[k]
+        computed, read = scan_features(settings, scan), features[k]
         for name in ("points", "normals", "fpfh", "keypoints", "descriptors"):
             a, b = getattr(computed, name), getattr(read, name)
             assert a.dtype == b.dtype and np.array_equal(a, b), name
