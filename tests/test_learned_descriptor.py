@@ -13,11 +13,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from test_pairwise import boxes_scene
 
-from sghr_gtsam.config import MIN_INLIERS
+from sghr_gtsam.config import MIN_INLIERS, Config
 from sghr_gtsam.features.learned import SECTORS, learned_descriptors, load_patch_net, torch_network
 from sghr_gtsam.features.local import compute_features, default_voxel
 from sghr_gtsam.registration.pairwise import register_pair
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors, transform_points
+from sghr_gtsam.types import InputError
 
 
 @settings(max_examples=10, deadline=None)
@@ -88,3 +89,14 @@ def test_inlier_bar_admits_no_wrong_pair_of_the_kitchen_and_the_bunny(kitchen, b
                 wrong += admitted
     assert wrong == 0
     assert right >= 40, right  # of 51 right registrations with either descriptor (FPFH 50, learned 47 admitted)
+
+
+def test_bad_descriptor_settings_are_input_errors(boxes_learned):
+    f, voxel = boxes_learned
+    with pytest.raises(InputError, match="unknown descriptor"):
+        compute_features(f.points, voxel, descriptor="shot")
+    with pytest.raises(InputError, match="descriptor must be one of"):
+        Config(descriptor="shot").validate()
+    with pytest.raises(InputError, match="choose one"):  # given descriptors are matched as they are
+        Config(descriptor="learned", features="somewhere").validate()
+    assert Config(descriptor="learned", min_inliers=20).validate().inlier_bar == 20  # an explicit bar wins

@@ -14,6 +14,7 @@ import small_gicp
 from scipy.spatial import cKDTree
 
 from sghr_gtsam.cache import Kind
+from sghr_gtsam.config import DESCRIPTORS
 from sghr_gtsam.features.learned import learned_descriptors
 from sghr_gtsam.types import InputError, Keypoints, Scan
 
@@ -160,8 +161,8 @@ def compute_features(
         raise InputError(f"points must be (N, 3), got shape {points.shape}")
     if not voxel > 0:
         raise InputError(f"voxel must be positive, got {voxel}")
-    if descriptor not in ("fpfh", "learned"):
-        raise InputError(f"unknown descriptor {descriptor!r} (fpfh, learned)")
+    if descriptor not in DESCRIPTORS:
+        raise InputError(f"unknown descriptor {descriptor!r} ({', '.join(DESCRIPTORS)})")
     points = points[np.isfinite(points).all(axis=1)]
     if not len(points):
         raise InputError("no finite points")
