@@ -248,13 +248,15 @@ def test_real_results_folder_loads_in_gtsam_and_stays(data_dir, tmp_path, scene,
 # --- incremental ---------------------------------------------------------------------------------------
 
 
-def test_session_fed_scan_by_scan_ends_at_the_batch_synchronization_of_its_edges():
+@pytest.mark.parametrize("descriptor", ["fpfh", "learned"])
+def test_session_fed_scan_by_scan_ends_at_the_batch_synchronization_of_its_edges(descriptor):
     """Fed scan by scan, the session lands where batch synchronization of the same registrations lands (the
-    batch pipeline's later front-end stages, which re-register edges, are not the session's)."""
+    batch pipeline's later front-end stages, which re-register edges, are not the session's), with either
+    descriptor."""
     from sghr_gtsam.sync import synchronize
 
     scene = make_scene(kind="object", n_scans=5, seed=3)
-    cfg = Config(record=False, workers=1, voxel=scene.voxel)
+    cfg = Config(record=False, workers=1, voxel=scene.voxel, descriptor=descriptor)
     session = Session(cfg, scene.voxel)
     for name, points in zip(scene.names, scene.scans):
         session.add_scan(name, points)
