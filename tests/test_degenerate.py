@@ -21,7 +21,6 @@ from sghr_gtsam.registration.information import (STIFFEN, displacement_metric, p
 from sghr_gtsam.registration.pairwise import score_pair
 from sghr_gtsam.registration.refine import Pyramid
 from sghr_gtsam.se3 import inv_T, make_T
-from sghr_gtsam.synthetic import make_scene
 from sghr_gtsam.types import PoseGraph
 
 VOXEL = 0.05

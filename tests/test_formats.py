@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
-from sghr_gtsam.io.poses import read_kitti, read_tum, write_kitti, write_tum
+from sghr_gtsam.io.poses import read_tum, write_kitti, write_tum
 from sghr_gtsam.io.scans import list_scans, load_scan
 from sghr_gtsam.pipeline import load_scene
 from sghr_gtsam.se3 import make_T

@@ -26,7 +26,7 @@ from sghr_gtsam.gtsam_api import (
     to_gtsam,
 )
 from sghr_gtsam.incremental import Session
-from sghr_gtsam.pipeline import Scan, register, run
+from sghr_gtsam.pipeline import register, run
 from sghr_gtsam.registration.information import plane_information
 from sghr_gtsam.registration.pairwise import PairResult
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
