@@ -253,22 +253,17 @@ def bars(weights: Path | None) -> None:
     inliers a wrong pair reaches."""
     import itertools
 
-    from bench_pairwise import SCENES
+    from bench_pairwise import SCENES, load_scene
 
     from sghr_gtsam.config import MIN_INLIERS
-    from sghr_gtsam.features.local import default_voxel
-    from sghr_gtsam.io.poses import read_poses
-    from sghr_gtsam.io.scans import load_scan
     from sghr_gtsam.registration.pairwise import register_pair
     from sghr_gtsam.se3 import inv_T, relative_errors
 
     net = load_patch_net(weights)
     counts: dict[str, list[tuple[bool, int]]] = {"FPFH": [], "learned": []}
     for name in ("kitchen", "bunny"):
-        folder, gt_file, rot_bound, trans_bound = SCENES[name]
-        names, poses = read_poses(data_root() / gt_file)
-        scans = [load_scan(data_root() / folder / n) for n in names]
-        voxel = default_voxel(scans)
+        _, _, rot_bound, trans_bound = SCENES[name]
+        _, poses, scans, voxel = load_scene(name)
         fpfh = [compute_features(s, voxel) for s in scans]
         for label, feats in (("FPFH", fpfh), ("learned", _learned(net, fpfh))):
             for i, j in itertools.combinations(range(len(scans)), 2):

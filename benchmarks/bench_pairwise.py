@@ -84,13 +84,19 @@ def gt_overlap(fi: ScanFeatures, fj: ScanFeatures, T_ij: np.ndarray, radius: flo
     return float(max(a, b))
 
 
-def run_scene(name: str, matchers: list[str], show_pairs: bool) -> None:
-    folder, gt_file, rot_bound, trans_bound = SCENES[name]
-    t0 = time.perf_counter()
+def load_scene(name: str) -> tuple[list[str], np.ndarray, list[np.ndarray], float]:
+    """One of ``SCENES`` (kitchen, bunny): scan names, GT poses, scans and the default voxel."""
+    folder, gt_file, _, _ = SCENES[name]
     names, poses = read_poses(DATA / gt_file)
     scans = [load_scan(DATA / folder / n) for n in names]
+    return names, poses, scans, default_voxel(scans)
+
+
+def run_scene(name: str, matchers: list[str], show_pairs: bool) -> None:
+    _, _, rot_bound, trans_bound = SCENES[name]
+    t0 = time.perf_counter()
+    names, poses, scans, voxel = load_scene(name)
     t_load = time.perf_counter() - t0
-    voxel = default_voxel(scans)
     t0 = time.perf_counter()
     feats = [compute_features(s, voxel) for s in scans]
     t_feat = time.perf_counter() - t0

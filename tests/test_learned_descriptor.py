@@ -1,6 +1,6 @@
-"""The learned local descriptor (``features.learned``): the numpy network against the same network in torch's layers
-with the shipped weights, invariance to moving the scan, registration with it, and its inlier bar on every pair of the kitchen and
-the bunny against their ground truth."""
+"""The learned local descriptor (``features.learned``): the numpy network against the same network in torch's
+layers with the shipped weights, invariance to moving the scan, registration with it, and its inlier bar on every
+pair of the kitchen and the bunny against their ground truth."""
 
 import itertools
 
