@@ -3,7 +3,7 @@
     python benchmarks/bench_sparse_graph.py [--data ../shared/data] [--scenes kitchen bunny]
                                             [--ks 2 3 4] [--random-seeds 5]
     python benchmarks/bench_sparse_graph.py --sim-rooms 0 1 2 [--sim-scans 50] --ks 5 10 --random-seeds 1
-    python benchmarks/bench_sparse_graph.py --sim-rooms 0 --steps [on off exhaustive] [--ks 10]
+    python benchmarks/bench_sparse_graph.py --sim-rooms 0 --steps [on off exhaustive] [--ks 10] [--set KEY=VALUE]
 
 Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
 pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
@@ -42,7 +42,8 @@ with ``workers=2``: top-k (the first of ``--ks``) with the front end's steps 2-4
 default), the same graph with them off, and the exhaustive graph with them off. Besides recall, it counts the
 pairs that got *global* registration (FPFH matching + estimator: the top-k graph with its bridges, plus every
 pair the retries tried) and, separately, the pairs loop closure tried and closed by ICP from the synchronized
-poses, which are not global registrations.
+poses, which are not global registrations. ``--set KEY=VALUE`` overrides a ``Config`` field in all three rows
+(e.g. ``descriptor=learned``).
 """
 
 from __future__ import annotations
@@ -60,6 +61,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_3dmatch, when imported from elsewhere
+
+from bench_3dmatch import parse_overrides  # noqa: E402
 
 from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
@@ -288,9 +292,10 @@ def global_pairs(res: pipeline.RunResult, k: int, connect: bool = True) -> int:
     return len(top_k) + res.densify.get("retry_tried", 0)
 
 
-def bench_steps(scene: Scene, k: int, rows: list[str]) -> None:
+def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = None) -> None:
     """Issue 10: top-k with and without steps 2-4 against the exhaustive graph without them (``rows`` of
-    ``STEPS_PLAN``); each row is printed as soon as it is measured (the exhaustive one takes long)."""
+    ``STEPS_PLAN``), ``overrides`` (``Config`` fields) in every row; each row is printed as soon as it is measured
+    (the exhaustive one takes long)."""
     n = len(scene.scans)
     n_all = n * (n - 1) // 2
     try:  # warm-up (imports, torch); two scans that do not overlap are fine for that
@@ -299,7 +304,8 @@ def bench_steps(scene: Scene, k: int, rows: list[str]) -> None:
         pass
     t0 = time.perf_counter()
     print(f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
-          f"load average {os.getloadavg()[0]:.1f} at start ({os.cpu_count()} cores)\n")
+          f"load average {os.getloadavg()[0]:.1f} at start ({os.cpu_count()} cores)"
+          + "".join(f"; {key}={value}" for key, value in (overrides or {}).items()) + "\n")
     print("| graph | k | global registrations (% of all pairs) | retry registered / tried | loops closed / tried "
           "(ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
           "| rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
@@ -308,7 +314,8 @@ def bench_steps(scene: Scene, k: int, rows: list[str]) -> None:
     for row in rows:
         label, exhaustive, on = STEPS_PLAN[row]
         kk = n - 1 if exhaustive else k
-        config = Config(k=kk, record=False, workers=2, refine=on, loops=on, retry=on)
+        config = Config(**{**(overrides or {}), "k": kk, "record": False, "workers": 2, "refine": on, "loops": on,
+                           "retry": on})
         w0, cpu0 = time.perf_counter(), time.process_time()
         res = run_row(scene.scans, config, None)
         wall, cpu = time.perf_counter() - w0, time.process_time() - cpu0
@@ -338,12 +345,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", nargs="*", choices=list(STEPS_PLAN), default=None,
                     help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive (issue 10); "
                          "no value: all three rows")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --steps: override a Config field in every row (repeatable)")
     args = ap.parse_args(argv)
     if args.steps is not None:
         if not args.sim_rooms:
             ap.error("--steps needs --sim-rooms")
         for index in args.sim_rooms:
-            bench_steps(sim_scene(index, args.sim_scans), (args.ks or [10])[0], args.steps or list(STEPS_PLAN))
+            bench_steps(sim_scene(index, args.sim_scans), (args.ks or [10])[0], args.steps or list(STEPS_PLAN),
+                        parse_overrides(args.set, Config))
         return 0
     args.ks = args.ks or [2, 3, 4]
     if args.sim_rooms:
