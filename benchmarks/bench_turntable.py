@@ -1,10 +1,10 @@
 """Simulated turntable objects end to end, with and without the front end's steps 2-4 (issue 10).
 
-    python benchmarks/bench_turntable.py [--steps 24 36] [--seeds 0 1 2] [--noise 0.001] [--workers 2]
+    python benchmarks/bench_turntable.py [--steps 24 36] [--seeds 0 1 2] [--noise 0.001] [--workers 2] [--set KEY=VALUE]
 
 An object turned in equal steps in front of one sensor (``data_tools.simulate.make_turntable``: 360/step scans,
-24° → 15 scans, 36° → 10), registered by ``pipeline.register`` with the default ``Config`` (``workers`` and
-``record=False`` aside), once as is (refine, loops and retry on) and once with the three switched off (the
+24° → 15 scans, 36° → 10), registered by ``pipeline.register`` with the default ``Config`` (``workers``,
+``record=False`` and the fields ``--set`` overrides aside), once as is (refine, loops and retry on) and once with the three switched off (the
 graph of the first synchronization: pairwise registration of the top-k graph, then sync). Per row:
 
 - unverified / unregistered: ``RunResult.unverified`` / ``.unregistered`` counts;
@@ -33,6 +33,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_3dmatch, when imported from elsewhere
+
+from bench_3dmatch import parse_overrides  # noqa: E402
 
 from data_tools.simulate import make_turntable  # noqa: E402
 from sghr_gtsam import pipeline  # noqa: E402
@@ -57,10 +60,11 @@ def errors(res: pipeline.RunResult, gt: np.ndarray) -> tuple[np.ndarray, np.ndar
     return relative_errors(A[None] @ res.poses[reg], gt[reg])
 
 
-def run(step: int, seed: int, steps_on: bool, workers: int, noise: float) -> dict:
+def run(step: int, seed: int, steps_on: bool, workers: int, noise: float, overrides: dict) -> dict:
     scene = make_turntable(round(360 / step), seed, noise=noise)
     scans = [pipeline.Scan(name, P) for name, P in zip(scene.names, scene.scans)]
-    config = Config(record=False, workers=workers, refine=steps_on, loops=steps_on, retry=steps_on)
+    config = Config(**{**overrides, "record": False, "workers": workers, "refine": steps_on, "loops": steps_on,
+                       "retry": steps_on})
     t0 = time.perf_counter()
     res = pipeline.register(scans, config, log=lambda m: None)
     seconds = time.perf_counter() - t0
@@ -82,7 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--noise", type=float, default=0.001, help="range noise std (m; the object is ~1 m across)")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a Config field in every run (repeatable)")
     args = ap.parse_args(argv)
+    overrides = parse_overrides(args.set, Config)
     if any(s <= 0 or 360 % s for s in args.steps):
         ap.error("each step must divide 360")
     warm = make_turntable(10)  # warm-up run on two neighbours: imports and caches stay out of the first row
@@ -92,10 +99,12 @@ def main(argv: list[str] | None = None) -> int:
     for step in args.steps:
         for seed in args.seeds:
             for on in (False, True):
-                r = run(step, seed, on, args.workers, args.noise)
+                r = run(step, seed, on, args.workers, args.noise, overrides)
                 rows.append(r)
                 print(f"  {step}° seed {seed} steps {'on' if on else 'off'}: max {r['rot_max']:.3f}°, "
                       f"{r['unverified']} unverified, {r['seconds']:.0f} s", file=sys.stderr, flush=True)
+    if overrides:
+        print("Config: " + ", ".join(f"{key}={value}" for key, value in overrides.items()) + "\n")
     print(f"| step | seed | scans | steps 2-4 | unverified | unregistered | scans within {GOAL_DEG}° "
           "| rot. err. max / median (°) | trans. err. max (mm) | edges | kept edges | independent loops "
           "| refined, loops closed, retry registered (/ tried) | s |")
