@@ -348,6 +348,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="with --steps: override a Config field in every row (repeatable)")
     args = ap.parse_args(argv)
+    if args.set and args.steps is None:
+        ap.error("--set needs --steps")
     if args.steps is not None:
         if not args.sim_rooms:
             ap.error("--steps needs --sim-rooms")

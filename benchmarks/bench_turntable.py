@@ -4,8 +4,9 @@
 
 An object turned in equal steps in front of one sensor (``data_tools.simulate.make_turntable``: 360/step scans,
 24° → 15 scans, 36° → 10), registered by ``pipeline.register`` with the default ``Config`` (``workers``,
-``record=False`` and the fields ``--set`` overrides aside), once as is (refine, loops and retry on) and once with the three switched off (the
-graph of the first synchronization: pairwise registration of the top-k graph, then sync). Per row:
+``record=False`` and the fields ``--set`` overrides aside), once as is (refine, loops and retry on) and once with
+the three switched off (the graph of the first synchronization: pairwise registration of the top-k graph, then
+sync). Per row:
 
 - unverified / unregistered: ``RunResult.unverified`` / ``.unregistered`` counts;
 - rotation error, max and median over the registered scans, and worst translation error (mm): the estimated
