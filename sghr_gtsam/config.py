@@ -22,8 +22,8 @@ KERNELS = ("none", "huber", "cauchy", "tls")
 MIN_INLIERS = {"fpfh": 15, "learned": 31}
 """``Config.min_inliers`` by descriptor (given descriptors use FPFH's): one more than the most inliers a wrong
 pair reached among all pairs of the kitchen and the bunny (``benchmarks/bench_learned_descriptor.py bars``, sc2;
-FPFH 14, the learned descriptor 30); right FPFH pairs reach down to 9 there. On the 3DMatch home_at 5 of 45 grossly wrong FPFH pairs
-reach 15-27 (chance agreement between alike objects)."""
+FPFH 14, the learned descriptor 30); right FPFH pairs reach down to 9 there. On the 3DMatch home_at 5 of 45 grossly
+wrong FPFH pairs reach 15-27 (chance agreement between alike objects)."""
 DESCRIPTORS = tuple(MIN_INLIERS)
 """Local descriptors (``features.local.compute_features``)."""
 
@@ -172,8 +172,8 @@ class Config:
         from .sync.irls import REWEIGHTS
 
         choices = {"descriptor": DESCRIPTORS, "global_feature": ("vlad", "learned"), "matcher": MATCHERS,
-                   "method": tuple(METHODS), "polish": tuple(POLISHES), "reweight": REWEIGHTS, "initial_weight": ("s*r", "s", "r"),
-                   "noise_model": NOISE_MODELS, "kernel": KERNELS}
+                   "method": tuple(METHODS), "polish": tuple(POLISHES), "reweight": REWEIGHTS,
+                   "initial_weight": ("s*r", "s", "r"), "noise_model": NOISE_MODELS, "kernel": KERNELS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
