@@ -5,13 +5,16 @@ from __future__ import annotations
 import os
 import sys
 import signal
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
 
 import typer
 
 from .config import Config
-from .types import InputError
+from .executor import signals_held, start_server
+from .errors import InputError, stopped
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -52,7 +55,8 @@ def _fail(message: str, code: int = 2) -> None:
 
 
 class _Stopped(BaseException):
-    """SIGTERM (``timeout``, ``docker stop``, SLURM) as an exception, so that a run unwinds like on Ctrl-C."""
+    """SIGTERM (``timeout``, ``docker stop``, SLURM) or SIGINT as an exception (``main``): a run unwinds as on
+    a KeyboardInterrupt, which typer would end in a silent exit."""
 
     def __init__(self, signum: int):
         super().__init__(signum)
@@ -63,7 +67,8 @@ def _stop(signum: int, frame: object) -> None:
     raise _Stopped(signum)
 
 
-def _guard(fn, *args, **kwargs):
+@contextmanager
+def _guarded() -> Iterator[None]:
     """Bad input ends in one line on stderr and a non-zero exit, never a traceback
     (set SGHR_DEBUG=1 to see the traceback of an unexpected failure). SIGINT and SIGTERM end the command with one
     line and exit 130 / 143: what it was writing is removed, earlier outputs stay as they were."""
@@ -72,19 +77,48 @@ def _guard(fn, *args, **kwargs):
     except ValueError:  # not the main thread: signals stay as they are
         pass
     try:
-        return fn(*args, **kwargs)
+        yield
     except InputError as e:
         _fail(str(e))
     except typer.Exit:
         raise
     except (KeyboardInterrupt, _Stopped) as e:
         signum = e.signum if isinstance(e, _Stopped) else signal.SIGINT
-        _fail(f"stopped by {signal.Signals(signum).name}: nothing written, earlier results left as they were",
-              code=128 + signum)
+        _fail(stopped(signal.Signals(signum).name), code=128 + signum)
     except Exception as e:  # noqa: BLE001 - the CLI's last line of defence
         if os.environ.get("SGHR_DEBUG"):
             raise
         _fail(f"unexpected {type(e).__name__}: {e} (set SGHR_DEBUG=1 for the traceback)", code=1)
+
+
+def main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
+    """``app`` with SIGINT and SIGTERM raised as ``_Stopped``: a KeyboardInterrupt outside ``_guarded`` ends in
+    typer's silent exit 130; ``_Stopped`` ends in one line anywhere. ``arrived``: the signals that came while the
+    command line was loading (``__main__``)."""
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _stop)
+    try:
+        for signum in arrived[:1]:
+            raise _Stopped(signum)
+        app(prog_name=prog_name)
+    except _Stopped as e:  # outside typer: its Exit would not end the process here
+        typer.echo(f"error: {stopped(signal.Signals(e.signum).name)}", err=True)
+        sys.exit(128 + e.signum)
+
+
+def _guard(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)`` under ``_guarded``."""
+    with _guarded():
+        return fn(*args, **kwargs)
+
+
+@contextmanager
+def _loading() -> Iterator[None]:
+    """A command's heavy imports: guarded, with a stop held until they are done, so that Ctrl-C while they load
+    ends in the same one line (an extension module interrupted in its initialisation fails as an ImportError:
+    open3d's "initialization failed", with its allocator's statistics on stdout)."""
+    with _guarded(), signals_held():
+        yield
 
 
 def _config(config_file: Optional[Path], **overrides) -> Config:
@@ -98,7 +132,6 @@ def _config(config_file: Optional[Path], **overrides) -> Config:
 def _start_workers(cfg: Config) -> None:
     """Start the parallel stages' fork server before importing the pipeline (torch, gtsam, rerun: seconds), so
     that both import at once on two cores."""
-    from .executor import start_server
     from .registration import WORKER_MODULES
 
     start_server(WORKER_MODULES, cfg.workers, cfg.ray)
@@ -227,8 +260,9 @@ def run(
                  workers=workers, ray=ray, record=record, cache=cache, global_feature=global_feature,
                  descriptor=descriptor, features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
-    _start_workers(cfg)
-    from .pipeline import run as run_pipeline
+    with _loading():
+        _start_workers(cfg)
+        from .pipeline import run as run_pipeline
 
     out = out or Path("results") / scene_dir.resolve().name
     result = _observed(run_pipeline, quiet, scene_dir, out, cfg)
@@ -265,11 +299,12 @@ def demo(
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bars and no stage messages."),
 ) -> None:
     """Generate a scene scanned from several stations (known poses), register it, print the errors."""
-    from .evaluate import scan_errors, whole_model_errors
-    from .io.poses import read_poses
-    from .io.atomic import staged_folder
-    from .pipeline import run as run_pipeline
-    from .synthetic import make_scene, write_scene
+    with _loading():
+        from .evaluate import scan_errors, whole_model_errors
+        from .io.poses import read_poses
+        from .io.atomic import staged_folder
+        from .pipeline import run as run_pipeline
+        from .synthetic import make_scene, write_scene
 
     cfg = _guard(_config, None, seed=seed, workers=workers, ray=ray)
 
@@ -326,11 +361,12 @@ def sync(
                                "none (no pass), huber, cauchy or tls (GNC).", show_default=True),
 ) -> None:
     """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
-    import numpy as np
+    with _loading():
+        import numpy as np
 
-    from .gtsam_api import KERNELS, NOISE_MODELS, check_choice, repolish
-    from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
-    from .sync import checked_graph, synchronize, unverified
+        from .gtsam_api import KERNELS, NOISE_MODELS, check_choice, repolish
+        from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
+        from .sync import checked_graph, synchronize, unverified
 
     def work() -> None:
         check_choice("--noise", noise, NOISE_MODELS)
@@ -363,7 +399,8 @@ def sync(
              add_help_option=False)
 def train(ctx: typer.Context) -> None:
     """Train the NetVLAD overlap head on simulated scans (see `train --help`)."""
-    from .train import train_command  # torch training code loads only for this command
+    with _loading():
+        from .train import train_command  # torch training code loads only for this command
 
     sub = typer.Typer(add_completion=False)
     sub.command()(train_command)

@@ -49,14 +49,21 @@ def _ensure_server(modules: Sequence[str]) -> None:
     """Start the fork server, importing ``modules``, unless it is running; with one OpenMP thread: a worker forked
     from a server whose OpenMP runtime (libgomp, started by importing open3d) has threads hung in its first parallel
     region (open3d's normals, seen here), and each worker has one core anyway (``_receive``)."""
-    from multiprocessing import forkserver
+    from multiprocessing import forkserver, resource_tracker
 
     forkserver.set_forkserver_preload(list(modules))
     saved = os.environ.get("OMP_NUM_THREADS")
     os.environ["OMP_NUM_THREADS"] = "1"  # the server inherits this process's environment; this process keeps its own
+    # The server inherits this thread's signal mask: SIGINT blocked, a terminal's Ctrl-C (sent to the whole group)
+    # does not interrupt its imports, which printed a KeyboardInterrupt traceback; its workers ignore SIGINT anyway
+    # (``_receive``), and this process, which unwinds the run, gets the signal as soon as the mask is restored.
+    # The resource tracker starts first: starting, it unblocks SIGINT (after the same trick for itself).
+    resource_tracker.ensure_running()
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         forkserver.ensure_running()
     finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         if saved is None:
             del os.environ["OMP_NUM_THREADS"]
         else:
@@ -111,7 +118,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right
             # one). Futures, not pool.map: map cancels the pending ones when stopped, and the pool's manager thread
             # of Python < 3.12 then fails on them with a traceback on stderr.
-            with _main_not_rerun(fn), _signals_held():
+            with _main_not_rerun(fn), signals_held():
                 futures = [pool.submit(_call, fn, task) for task in tasks]  # starts the workers
             results = []
             for k in range(len(futures)):
@@ -143,12 +150,14 @@ def _arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep
 
 
 @contextmanager
-def _signals_held() -> Iterator[None]:
-    """SIGINT and SIGTERM wait while the workers start, then act as they would have. One arriving between a
-    worker's fork and the pool's note of its pid left a worker nobody ended: once this process had exited and its
-    semaphores were gone, the worker's start-up failed with a traceback on stderr (CI, 1 run in ~5). A thread mask
-    cannot hold them: a process-directed signal goes to any thread not blocking it (rerun's, TBB's, rich's), and
-    Python runs its handler in the main thread at once. So the handlers note the signal and it is raised again after."""
+def signals_held() -> Iterator[None]:
+    """SIGINT and SIGTERM wait while the block runs, then act as they would have: while a pool's workers start, or
+    while modules import (an extension module interrupted in its initialisation fails with an ImportError and
+    leaves a half-made module). One arriving between a worker's fork and the pool's note of its pid left a worker
+    nobody ended: once this process had exited and its semaphores were gone, the worker's start-up failed with a
+    traceback on stderr (CI, 1 run in ~5). A thread mask cannot hold them: a process-directed signal goes to any
+    thread not blocking it (rerun's, TBB's, rich's), and Python runs its handler in the main thread at once. So the
+    handlers note the signal and it is raised again after."""
     held = (signal.SIGINT, signal.SIGTERM)
     arrived: list[int] = []
     try:

@@ -147,3 +147,16 @@ def test_sync_command_runs_every_method_and_baseline(tmp_path):
                         information=graph.information[chain]))
     r = _run("sync", tmp_path / "chain.g2o", "--out", tmp_path / "chain_out.g2o")
     assert r.exit_code == 0 and f"{n - 1} pose(s) of the largest part unverified" in r.output, r.output
+
+
+def test_the_console_script_is_the_module_entry():
+    """``sghr-gtsam`` and ``python -m sghr_gtsam`` share one entry, which turns a stop while the command line
+    loads into the same one line as later (``tests/test_corpus.py``, signals)."""
+    from importlib.metadata import entry_points
+
+    from sghr_gtsam.__main__ import main
+
+    (script,) = [e for e in entry_points(group="console_scripts") if e.name == "sghr-gtsam"]
+    assert script.load() is main
+    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "sync", "--help"], capture_output=True, text=True)
+    assert done.returncode == 0 and "python -m sghr_gtsam sync" in done.stdout

@@ -364,19 +364,31 @@ def small_room(tmp_path_factory):
     return d
 
 
-def _stop_mid_run(scene: Path, out: Path, signum: int) -> tuple[int, str]:
-    """Start a run, send ``signum`` once it is registering pairs, return its exit code and stderr."""
+def _stop_mid_run(scene: Path, out: Path, signum: int, group: bool = False) -> tuple[int, str]:
+    """Start a run, send ``signum`` once it is registering pairs (to the run alone, or with ``group`` to its
+    whole process group, as a terminal's Ctrl-C), return its exit code and stderr."""
+    def when(proc: subprocess.Popen) -> None:
+        for line in proc.stdout:
+            if line.startswith("features:"):  # the pairwise stage is starting
+                break
+        time.sleep(0.5)
+
+    return _stopped_run(scene, out, signum, when, group)
+
+
+def _stopped_run(scene: Path, out: Path, signum: int, when, group: bool) -> tuple[int, str]:
+    """A run started with 2 workers, ``signum`` sent once ``when(proc)`` returns; its exit code and stderr."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OPENBLAS_NUM_THREADS": "1"}
     with tempfile.TemporaryFile("w+") as err:  # not a pipe: a killed run's orphaned workers would hold it open
         proc = subprocess.Popen([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out),
                                  "--workers", "2"], stdout=subprocess.PIPE, stderr=err, text=True, env=env,
                                 start_new_session=True)
         try:
-            for line in proc.stdout:
-                if line.startswith("features:"):  # the pairwise stage is starting
-                    break
-            time.sleep(0.5)
-            proc.send_signal(signum)  # to the run alone (a terminal's Ctrl-C reaches its workers too)
+            when(proc)
+            if group:
+                os.killpg(proc.pid, signum)
+            else:
+                proc.send_signal(signum)
             code = proc.wait(timeout=120)
         finally:  # SIGKILL leaves the fork server and its workers behind: end them as a job scheduler would
             try:
@@ -386,6 +398,34 @@ def _stop_mid_run(scene: Path, out: Path, signum: int) -> tuple[int, str]:
             proc.stdout.close()
         err.seek(0)
         return code, err.read()
+
+
+def _has_fork_server(pid: int) -> bool:
+    """Whether process ``pid`` has started its fork server (a child running multiprocessing's forkserver)."""
+    for proc in Path("/proc").iterdir():
+        try:
+            stat = (proc / "stat").read_text()
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid and b"forkserver" in (proc / "cmdline").read_bytes():
+                return True
+        except (OSError, ValueError, IndexError):  # not a process, or one that ended meanwhile
+            continue
+    return False
+
+
+def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
+    """A terminal's Ctrl-C reaches the run's whole process group. Sent while the run imports the pipeline and its
+    fork server imports the workers' modules, it printed the server's KeyboardInterrupt traceback, and open3d,
+    interrupted in its initialisation, ended the run with an ImportError traceback (exit 1)."""
+    def when(proc: subprocess.Popen) -> None:
+        deadline = time.monotonic() + 60
+        while not _has_fork_server(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    out = _old_result(tmp_path / "out")
+    code, err = _stopped_run(small_room, out, signal.SIGINT, when, group=True)
+    assert code == 130, err
+    assert err.strip().splitlines() == ["error: stopped by SIGINT: nothing written, earlier results left as they were"], err
+    assert {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE} == OLD
 
 
 @pytest.mark.parametrize("signum, code", [
