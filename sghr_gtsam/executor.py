@@ -17,8 +17,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import select
 import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import closing, contextmanager
@@ -70,18 +72,40 @@ def _ensure_server(modules: Sequence[str]) -> None:
             os.environ["OMP_NUM_THREADS"] = saved
 
 
-def _receive(shared: Any, started: Any) -> None:
-    """Worker start: keep the stage's state and take one core of its own. kiss-matcher's TBB and open3d's
-    OpenMP size their thread pools by the cores a process may use; left at every core, two workers run four
-    spinning threads on two cores and the stage ran slower than in one process (seen here)."""
+def _receive(shared: Any, started: Any, caller: int) -> None:
+    """Worker start: keep the stage's state, end with the ``caller`` (``_end_with``) and take one core of its own.
+    kiss-matcher's TBB and open3d's OpenMP size their thread pools by the cores a process may use; left at every
+    core, two workers run four spinning threads on two cores and the stage ran slower than in one process (seen
+    here)."""
     global _SHARED
     _SHARED = shared
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the caller alone unwinds
+    _end_with(caller)
     with started.get_lock():
         index = started.value
         started.value += 1
     cores = sorted(os.sched_getaffinity(0))
     os.sched_setaffinity(0, {cores[index % len(cores)]})
+
+
+def _end_with(caller: int) -> None:
+    """End this worker as soon as the process ``caller`` ends. A caller killed outright (SIGKILL, the OOM killer)
+    unwinds nothing: its workers waited for tasks for ever (~130 MB each, seen here), and with them the fork
+    server and the resource tracker, which end once no worker holds their pipes. A worker is the fork server's
+    child, so the caller is watched through a pidfd (readable once it has ended; Linux ≥ 5.3): where there is none,
+    nothing is watched."""
+    try:
+        pidfd = os.pidfd_open(caller)
+    except ProcessLookupError:  # ended already
+        os._exit(1)
+    except (AttributeError, OSError):  # no pidfd on this system
+        return
+
+    def watch() -> None:
+        select.select([pidfd], [], [])
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True, name="end-with-caller").start()
 
 
 def _call(fn: Callable[[Any, T], R], task: T) -> R:
@@ -113,7 +137,8 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
     context = multiprocessing.get_context("forkserver")
     _ensure_server([fn.__module__])
     started = context.Value("i", 0)
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive, initargs=(shared, started)) as pool:
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive,
+                             initargs=(shared, started, os.getpid())) as pool:
         try:
             # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right
             # one). Futures, not pool.map: map cancels the pending ones when stopped, and the pool's manager thread

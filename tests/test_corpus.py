@@ -364,20 +364,20 @@ def small_room(tmp_path_factory):
     return d
 
 
-def _stop_mid_run(scene: Path, out: Path, signum: int, group: bool = False) -> tuple[int, str]:
-    """Start a run, send ``signum`` once it is registering pairs (to the run alone, or with ``group`` to its
-    whole process group, as a terminal's Ctrl-C), return its exit code and stderr."""
+def _stop_mid_run(scene: Path, out: Path, signum: int) -> tuple[int, str, list[int]]:
+    """Start a run, send ``signum`` to it alone once it is registering pairs; ``_stopped_run``'s answer."""
     def when(proc: subprocess.Popen) -> None:
         for line in proc.stdout:
             if line.startswith("features:"):  # the pairwise stage is starting
                 break
         time.sleep(0.5)
 
-    return _stopped_run(scene, out, signum, when, group)
+    return _stopped_run(scene, out, signum, when, group=False)
 
 
-def _stopped_run(scene: Path, out: Path, signum: int, when, group: bool) -> tuple[int, str]:
-    """A run started with 2 workers, ``signum`` sent once ``when(proc)`` returns; its exit code and stderr."""
+def _stopped_run(scene: Path, out: Path, signum: int, when, group: bool) -> tuple[int, str, list[int]]:
+    """A run started with 2 workers, ``signum`` sent once ``when(proc)`` returns: its exit code, its stderr, and
+    the processes it started that are still running 10 s after it ended (workers, fork server)."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OPENBLAS_NUM_THREADS": "1"}
     with tempfile.TemporaryFile("w+") as err:  # not a pipe: a killed run's orphaned workers would hold it open
         proc = subprocess.Popen([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out),
@@ -390,26 +390,32 @@ def _stopped_run(scene: Path, out: Path, signum: int, when, group: bool) -> tupl
             else:
                 proc.send_signal(signum)
             code = proc.wait(timeout=120)
-        finally:  # SIGKILL leaves the fork server and its workers behind: end them as a job scheduler would
+            deadline = time.monotonic() + 10
+            while (left := _running(session=proc.pid)) and time.monotonic() < deadline:
+                time.sleep(0.1)
+        finally:  # whatever is left, as a job scheduler would
             try:
                 os.killpg(proc.pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
             proc.stdout.close()
         err.seek(0)
-        return code, err.read()
+        return code, err.read(), left
 
 
-def _has_fork_server(pid: int) -> bool:
-    """Whether process ``pid`` has started its fork server (a child running multiprocessing's forkserver)."""
+def _running(session: int | None = None, parent: int | None = None, command: bytes = b"") -> list[int]:
+    """The processes running (not ended) in ``session`` or with the ``parent``, whose command line holds
+    ``command``."""
+    found = []
     for proc in Path("/proc").iterdir():
         try:
-            stat = (proc / "stat").read_text()
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid and b"forkserver" in (proc / "cmdline").read_bytes():
-                return True
-        except (OSError, ValueError, IndexError):  # not a process, or one that ended meanwhile
+            state, ppid, _, sid = (proc / "stat").read_text().rsplit(")", 1)[1].split()[:4]
+            if (state != "Z" and (session is None or int(sid) == session) and (parent is None or int(ppid) == parent)
+                    and command in (proc / "cmdline").read_bytes()):
+                found.append(int(proc.name))
+        except (OSError, ValueError):  # not a process, or one that ended meanwhile
             continue
-    return False
+    return found
 
 
 def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
@@ -418,12 +424,12 @@ def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
     interrupted in its initialisation, ended the run with an ImportError traceback (exit 1)."""
     def when(proc: subprocess.Popen) -> None:
         deadline = time.monotonic() + 60
-        while not _has_fork_server(proc.pid) and time.monotonic() < deadline:
+        while not _running(parent=proc.pid, command=b"forkserver") and time.monotonic() < deadline:
             time.sleep(0.01)
 
     out = _old_result(tmp_path / "out")
-    code, err = _stopped_run(small_room, out, signal.SIGINT, when, group=True)
-    assert code == 130, err
+    code, err, left = _stopped_run(small_room, out, signal.SIGINT, when, group=True)
+    assert code == 130 and not left, (err, left)
     assert err.strip().splitlines() == ["error: stopped by SIGINT: nothing written, earlier results left as they were"], err
     assert {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE} == OLD
 
@@ -432,8 +438,9 @@ def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
     (signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
 def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, code):
     out = _old_result(tmp_path / "out")
-    got, err = _stop_mid_run(small_room, out, signum)
+    got, err, left = _stop_mid_run(small_room, out, signum)
     assert got == code, err
+    assert not left, left  # a run killed outright takes its workers with it (``executor._end_with``)
     assert {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE} == OLD
     if signum == signal.SIGKILL:  # nothing could clean up: the next run removes the staging folder
         stale = [p for p in tmp_path.iterdir() if p.name.startswith(".out.tmp-")]
