@@ -26,6 +26,7 @@ from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.gtsam_api import pose_covariances
 from sghr_gtsam.io.g2o import read_g2o, write_g2o
+from sghr_gtsam.io import atomic
 from sghr_gtsam.io.atomic import staged_folder
 from sghr_gtsam.io.results import CACHE, RESULT_FILES
 from sghr_gtsam.io.scans import load_scan, write_scan
@@ -555,6 +556,34 @@ def test_sync_out_a_folder_names_the_folder(tmp_path):
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "o")
     assert code == 2 and lines == [f"error: cannot write {tmp_path / 'o'}: it is a folder"]
     assert not any((tmp_path / "o").iterdir())
+
+
+def test_sync_out_a_pipe_is_refused_and_a_link_followed(tmp_path):
+    """A rename onto ``--out`` put a regular file in place of a pipe or a device (``/dev/null``, as root) and of a
+    symbolic link: a pipe is refused, a link's file is replaced and the link stays."""
+    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _edge(0, 1))
+    os.mkfifo(tmp_path / "out.fifo")
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.fifo")
+    assert code == 2 and lines == [f"error: cannot write {tmp_path / 'out.fifo'}: it is not a regular file (a "
+                                   f"device, pipe or socket)"], lines
+    assert (tmp_path / "out.fifo").is_fifo()
+    (tmp_path / "real.g2o").write_text("old\n")
+    (tmp_path / "link.g2o").symlink_to("real.g2o")
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "link.g2o")
+    assert code == 0, lines
+    assert (tmp_path / "link.g2o").is_symlink() and read_g2o(tmp_path / "real.g2o")[0] == [0, 1]
+
+
+def test_run_out_a_link_to_a_folder_fills_the_folder(small_room, tmp_path):
+    """``--out`` a symbolic link to a folder: the folder gets the results (with the umask's permissions, not
+    mkdtemp's 0700), the link stays, nothing is left beside them."""
+    (tmp_path / "real").mkdir()
+    (tmp_path / "link").symlink_to("real")
+    code, lines = _cli("run", small_room, "--out", tmp_path / "link", "--workers", "1", "--no-record", "--quiet")
+    assert code == 0, lines
+    assert (tmp_path / "link").is_symlink() and (tmp_path / "real" / "poses.txt").is_file()
+    assert (tmp_path / "real").stat().st_mode & 0o777 == 0o777 & ~atomic._UMASK
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]
 
 
 def test_sync_odd_but_valid_graphs(tmp_path):

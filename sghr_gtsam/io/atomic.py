@@ -16,8 +16,8 @@ from typing import IO, Any
 
 from ..errors import InputError
 
-# mkstemp creates files 0600; finished outputs get the usual 0666 & ~umask instead. The umask can
-# only be read by setting it, so read it once at import rather than on every write.
+# mkstemp creates files 0600 and mkdtemp folders 0700; finished outputs get the usual 0666 / 0777 & ~umask instead.
+# The umask can only be read by setting it, so read it once at import rather than on every write.
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -43,13 +43,16 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     The temporary name ends with ``path``'s own suffix, because those writers choose the format
     from the extension. On success the file is fsynced and renamed onto ``path``; on an exception
     it is removed and the exception propagates. The temporary name starts with a dot, so
-    ``list_scans`` never picks it up. Missing folders are created; ``InputError`` when ``path`` is a folder or
-    cannot be written.
+    ``list_scans`` never picks it up. Missing folders are created; a symbolic link is followed (the file it leads
+    to is replaced, the link stays); ``InputError`` when ``path`` is a folder, a device, a pipe or a socket (a
+    rename would put a file in its place: ``/dev/null`` replaced, as root), or cannot be written.
     """
-    path = Path(path)
+    path = Path(os.path.realpath(path))
     folder = path.parent
     if path.is_dir():
         raise InputError(f"cannot write {path}: it is a folder")
+    if path.exists() and not path.is_file():
+        raise InputError(f"cannot write {path}: it is not a regular file (a device, pipe or socket)")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=f".tmp{path.suffix}")
@@ -154,11 +157,14 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     """A new folder beside ``out`` to write a folder's files into; swapped in as ``out`` when the block completes,
     removed when it raises (also on KeyboardInterrupt), so a stop at any point leaves ``out`` as it was. ``carry``:
     a subfolder of ``out`` written in place during the block (a resume cache) and kept across the swap. Stale
-    folders of stopped runs are removed first."""
+    folders of stopped runs are removed first. A symbolic link ``out`` is followed: the folder it leads to is
+    replaced, the link stays."""
+    out = Path(os.path.realpath(out))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale(out, carry)
         stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-{os.getpid()}-"))
+        os.chmod(stage, 0o777 & ~_UMASK)  # mkdtemp makes it 0700: the results are for others to read as well
     except OSError as e:
         raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
     try:
