@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -455,6 +456,23 @@ def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, cod
         assert err.strip().splitlines() == [f"error: stopped by {name}: nothing written, earlier results left as "
                                             f"they were"], err
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+
+
+def test_a_scan_given_twice_gets_finite_covariances_and_strict_json(small_room, tmp_path):
+    """Two identical scans fit with residuals of rounding alone: their information overflowed, gtsam's marginals
+    gave NaN, report.json held 190 NaN (which strict JSON readers refuse) and every scan was flagged
+    underdetermined."""
+    scene = tmp_path / "scene"
+    shutil.copytree(small_room, scene)
+    first = sorted(p for p in scene.iterdir() if p.suffix == ".ply")[1]
+    shutil.copy(first, scene / "scan_99.ply")
+    code, lines = _cli("run", scene, "--out", tmp_path / "out", "--workers", "1", "--no-record", "--quiet")
+    assert code == 0, lines
+    report = json.loads((tmp_path / "out" / "report.json").read_text(),
+                        parse_constant=lambda c: pytest.fail(f"{c} in report.json"))
+    assert report["underdetermined"] == [] and len(report["registered"]) == 5
+    covariances = [np.array(c["covariance"]) for c in report["pose_covariances"].values()]
+    assert all(np.all(np.isfinite(c)) for c in covariances)
 
 
 def test_swap_keeps_the_resume_cache(tmp_path):

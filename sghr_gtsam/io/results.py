@@ -18,10 +18,11 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -136,7 +137,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "edges_kept": int((result.sync.weights > 0).sum()),
         "edge_status": {key: status.count(key) for key in EDGE_STATUS},
         "g2o_vertices": {str(k): result.names[k] for k in keep},
-        "variance_factor": None if np.isnan(factor) else round(factor, 4),
+        "variance_factor": round(factor, 4),
         "pose_covariances": covariance_report(result),
         "seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
@@ -144,7 +145,19 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "kitti_order": names,
     }
     with atomic_write(out / "report.json") as f:
-        json.dump(report, f, indent=2)
+        json.dump(_strict(report), f, indent=2, allow_nan=False)
+
+
+def _strict(value: Any) -> Any:
+    """``value`` with every non-finite float as None: JSON has no NaN or Infinity (Python writes them, strict
+    readers refuse the file); a covariance gtsam could not compute is unknown, null."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _strict(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_strict(v) for v in value]
+    return value
 
 
 # --- what may be replaced ------------------------------------------------------------------------------------

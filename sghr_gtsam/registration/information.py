@@ -47,6 +47,11 @@ MIN_PAIRS = 7
 MIN_CELLS = 12
 """The sandwich's middle ``M`` sums one outer product per cell: with fewer cells than twice the pose's
 dimension it is too poorly estimated to invert (cluster-robust covariances need many clusters)."""
+SIGMA_FLOOR = 1e-3
+"""Least residual σ, relative to the correlation length (a few grid cells). Scans that fit exactly (a scan given
+twice, generated planes) have residuals of rounding alone: their information overflowed to infinity, and at a
+floor of 10⁻⁶ of the overlap's extent it still spanned 10¹² against the other edges', past what gtsam's
+marginals can factor (NaN covariances). Real residuals are 0.1-0.3 voxels, 50× above this floor."""
 CORRELATION_SAMPLE = 2000
 """Points whose neighbour distances give ``correlation_length``'s median (a median needs no more; the
 k-nearest-neighbour search on every point of a dense 3DMatch grid costs a tenth of a second a pair)."""
@@ -76,9 +81,11 @@ def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray,
     ``cell`` None: independent residuals, ``Σ JᵀJ / σ̂²`` (module doc). ``cell`` a length: residuals correlated
     within cells of that side (``q``'s frame), the cluster-robust (sandwich) covariance ``H⁻¹ M H⁻¹`` with
     ``H = Σ JᵀJ`` and ``M = c Σ_cells s sᵀ``, ``s = Σ_{cell} J r``, ``c = G/(G−1) · (m−1)/(m−6)`` over ``G`` cells;
-    the information is its inverse ``H M⁻¹ H``. With fewer than ``MIN_CELLS`` cells the independent model."""
+    the information is its inverse ``H M⁻¹ H``. With fewer than ``MIN_CELLS`` cells the independent model. With a
+    ``cell``, σ̂ is at least ``SIGMA_FLOOR`` times it."""
     J = np.hstack([np.cross(q, normals), normals])
     H = J.T @ J
+    floor = 0.0 if cell is None else (SIGMA_FLOOR * cell) ** 2
     if cell is not None:
         _, cells = np.unique(np.floor(q / cell).astype(np.int64), axis=0, return_inverse=True)
         G = int(cells.max()) + 1
@@ -86,13 +93,14 @@ def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray,
             s = np.zeros((G, 6))
             np.add.at(s, cells.ravel(), J * residuals[:, None])
             M = s.T @ s * (G / (G - 1) * (len(q) - 1) / (len(q) - 6))
-            try:
-                info = H @ np.linalg.solve(M, H)
-                return (info + info.T) / 2
-            except np.linalg.LinAlgError:  # every cell's score in a subspace: fall back to independence
-                pass
+            if np.trace(M) > floor * np.trace(H):  # M ≈ σ² H: residuals above the floor
+                try:
+                    info = H @ np.linalg.solve(M, H)
+                    return (info + info.T) / 2
+                except np.linalg.LinAlgError:  # every cell's score in a subspace: fall back to independence
+                    pass
     sigma2 = float(residuals @ residuals) / (len(q) - 6)
-    return H / max(sigma2, np.finfo(float).tiny)
+    return H / max(sigma2, floor, np.finfo(float).tiny)
 
 
 def correlation_length(grid: Grid, points: np.ndarray) -> float:
