@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import os
-import sys
 import signal
+import sys
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -68,10 +69,12 @@ def _stop(signum: int, frame: object) -> None:
 
 
 @contextmanager
-def _guarded() -> Iterator[None]:
+def _guarded(out: Path | None = None, started: float = 0.0) -> Iterator[None]:
     """Bad input ends in one line on stderr and a non-zero exit, never a traceback
     (set SGHR_DEBUG=1 to see the traceback of an unexpected failure). SIGINT and SIGTERM end the command with one
-    line and exit 130 / 143: what it was writing is removed, earlier outputs stay as they were."""
+    line and exit 130 / 143: what it was writing is removed, earlier outputs stay as they were; or, when the run
+    of results folder ``out`` started at ``started`` (``time.time()``) has swapped its results in, the line says
+    they are complete."""
     try:
         signal.signal(signal.SIGTERM, _stop)
     except ValueError:  # not the main thread: signals stay as they are
@@ -84,7 +87,7 @@ def _guarded() -> Iterator[None]:
         raise
     except (KeyboardInterrupt, _Stopped) as e:
         signum = e.signum if isinstance(e, _Stopped) else signal.SIGINT
-        _fail(stopped(signal.Signals(signum).name), code=128 + signum)
+        _fail(stopped(signal.Signals(signum).name, str(out) if _written(out, started) else None), code=128 + signum)
     except Exception as e:  # noqa: BLE001 - the CLI's last line of defence
         if os.environ.get("SGHR_DEBUG"):
             raise
@@ -97,6 +100,9 @@ def main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
     command line was loading (``__main__``)."""
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, _stop)
+    for stream in (sys.stdout, sys.stderr):  # a latin-1 or ASCII console gets '?' for °, – and ×, not a traceback
+        if hasattr(stream, "reconfigure"):
+            stream.reconfigure(errors="replace")
     try:
         for signum in arrived[:1]:
             raise _Stopped(signum)
@@ -104,6 +110,15 @@ def main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
     except _Stopped as e:  # outside typer: its Exit would not end the process here
         typer.echo(f"error: {stopped(signal.Signals(e.signum).name)}", err=True)
         sys.exit(128 + e.signum)
+
+
+def _written(out: Path | None, started: float) -> bool:
+    """Whether ``out`` holds results written since ``started``: report.json, written last, inside the staging
+    folder that is swapped in whole (a rename keeps its time)."""
+    try:
+        return out is not None and (out / "report.json").stat().st_mtime >= started
+    except OSError:
+        return False
 
 
 def _guard(fn, *args, **kwargs):
@@ -137,10 +152,10 @@ def _start_workers(cfg: Config) -> None:
     start_server(WORKER_MODULES, cfg.workers, cfg.ray)
 
 
-def _observed(run_pipeline, quiet: bool, *args) -> "RunResult":
-    """``run_pipeline(*args)`` under ``_guard`` with the terminal's progress: bars with their ETA and the stage
-    messages above them on a terminal; the messages alone when the output is no terminal; nothing with
-    ``--quiet``."""
+def _observed(run_pipeline, quiet: bool, scene_dir: Path, out: Path, cfg: Config, started: float) -> "RunResult":
+    """``run_pipeline(scene_dir, out, cfg)`` under ``_guarded(out, started)`` with the terminal's progress: bars
+    with their ETA and the stage messages above them on a terminal; the messages alone when the output is no
+    terminal; nothing with ``--quiet``."""
     from .progress import QUIET
 
     progress: Progress = QUIET
@@ -153,13 +168,11 @@ def _observed(run_pipeline, quiet: bool, *args) -> "RunResult":
         progress = TerminalProgress(_console())
         log = progress.log
 
-    def work() -> "RunResult":
+    with _guarded(out, started):
         try:
-            return run_pipeline(*args, log=log, progress=progress)
+            return run_pipeline(scene_dir, out, cfg, log=log, progress=progress)
         finally:
             progress.close()  # before an error is printed, so that it lands below the bars, on stderr
-
-    return _guard(work)
 
 
 def _silent(message: str) -> None:
@@ -265,8 +278,10 @@ def run(
         from .pipeline import run as run_pipeline
 
     out = out or Path("results") / scene_dir.resolve().name
-    result = _observed(run_pipeline, quiet, scene_dir, out, cfg)
-    _close(result, out, cfg.record)
+    started = time.time()
+    result = _observed(run_pipeline, quiet, scene_dir, out, cfg, started)
+    with _guarded(out, started):
+        _close(result, out, cfg.record)
 
 
 _SCENE_KINDS = ("room", "object", "building", "hotel")  # synthetic.SCENE_KINDS, spelled out as _METHOD_NAMES are
@@ -324,27 +339,29 @@ def demo(
         return scene_dir
 
     scene_dir = _guard(generate)
-    result = _observed(run_pipeline, quiet, scene_dir, out / "results", cfg)
-    gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
-    gt = gt[[gt_names.index(n) for n in result.names]]
-    err = scan_errors(result.names, result.poses, gt)
-    flags = {name: flag for flag, names in reversed(result.flags.items()) for name in names}
-    good = err.within(5.0, 0.2)
-    listed = [k for k, name in enumerate(result.names)
-              if len(result.names) <= _DEMO_ROWS or name in flags or not good[k]]
-    typer.echo(f"{'scan':<16}{'rot err [deg]':>15}{'trans err [m]':>15}")
-    for k in listed:
-        name = result.names[k]
-        flag = f"  ({flags[name]})" if name in flags else ""
-        typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
-    if len(listed) < len(result.names):
-        typer.echo(f"({len(result.names) - len(listed)} more scans within 5° / 0.2 m of GT relative to "
-                   f"{result.names[0]}, none flagged)")
-    placed = [k for k, name in enumerate(result.names) if name not in result.unregistered]
-    whole = whole_model_errors([result.names[k] for k in placed], result.poses[placed], gt[placed])
-    typer.echo(f"{int(whole.within(5.0, 0.2).sum())} of {len(result.names)} scans within 5° / 0.2 m of GT after one "
-               f"rigid alignment of the placed scans (ATE {whole.ate_rmse:.3f} m)")
-    _close(result, out / "results", cfg.record)
+    started = time.time()
+    result = _observed(run_pipeline, quiet, scene_dir, out / "results", cfg, started)
+    with _guarded(out / "results", started):
+        gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
+        gt = gt[[gt_names.index(n) for n in result.names]]
+        err = scan_errors(result.names, result.poses, gt)
+        flags = {name: flag for flag, names in reversed(result.flags.items()) for name in names}
+        good = err.within(5.0, 0.2)
+        listed = [k for k, name in enumerate(result.names)
+                  if len(result.names) <= _DEMO_ROWS or name in flags or not good[k]]
+        typer.echo(f"{'scan':<16}{'rot err [deg]':>15}{'trans err [m]':>15}")
+        for k in listed:
+            name = result.names[k]
+            flag = f"  ({flags[name]})" if name in flags else ""
+            typer.echo(f"{name:<16}{err.rotation_deg[k]:>15.3f}{err.translation[k]:>15.4f}{flag}")
+        if len(listed) < len(result.names):
+            typer.echo(f"({len(result.names) - len(listed)} more scans within 5° / 0.2 m of GT relative to "
+                       f"{result.names[0]}, none flagged)")
+        placed = [k for k, name in enumerate(result.names) if name not in result.unregistered]
+        whole = whole_model_errors([result.names[k] for k in placed], result.poses[placed], gt[placed])
+        typer.echo(f"{int(whole.within(5.0, 0.2).sum())} of {len(result.names)} scans within 5° / 0.2 m of GT after "
+                   f"one rigid alignment of the placed scans (ATE {whole.ate_rmse:.3f} m)")
+        _close(result, out / "results", cfg.record)
 
 
 @app.command()

@@ -6,6 +6,9 @@ class InputError(ValueError):
     """Bad user input; the CLI prints its message on one line and exits non-zero."""
 
 
-def stopped(signal_name: str) -> str:
-    """The line a command stopped by the signal ``signal_name`` (SIGINT, SIGTERM) ends with."""
+def stopped(signal_name: str, written: str | None = None) -> str:
+    """The line a command stopped by the signal ``signal_name`` (SIGINT, SIGTERM) ends with; ``written``: the
+    results folder, when the stop came after the run had swapped its results in."""
+    if written is not None:
+        return f"stopped by {signal_name} after the results were written: {written} is complete"
     return f"stopped by {signal_name}: nothing written, earlier results left as they were"

@@ -1,9 +1,11 @@
 """The command line on good and bad input: one line and a non-zero exit, never a traceback."""
 
+import os
 import subprocess
 import sys
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from sghr_gtsam.cli import app
@@ -160,3 +162,38 @@ def test_the_console_script_is_the_module_entry():
     assert script.load() is main
     done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "sync", "--help"], capture_output=True, text=True)
     assert done.returncode == 0 and "python -m sghr_gtsam sync" in done.stdout
+
+
+def test_a_console_that_cannot_print_unicode_gets_question_marks(tmp_path):
+    """The summary's °, – and × in a latin-1 console ended a complete run with a UnicodeEncodeError traceback."""
+    scene = tmp_path / "scene"
+    write_scene(make_scene(kind="room", n_scans=3, seed=1), scene)
+    env = {**os.environ, "PYTHONIOENCODING": "latin-1"}
+    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
+                           "--workers", "1", "--no-record"], capture_output=True, text=True, env=env, errors="replace")
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
+    assert "worst residual" in done.stdout
+
+
+def test_a_stop_after_the_results_are_in_says_so(tmp_path, capsys):
+    """A stop that lands after the swap (while the summary prints) said "nothing written" of complete results."""
+    import signal
+    import time
+
+    import typer
+
+    from sghr_gtsam.cli import _guarded, _Stopped
+
+    started = time.time()
+    out = tmp_path / "out"
+    with pytest.raises(typer.Exit) as stop:
+        with _guarded(out, started):
+            raise _Stopped(signal.SIGTERM)
+    assert stop.value.exit_code == 143 and "nothing written" in capsys.readouterr().err
+    out.mkdir()
+    (out / "report.json").write_text("{}")
+    with pytest.raises(typer.Exit) as stop:
+        with _guarded(out, started):
+            raise _Stopped(signal.SIGTERM)
+    assert capsys.readouterr().err.strip() == (f"error: stopped by SIGTERM after the results were written: {out} "
+                                               f"is complete")
