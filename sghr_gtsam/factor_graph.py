@@ -193,17 +193,22 @@ def gnc_tls_poses(graph: PoseGraph, init: np.ndarray, information: np.ndarray,
 def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray, max_p: int) -> np.ndarray:
     """gtsam Shonan averaging of the relative rotations of the edges with nonzero ``information`` (isotropic
     noise from the mean of its rotation block), from ``init`` (n, 3, 3), climbing the staircase to rank
-    ``max_p``; when no rank certifies a global optimum, the rounded rank-``max_p`` solution."""
+    ``max_p``; when no rank certifies a global optimum, the rounded rank-``max_p`` solution. Nodes on no such
+    edge keep ``init`` (Shonan numbers its unknowns by the measurements: a node without one failed it)."""
     edges = np.flatnonzero(np.any(information != 0, axis=(1, 2)))
+    nodes = np.unique(np.concatenate([graph.i[edges], graph.j[edges]]))
+    index = np.full(graph.n, -1)
+    index[nodes] = np.arange(len(nodes))
     precision = np.trace(information[edges, :3, :3], axis1=1, axis2=2) / 3.0
-    measurements = [gtsam.BinaryMeasurementRot3(int(graph.i[e]), int(graph.j[e]), gtsam.Rot3(graph.T[e, :3, :3]),
+    measurements = [gtsam.BinaryMeasurementRot3(int(index[graph.i[e]]), int(index[graph.j[e]]),
+                                                gtsam.Rot3(graph.T[e, :3, :3]),
                                                 gtsam.noiseModel.Isotropic.Precision(3, float(p)))
                     for e, p in zip(edges, precision)]
     params = gtsam.ShonanAveragingParameters3(gtsam.LevenbergMarquardtParams.CeresDefaults())
     averaging = gtsam.ShonanAveraging3(measurements, params)
     Q = gtsam.Values()
-    for k, R in enumerate(init):
-        Q.insert(k, gtsam.SOn.FromMatrix(R))
+    for k, node in enumerate(nodes):
+        Q.insert(k, gtsam.SOn.FromMatrix(init[node]))
     # gtsam's run() throws when max_p is reached uncertified; this is its loop, keeping the last solution.
     for p in range(3, max_p + 1):
         Q = averaging.tryOptimizingAt(p, Q)
@@ -212,4 +217,6 @@ def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray
             break
         Q = averaging.initializeWithDescent(p + 1, Q, min_eigenvector, min_eigenvalue)
     rounded = averaging.roundSolution(Q)
-    return np.stack([rounded.atRot3(k).matrix() for k in range(graph.n)])
+    R = np.array(init, dtype=float)
+    R[nodes] = np.stack([rounded.atRot3(k).matrix() for k in range(len(nodes))])
+    return R

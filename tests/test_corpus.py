@@ -618,6 +618,18 @@ def test_sync_odd_but_valid_graphs(tmp_path):
     np.testing.assert_allclose((inv_T(poses[2]) @ poses[3])[:3, 3], [0, 2, 0], atol=1e-6)
 
 
+@pytest.mark.parametrize("method", ["history", "lm", "eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d"])
+def test_sync_a_vertex_without_edges(tmp_path, method):
+    """A vertex on no edge is a part of its own for every method (Shonan failed: "Attempting to at the key")."""
+    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _V.format(9) + _edge(0, 1)
+                                     + _edge(1, 2, "0 1 0 0 0 0 1") + _edge(0, 2, "1 1 0 0 0 0 1"))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
+    assert code == 0 and "2 connected part(s)" in lines[0], lines
+    ids, poses, _ = read_g2o(tmp_path / "out.g2o")
+    assert ids == [0, 1, 2, 9]
+    np.testing.assert_allclose((inv_T(poses[0]) @ poses[2])[:3, 3], [1, 1, 0], atol=1e-6)
+
+
 def test_sync_single_vertex_graph(tmp_path):
     (tmp_path / "in.g2o").write_text(_V.format(7))
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o")
