@@ -3,15 +3,20 @@ writer: files written here with those libraries read back to the points they hol
 one-line reason in ``skipped``, never silently ignored; TUM and KITTI files follow their formats' rules and
 evo (the odometry evaluation tool) reads them to the same trajectory."""
 
+import io
+import struct
+import tempfile
+from pathlib import Path
+
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.poses import read_tum, write_kitti, write_tum
-from sghr_gtsam.io.scans import list_scans, load_scan
+from sghr_gtsam.io.scans import check_memory, list_scans, load_scan, point_count
 from sghr_gtsam.pipeline import load_scene
 from sghr_gtsam.se3 import make_T
 from sghr_gtsam.types import InputError
@@ -94,6 +99,178 @@ def test_unreadable_files_are_skipped_with_their_reason(tmp_path, name, content,
     assert any(m.startswith(f"skipped {name}: ") for m in messages)
 
 
+def _las_bytes(P, version="1.2", compress=False) -> bytearray:
+    """A LAS (point format 3, scales 0.001) or LAZ file of ``P`` as bytes, to corrupt."""
+    header = laspy.LasHeader(point_format=3, version=version)
+    header.scales, header.offsets = [1e-3] * 3, P.min(0)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = P.T
+    buffer = io.BytesIO()
+    las.write(buffer, do_compress=compress)
+    return bytearray(buffer.getvalue())
+
+
+def _skipped_reason(tmp_path, name, content) -> str:
+    """Why ``load_scene`` skips the file ``name`` holding ``content`` beside two good scans, which it reads."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for k in range(2):
+        np.save(scene / f"good_{k}.npy", _points(300, k))
+    (scene / name).write_bytes(content)
+    scans, skipped = load_scene(scene, Config(), log=lambda message: None)
+    assert [s.name for s in scans] == ["good_0.npy", "good_1.npy"] and list(skipped) == [name]
+    assert "\n" not in skipped[name]
+    return skipped[name]
+
+
+@pytest.fixture
+def laspy_bounded(monkeypatch):
+    """laspy refuses to loop over more than 1,000 (E)VLRs, so that a reader that hands it a corrupt header fails
+    here at once instead of looping for hours through gigabytes of memory."""
+    from laspy.vlrs.vlrlist import VLRList
+
+    read_from = VLRList.read_from.__func__
+
+    def bounded(cls, stream, num_to_read, extended=False):
+        if num_to_read > 1000:
+            raise RuntimeError(f"laspy asked to read {num_to_read:,} VLRs")
+        return read_from(cls, stream, num_to_read, extended)
+
+    monkeypatch.setattr(VLRList, "read_from", classmethod(bounded))
+
+
+def _put(at, fmt, value):
+    """A corruption: ``value`` written as ``fmt`` at byte ``at``."""
+
+    def corrupt(data):
+        struct.pack_into(fmt, data, at, value)
+        return data
+
+    return corrupt
+
+
+def _laz_chunks(data):
+    table = struct.unpack_from("<q", data, struct.unpack_from("<I", data, 96)[0])[0]
+    struct.pack_into("<I", data, table + 4, 0xFFFFFFF0)  # the chunk table: version, number of chunks
+    return data
+
+
+# name -> (LAS version, suffix, corruption of the file's bytes, words of the reason)
+LAS_CORRUPTIONS = {
+    "VLR count": ("1.2", ".las", _put(100, "<I", 0xFFFFFFF0), "corrupt header: 4,294,967,280 VLRs declared in 0"),
+    "VLR count of a LAZ": ("1.2", ".laz", _put(100, "<I", 0xFFFFFFF0), "corrupt header: 4,294,967,280 VLRs"),
+    "EVLR count": ("1.4", ".las", _put(243, "<I", 0xFFFFFFF0), "corrupt header: 4,294,967,280 EVLRs declared"),
+    "header size below LAS's": ("1.2", ".las", _put(94, "<H", 100), "corrupt header: a header size of 100 bytes"),
+    "point data past the end": ("1.2", ".las", _put(96, "<I", 2**32 - 1), "corrupt header: point data at byte"),
+    "LASF and random bytes": ("1.2", ".las", lambda data: b"LASF" + np.random.default_rng(3).bytes(400),
+                              "corrupt header"),
+    "chunk count of a LAZ": ("1.2", ".laz", _laz_chunks, "corrupt chunk table: 4,294,967,280 chunks"),
+}
+
+
+@pytest.mark.parametrize("case", list(LAS_CORRUPTIONS))
+def test_corrupt_las_header_is_skipped_before_laspy_reads_it(tmp_path, laspy_bounded, case):
+    """Counts and sizes a LAS/LAZ header declares beyond what the file holds: skipped with the first that does
+    not fit, instead of laspy looping over 4 billion VLRs (a hung run) or lazrs aborting the process."""
+    version, suffix, corrupt, reason = LAS_CORRUPTIONS[case]
+    content = corrupt(_las_bytes(_points(3000), version, compress=suffix == ".laz"))
+    found = _skipped_reason(tmp_path, f"bad{suffix}", content)
+    assert f"not a readable {suffix[1:].upper()} file ({reason}" in found, found
+    assert point_count(tmp_path / "scene" / f"bad{suffix}") == 0  # left to the reader to refuse
+
+
+@pytest.mark.parametrize("version, at, fmt", [("1.2", 107, "<I"), ("1.4", 247, "<Q")])
+def test_las_overstating_its_point_count_is_skipped_not_a_memory_error(tmp_path, version, at, fmt):
+    """A 100 KB LAS that declares 1e9 points is a corrupt file, skipped; the memory check does not take it for a
+    scan of 112 GB that ends the run."""
+    content = _put(at, fmt, 10**9)(_las_bytes(_points(3000), version))
+    reason = _skipped_reason(tmp_path, "s3.las", content)
+    assert f"1,000,000,000 points of 34 bytes declared in {len(content) - (375 if version == '1.4' else 227):,} " \
+           "bytes of point data" in reason, reason
+    check_memory(tmp_path / "scene" / "s3.las")
+
+
+LAS_FIELDS = {
+    "header size": (94, "<H"), "offset to point data": (96, "<I"), "number of VLRs": (100, "<I"),
+    "point format": (104, "<B"), "record length": (105, "<H"), "legacy point count": (107, "<I"),
+    "start of first EVLR": (235, "<Q"), "number of EVLRs": (243, "<I"), "point count": (247, "<Q"),
+}  # fmt: skip
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(version=st.sampled_from(["1.2", "1.4"]), data=st.data())
+def test_any_las_header_field_is_read_or_refused_in_one_line(laspy_bounded, version, data):
+    """Any value in any field the header check reads: the file reads, or is refused in one line; and the memory
+    check's count never exceeds what the file can hold (records of at least 20 bytes)."""
+    field = data.draw(st.sampled_from([f for f, (at, _) in LAS_FIELDS.items() if version == "1.4" or at < 227]))
+    at, fmt = LAS_FIELDS[field]
+    value = data.draw(st.integers(0, 256 ** struct.calcsize(fmt) - 1), label=field)
+    content = _put(at, fmt, value)(_las_bytes(_points(50), version))
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "scan.las"
+        path.write_bytes(content)
+        assert point_count(path) * 20 <= len(content)
+        try:
+            assert load_scan(path).shape[1] == 3
+        except InputError as error:
+            assert "\n" not in str(error)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-1e4, 1e4)] * 3), min_size=1, max_size=20), st.booleans(),
+       st.sampled_from([" ", "\t", "  "]))
+def test_decimal_commas_are_refused_naming_the_line(rows, comment, gap):
+    """x y z written with decimal commas (a European-locale export): refused naming the line, where reading the
+    commas as separators gave x_int, x_frac, y_int as the coordinates."""
+    text = "# exported\n" * comment + "".join(gap.join(f"{v:.6f}".replace(".", ",") for v in row) + "\n"
+                                             for row in rows)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "scan.xyz"
+        path.write_text(text)
+        with pytest.raises(InputError, match=f"scan.xyz: line {1 + comment}: decimal commas .* are not read: "
+                                             f"convert them to points$"):
+            load_scan(path)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(allow_nan=False, allow_infinity=False)] * 3), min_size=1, max_size=20),
+       st.sampled_from([",", ", "]))
+def test_comma_separated_text_reads_exactly(rows, separator):
+    P = np.array(rows, dtype=np.float64)
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "scan.txt"
+        path.write_text("".join(separator.join(map(repr, row)) + "\n" for row in P.tolist()))
+        np.testing.assert_array_equal(load_scan(path), P)
+
+
+@pytest.mark.parametrize("name, content, reason", [
+    ("json.npy", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy array file (no .npy header; pickled data is not"),
+    ("las.npy", lambda: bytes(_las_bytes(_points(300))), "not a NumPy array file"),
+    ("json.npz", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy .npz archive (not a zip file; pickled data is"),
+    ("array.npz", lambda: _npy_bytes(_points(300)), "file is an .npy array, not an .npz archive"),
+])
+def test_file_named_npy_or_npz_that_is_not_one_is_named_so(tmp_path, name, content, reason):
+    """Not numpy's advice to load the file unsafely with allow_pickle=True (which it gives for any file that is
+    not an .npy or .npz)."""
+    found = _skipped_reason(tmp_path, name, content())
+    assert reason in found and "allow_pickle" not in found, found
+
+
+def _npy_bytes(array) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, array)
+    return buffer.getvalue()
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".npz"])
+def test_transposed_array_is_refused_naming_its_shape(tmp_path, suffix):
+    """A (3, N) array is no 3 points (reported as "only 3 finite points" before): its shape, and why."""
+    buffer = io.BytesIO()
+    np.save(buffer, _points(500).T) if suffix == ".npy" else np.savez(buffer, points=_points(500).T)
+    reason = _skipped_reason(tmp_path, f"scan{suffix}", buffer.getvalue())
+    assert "array has shape (3, 500): it looks transposed (expected (N, 3))" in reason, reason
+
+
 def _random_poses(n, seed):
     rng = np.random.default_rng(seed)
     return make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-100, 100, (n, 3)))
@@ -122,9 +299,6 @@ def test_tum_and_kitti_follow_their_format_rules(tmp_path):
 @settings(max_examples=30, deadline=None)
 @given(st.integers(1, 30), st.integers(0, 2**31 - 1))
 def test_tum_round_trip(n, seed):
-    import tempfile
-    from pathlib import Path
-
     poses = _random_poses(n, seed)
     with tempfile.TemporaryDirectory() as d:
         write_tum(Path(d) / "t.txt", poses, np.arange(n) * 0.5)

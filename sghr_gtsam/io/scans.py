@@ -2,13 +2,15 @@
 
 Every failure to read a scan becomes a one-line ``InputError("cannot read scan X: reason")``.
 PLY and PCD are read here with every count and size their header declares checked against the data (open3d,
-which reports none of it, only for the layouts whose size is known only after parsing).
+which reports none of it, only for the layouts whose size is known only after parsing); a LAS/LAZ header's counts
+are checked against the file's size before laspy, which trusts them, reads it.
 """
 
 from __future__ import annotations
 
 import fnmatch
 import re
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -267,15 +269,24 @@ def _read_open3d(path: Path, fmt: str, expected: int) -> np.ndarray:
     return points
 
 
+_DECIMAL_COMMAS = re.compile(r"\s*[-+]?\d+,\d+([eE][-+]?\d+)?(\s+[-+]?\d+,\d+([eE][-+]?\d+)?){2,}\s*")
+"""A line of whitespace-separated numbers each with one decimal comma (a European-locale export)."""
+
+
 def _read_text(path: Path) -> np.ndarray:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
         raise InputError("not a text file") from None
+    rows = (line.split("#", 1)[0] for line in text.splitlines())
+    first = next(((number, row) for number, row in enumerate(rows, 1) if row.replace(",", " ").strip()), None)
+    if first is None:
+        raise InputError("no points")
+    number, row = first
+    if _DECIMAL_COMMAS.fullmatch(row):  # read with commas as separators, these would be wrong coordinates
+        raise InputError(f"line {number}: decimal commas ({row.strip()[:60]!r}) are not read: convert them to points")
     # Commas as separators are common in exported .xyz/.txt; extra columns (normals, colour) are ignored.
     lines = text.replace(",", " ").splitlines()
-    if not any(line.split("#", 1)[0].strip() for line in lines):
-        raise InputError("no points")
     try:
         return np.loadtxt(lines, comments="#", usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
     except ValueError as e:
@@ -287,20 +298,34 @@ def _as_points(array: object) -> np.ndarray:
         raise InputError("file holds no plain array")
     if array.dtype.kind not in "iuf":
         raise InputError(f"array has non-numeric dtype {array.dtype}")
+    if array.ndim == 2 and array.shape[0] == 3 < array.shape[1]:
+        raise InputError(f"array has shape {array.shape}: it looks transposed (expected (N, 3))")
     if array.ndim != 2 or array.shape[1] < 3:
         raise InputError(f"array has shape {array.shape}, expected (N, 3) or (N, >=3)")
     return array[:, :3].astype(np.float64)
 
 
+def _numpy_kind(path: Path) -> str:
+    """What ``np.load`` takes the file for by its first bytes: "npy", "npz", or "" for anything else, which np.load
+    takes for a pickle and refuses with advice to unpickle it, advice not to be passed on for a scan file."""
+    with open(path, "rb") as f:
+        head = f.read(6)
+    return "npy" if head == b"\x93NUMPY" else "npz" if head[:4] in (b"PK\x03\x04", b"PK\x05\x06") else ""
+
+
 def _read_npy(path: Path) -> np.ndarray:
-    data = np.load(path, allow_pickle=False)
-    if isinstance(data, np.lib.npyio.NpzFile):
-        data.close()
-        raise InputError("file is an .npz archive, not .npy")
-    return _as_points(data)
+    kind = _numpy_kind(path)
+    if kind != "npy":
+        raise InputError("file is an .npz archive, not .npy" if kind else
+                         "not a NumPy array file (no .npy header; pickled data is not read)")
+    return _as_points(np.load(path, allow_pickle=False))
 
 
 def _read_npz(path: Path) -> np.ndarray:
+    kind = _numpy_kind(path)
+    if kind != "npz":
+        raise InputError("file is an .npy array, not an .npz archive" if kind else
+                         "not a NumPy .npz archive (not a zip file; pickled data is not read)")
     with np.load(path, allow_pickle=False) as archive:
         if not archive.files:
             raise InputError("archive holds no arrays")
@@ -312,11 +337,77 @@ def _reason(error: Exception) -> str:
     return " ".join(str(error).split("****")[0].split()) or type(error).__name__
 
 
+_LAS_HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235}  # public header bytes by minor version; 375 from LAS 1.4
+_LAS_RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)  # bytes of a point record, by point format 0-10
+_LAS_VLR_HEADER, _LAS_EVLR_HEADER = 54, 60
+
+
+def _las_point_count(path: Path) -> int:
+    """The point count of a LAS/LAZ public header, once its sizes and counts are found to fit in the file.
+
+    laspy trusts them: it loops over as many (E)VLRs as declared, reading nothing once past the end, and allocates
+    the declared points, so a corrupt header would hang the run, eat memory without limit or pass as a scan too
+    large for the machine. ``InputError`` naming the first that does not fit. Point data is compressed (LAZ) when
+    the point format id has bit 7 set and bit 6 clear, as laspy decides: then its size is not known."""
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        head = f.read(375)
+    if head[:4] != b"LASF":
+        raise InputError("no LASF signature")
+    if len(head) < 227:
+        raise InputError(f"corrupt header: a file of {size} bytes is shorter than the 227-byte LAS header")
+    minor = head[25]
+    header_size, offset, vlrs, format_id, record = struct.unpack_from("<HIIBH", head, 94)
+    least = _LAS_HEADER_SIZES.get(minor, 375)
+    if not least <= header_size <= size:
+        raise InputError(f"corrupt header: a header size of {header_size} bytes, where LAS {head[24]}.{minor}'s is at "
+                         f"least {least} and the file holds {size}")
+    if not header_size <= offset <= size:
+        raise InputError(f"corrupt header: point data at byte {offset}, outside the {header_size}-byte header and "
+                         f"{size}-byte file")
+    if vlrs * _LAS_VLR_HEADER > offset - header_size:
+        raise InputError(f"corrupt header: {vlrs:,} VLRs declared in {offset - header_size:,} bytes")
+    count = struct.unpack_from("<I", head, 107)[0]
+    if minor >= 4:
+        first_evlr, evlrs, count = struct.unpack_from("<QIQ", head, 235)
+        if evlrs and first_evlr + evlrs * _LAS_EVLR_HEADER > size:
+            raise InputError(f"corrupt header: {evlrs:,} EVLRs declared from byte {first_evlr:,} of a {size:,}-byte "
+                             f"file")
+    point_format = format_id & 0x3F
+    if point_format >= len(_LAS_RECORD_SIZES) or record < _LAS_RECORD_SIZES[point_format]:
+        raise InputError(f"corrupt header: point format {point_format} with {record}-byte records")
+    compressed = bool(format_id & 0x80) and not format_id & 0x40
+    if compressed:
+        _check_laz_chunk_table(path, offset, size)
+    elif count * record > size - offset:
+        raise InputError(f"corrupt header: {count:,} points of {record} bytes declared in {size - offset:,} bytes "
+                         f"of point data")
+    return count
+
+
+def _check_laz_chunk_table(path: Path, offset: int, size: int) -> None:
+    """``InputError`` when the LAZ chunk table (located by the int64 at the start of the point data) declares more
+    chunks than there are bytes of compressed points before it: lazrs reserves memory for them all first and
+    aborts the process when it cannot. A table outside the file is left to lazrs, which reports it."""
+    with open(path, "rb") as f:
+        f.seek(offset)
+        raw = f.read(8)
+        table = struct.unpack("<q", raw)[0] if len(raw) == 8 else -1  # -1: no table written
+        if not offset + 8 <= table <= size - 8:
+            return
+        f.seek(table)
+        _, chunks = struct.unpack("<II", f.read(8))
+    if chunks > table - offset - 8:
+        raise InputError(f"corrupt chunk table: {chunks:,} chunks declared for {table - offset - 8:,} bytes of "
+                         f"compressed points")
+
+
 def _read_las(path: Path) -> np.ndarray:
     """LAS, and LAZ through laspy's lazrs back end: the scaled and offset x, y, z of every point record."""
     import laspy
 
     try:
+        _las_point_count(path)
         return np.asarray(laspy.read(path).xyz, dtype=np.float64)
     except Exception as e:  # noqa: BLE001 - laspy, lazrs and numpy each raise their own kinds
         raise InputError(f"not a readable {path.suffix[1:].upper()} file ({_reason(e)})") from None
@@ -341,9 +432,9 @@ def load_scan(path: str | Path) -> np.ndarray:
     """Points of one scan as a C-contiguous (N, 3) float64 array, N >= 1.
 
     .ply / .pcd (ASCII or binary; x, y, z of any numeric type); .xyz / .txt: x y z per line (whitespace or commas,
-    ``#`` comments, extra columns ignored); .npy: an (N, >=3) numeric array; .npz: the array ``points``, else the
-    first one; .las / .laz: the point records' coordinates (laspy, lazrs); .e57: all its point sets in the file's
-    frame (pye57).
+    ``#`` comments, extra columns ignored; decimal commas refused); .npy: an (N, >=3) numeric array; .npz: the array
+    ``points``, else the first one; .las / .laz: the point records' coordinates (laspy, lazrs); .e57: all its point
+    sets in the file's frame (pye57).
     Non-finite rows are kept (see ``finite_points``). Raises ``InputError`` when the file cannot be
     read, is corrupt or truncated, has the wrong shape, or holds no points.
     """
@@ -409,10 +500,7 @@ def point_count(path: str | Path) -> int:
                 with archive.zip.open(name + ".npy") as member:
                     return _npy_rows(member)
         if suffix in (".las", ".laz"):
-            import laspy
-
-            with laspy.open(path) as las:
-                return int(las.header.point_count)
+            return _las_point_count(path)
         if suffix == ".e57":
             import pye57
 
