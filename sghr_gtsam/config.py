@@ -190,6 +190,8 @@ class Config:
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive finite number; got {value!r}")
+        if self.overlap_head is not None and not Path(self.overlap_head).is_file():  # before hours of features
+            raise InputError(f"overlap head {self.overlap_head} is not a file")
         if self.features is not None and self.descriptor != "fpfh":
             raise InputError(f"descriptor {self.descriptor!r} describes the voxel grid, and --features gives the "
                              "descriptors to match: choose one")

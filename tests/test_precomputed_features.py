@@ -171,6 +171,9 @@ def _break(case: str, scene, folder, rng) -> list[str]:
         return ["--global-feature", "learned"]  # the shipped head takes 33-d FPFH, these are 32-d
     if case == "head_missing":
         return ["--overlap-head", folder / "nowhere.pth"]
+    if case == "head_garbage":  # said torch's "invalid literal for int() with base 10: 'arbage'"
+        (folder / "head.pth").write_text("garbage\n")
+        return ["--overlap-head", folder / "head.pth"]
     return []
 
 
@@ -185,7 +188,8 @@ BAD = {
     "garbage": "cannot read",
     "other_frame": "own frame",
     "head_dim": "takes 33-d descriptors",
-    "head_missing": "cannot read overlap head",
+    "head_missing": "is not a file",
+    "head_garbage": "not a PyTorch checkpoint",
 }
 
 

@@ -61,6 +61,9 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
 
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - a missing, corrupt or foreign file is bad input
+        raise InputError(f"cannot read overlap head {path}: not a PyTorch checkpoint ({_one_line(e)})") from None
+    try:
         state = state.get("network_state_dict", state)
         state = {k[len(prefix):]: v.detach().double().numpy() for k, v in state.items() if k.startswith(prefix)}
         centroids, weight, bias = state["centroids"], state["conv.weight"], state["conv.bias"]
@@ -68,11 +71,14 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
         if head.weight.shape != centroids.shape or head.bias.shape != (len(centroids),):
             raise ValueError(f"centroids {centroids.shape}, conv.weight {weight.shape}, conv.bias {bias.shape} "
                              "do not make one head")
-    except Exception as e:  # noqa: BLE001 - a missing, corrupt or foreign file is bad input
-        reason = (f"no {prefix}{e.args[0]}" if isinstance(e, KeyError)
-                  else " ".join(str(e).split()) or type(e).__name__)
+    except Exception as e:  # noqa: BLE001 - a checkpoint of something else
+        reason = f"no {prefix}{e.args[0]}" if isinstance(e, KeyError) else _one_line(e)
         raise InputError(f"cannot read overlap head {path}: {reason}") from None
     return head
+
+
+def _one_line(e: Exception) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
 
 
 def kmeans_codebook(descriptors: Sequence[np.ndarray], clusters: int = 64, samples: int = 20000,
