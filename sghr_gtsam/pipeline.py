@@ -318,7 +318,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
     graph = stages.pose_graph(edges)
     if not np.any(graph.weight > 0):
-        raise InputError("no pair of scans could be registered (do the scans overlap?)")
+        raise InputError(f"no pair of scans could be registered (do the scans overlap?{_voxel_doubt(voxel, scans)})")
     result = stages.synchronize(graph, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
     if config.free_space:
@@ -327,6 +327,20 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)
+
+
+VOXEL_DOUBT = 10.0
+"""A voxel this many times finer or coarser than the default is named when no pair registers: FPFH's neighbourhoods
+(5 voxels) then hold one point each, or a scan is a handful of cells; either way nothing matches."""
+
+
+def _voxel_doubt(voxel: float, scans: list[Scan]) -> str:
+    default = voxel_from_spans([s.stats.span for s in scans])
+    ratio = voxel / default
+    if 1 / VOXEL_DOUBT <= ratio <= VOXEL_DOUBT:
+        return ""
+    return (f" is the voxel {voxel:.3g} right? it is {ratio:.3g}x the default {default:.3g}, 1/100 of the median "
+            f"scan's extent")
 
 
 def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,

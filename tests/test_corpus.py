@@ -240,6 +240,16 @@ def test_scans_that_do_not_overlap_leave_the_earlier_result(tmp_path):
     assert _untouched(out)
 
 
+@pytest.mark.parametrize("voxel", [1e6, 1e-4])
+def test_a_voxel_far_from_the_default_is_named_when_nothing_registers(small_room, tmp_path, voxel):
+    """A voxel 10⁷× too coarse or 10³× too fine registers nothing; the error asked only whether the scans
+    overlap, which they do."""
+    code, lines = _cli("run", small_room, "--out", tmp_path / "out", "--voxel", voxel, "--workers", "1",
+                       "--no-record")
+    assert code == 2 and lines[-1].startswith("error: no pair of scans could be registered (do the scans overlap? "
+                                              f"is the voxel {voxel:.3g} right? it is "), lines
+
+
 def test_scan_too_large_for_the_memory_stops_before_reading_it(tmp_path):
     """A scan whose header declares more points than memory holds: one line naming it and the sizes, exit 2,
     before it is read (the machine would otherwise swap or kill the run); the earlier result stays."""
