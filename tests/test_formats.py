@@ -243,6 +243,14 @@ def test_comma_separated_text_reads_exactly(rows, separator):
         np.testing.assert_array_equal(load_scan(path), P)
 
 
+def test_text_with_a_byte_order_mark_reads(tmp_path):
+    """Windows tools write a UTF-8 byte-order mark; it was read as part of the first number and the file refused."""
+    P = _points(50)
+    rows = "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in P.tolist())
+    (tmp_path / "scan.xyz").write_bytes(b"\xef\xbb\xbf" + rows.encode())
+    np.testing.assert_array_equal(load_scan(tmp_path / "scan.xyz"), P)
+
+
 @pytest.mark.parametrize("name, content, reason", [
     ("json.npy", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy array file (no .npy header; pickled data is not"),
     ("las.npy", lambda: bytes(_las_bytes(_points(300))), "not a NumPy array file"),

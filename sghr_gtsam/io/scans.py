@@ -275,7 +275,7 @@ _DECIMAL_COMMAS = re.compile(r"\s*[-+]?\d+,\d+([eE][-+]?\d+)?(\s+[-+]?\d+,\d+([e
 
 def _read_text(path: Path) -> np.ndarray:
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows exports) is no number
     except UnicodeDecodeError:
         raise InputError("not a text file") from None
     rows = (line.split("#", 1)[0] for line in text.splitlines())
