@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Optional
 import typer
 
 from .config import Config
-from .executor import signals_held, start_server
+from .executor import _signals_held, start_server
 from .errors import InputError, stopped
 
 if TYPE_CHECKING:
@@ -132,7 +132,7 @@ def _loading() -> Iterator[None]:
     """A command's heavy imports: guarded, with a stop held until they are done, so that Ctrl-C while they load
     ends in the same one line (an extension module interrupted in its initialisation fails as an ImportError:
     open3d's "initialization failed", with its allocator's statistics on stdout)."""
-    with _guarded(), signals_held():
+    with _guarded(), _signals_held():
         yield
 
 

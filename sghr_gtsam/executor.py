@@ -143,7 +143,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
             # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right
             # one). Futures, not pool.map: map cancels the pending ones when stopped, and the pool's manager thread
             # of Python < 3.12 then fails on them with a traceback on stderr.
-            with _main_not_rerun(fn), signals_held():
+            with _main_not_rerun(fn), _signals_held():
                 futures = [pool.submit(_call, fn, task) for task in tasks]  # starts the workers
             results = []
             for k in range(len(futures)):
@@ -175,7 +175,7 @@ def _arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep
 
 
 @contextmanager
-def signals_held() -> Iterator[None]:
+def _signals_held() -> Iterator[None]:
     """SIGINT and SIGTERM wait while the block runs, then act as they would have: while a pool's workers start, or
     while modules import (an extension module interrupted in its initialisation fails with an ImportError and
     leaves a half-made module). One arriving between a worker's fork and the pool's note of its pid left a worker

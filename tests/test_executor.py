@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from sghr_gtsam import cli
 from sghr_gtsam.cli import _Stopped, app
 from sghr_gtsam.config import Config
-from sghr_gtsam.executor import signals_held, parallel_map
+from sghr_gtsam.executor import _signals_held, parallel_map
 from sghr_gtsam.pipeline import run
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError
@@ -130,7 +130,7 @@ def test_a_signal_while_workers_start_acts_once_they_have(signum, stopped):
     steps = []
     try:
         with pytest.raises(stopped):
-            with signals_held():
+            with _signals_held():
                 os.kill(os.getpid(), signum)
                 time.sleep(0.2)  # where Python would act on a signal that was not held
                 steps.append("workers started")
