@@ -4,12 +4,12 @@ import signal
 
 
 def main(prog_name: str | None = None) -> None:
-    """The command line (``cli.main``). A SIGINT or SIGTERM while it loads waits until it can end the command in
+    """The command line (``cli._main``). A SIGINT or SIGTERM while it loads waits until it can end the command in
     one line: raised in an import, it can be swallowed by the imported code or end in typer's silent exit."""
     arrived: list[int] = []
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda signum, frame: arrived.append(signum))
-    from .cli import main as command_line
+    from .cli import _main as command_line
 
     command_line(prog_name, arrived)
 

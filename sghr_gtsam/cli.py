@@ -94,7 +94,7 @@ def _guarded(out: Path | None = None, started: float = 0.0) -> Iterator[None]:
         _fail(f"unexpected {type(e).__name__}: {e} (set SGHR_DEBUG=1 for the traceback)", code=1)
 
 
-def main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
+def _main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
     """``app`` with SIGINT and SIGTERM raised as ``_Stopped``: a KeyboardInterrupt outside ``_guarded`` ends in
     typer's silent exit 130; ``_Stopped`` ends in one line anywhere. ``arrived``: the signals that came while the
     command line was loading (``__main__``)."""
