@@ -251,6 +251,17 @@ def test_text_with_a_byte_order_mark_reads(tmp_path):
     np.testing.assert_array_equal(load_scan(tmp_path / "scan.xyz"), P)
 
 
+@pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
+def test_ply_with_a_blank_header_line_reads(tmp_path, fmt):
+    """open3d reads a PLY whose header has a blank line; this reader refused it as a malformed header line."""
+    P = _points(50).astype(np.float32).astype(np.float64)
+    header = f"ply\nformat {fmt} 1.0\n\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\n"
+    data = ("".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in P.tolist()).encode() if fmt == "ascii"
+            else P.astype("<f4").tobytes())
+    (tmp_path / "scan.ply").write_bytes(header.encode() + b"end_header\n" + data)
+    np.testing.assert_array_equal(load_scan(tmp_path / "scan.ply"), P)
+
+
 @pytest.mark.parametrize("name, content, reason", [
     ("json.npy", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy array file (no .npy header; pickled data is not"),
     ("las.npy", lambda: bytes(_las_bytes(_points(300))), "not a NumPy array file"),

@@ -137,6 +137,8 @@ def _ply_header(path: Path) -> tuple[str, list[_PlyElement], int, int]:
     elements: list[_PlyElement] = []
     for line in lines[1:-1]:
         words = line.split()
+        if not words:  # a blank line: open3d reads past it too
+            continue
         try:
             if words[0] == "format":
                 fmt = words[1]
