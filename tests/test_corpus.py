@@ -167,6 +167,13 @@ def _scene_with_scan(tmp_path: Path) -> Path:
     return scene
 
 
+def _with_git(folder: Path) -> Path:
+    """A folder whose only entry is hidden: the swap deleted it (hidden names were not counted as foreign)."""
+    (folder / ".git").mkdir(parents=True)
+    (folder / ".git" / "HEAD").write_text("ref: refs/heads/main\n")
+    return folder
+
+
 def _with_notes(folder: Path) -> Path:
     folder.mkdir()
     (folder / "notes.md").write_text("mine")
@@ -190,6 +197,7 @@ BAD_RUNS = {
     "--out equal to the scene folder": (lambda t, s, o: [s, "--out", s], "is the scan folder"),
     "--out holding the scene folder": (lambda t, s, o: [s, "--out", t], "holds the scan folder"),
     "--out a folder of other files": (lambda t, s, o: [s, "--out", _with_notes(o)], "not a run's results (notes.md)"),
+    "--out a folder holding a hidden .git": (lambda t, s, o: [s, "--out", _with_git(o)], "not a run's results (.git)"),
     "--voxel negative": (["--voxel", "-1"], "voxel must be a positive finite number"),
     "--voxel nan": (["--voxel", "nan"], "voxel must be a positive finite number"),
     "--k 0": (["--k", "0"], "k must be a positive integer"),

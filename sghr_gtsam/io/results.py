@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import re
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -47,6 +48,9 @@ else is not replaced, ``check_output_folder``)."""
 CACHE = "cache"
 """``OUT/cache``: state a run writes in place to resume from (kept across the swap, never staged)."""
 _LEGACY = ("recording.rrd.partial",)  # left by runs from before the swap
+_OURS_HIDDEN = re.compile(r"^\.(" + "|".join(map(re.escape, RESULT_FILES)) + r")\..*\.tmp|^\.DS_Store$")
+"""Hidden names a results folder may hold: an output's temporary (``io.atomic``) left by a run from before the swap,
+and the Finder's metadata. Any other (``.git``, ``.env``) is the user's: the swap would delete it."""
 
 EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status",
                 "origin", "free_space_conflict"]
@@ -177,7 +181,7 @@ def check_output_folder(out: Path, scene_dir: Path) -> None:
                          f"would delete the scans")
     if out.is_dir():
         foreign = sorted(p.name for p in out.iterdir()
-                         if p.name not in RESULT_FILES + _LEGACY + (CACHE,) and not p.name.startswith("."))
+                         if p.name not in RESULT_FILES + _LEGACY + (CACHE,) and not _OURS_HIDDEN.match(p.name))
         if foreign:
             shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
             raise InputError(f"output folder {out} holds files that are not a run's results ({shown}): the new "
