@@ -195,12 +195,19 @@ class Config:
         if self.features is not None and self.descriptor != "fpfh":
             raise InputError(f"descriptor {self.descriptor!r} describes the voxel grid, and --features gives the "
                              "descriptors to match: choose one")
-        if self.inlier_bar < 0 or self.seed < 0:
-            name = "min_inliers" if self.inlier_bar < 0 else "seed"
-            raise InputError(f"{name} must be a non-negative integer; got {getattr(self, name)!r}")
+        if self.inlier_bar < 0:
+            raise InputError(f"min_inliers must be a non-negative integer; got {self.min_inliers!r}")
+        if not 0 <= self.seed < 2**31:  # open3d's RANSAC takes a C int
+            raise InputError(f"seed must be an integer in [0, 2^31); got {self.seed!r}")
         if not 0 <= self.min_weight < 1:
             raise InputError(f"min_weight must be a fraction in [0, 1); got {self.min_weight!r}")
         return self
+
+    def __setattr__(self, name: str, value: object) -> None:
+        # A misspelt setting (``cfg.voxle = 0.1``) was kept as a new attribute and silently ignored.
+        if name not in self.__dataclass_fields__:
+            raise AttributeError(f"Config has no setting {name!r}")
+        super().__setattr__(name, value)
 
     @property
     def inlier_bar(self) -> int:

@@ -83,9 +83,9 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
             continue
         if dropped:
             log(f"{path.name}: dropped {dropped} non-finite points")
-        if len(P) < config.min_points:
-            skipped[path.name] = f"only {len(P)} finite points (< {config.min_points})"
-            log(f"skipped {path.name}: {skipped[path.name]}")
+        if sparse := _too_sparse(len(P), config.min_points):
+            skipped[path.name] = sparse
+            log(f"skipped {path.name}: {sparse}")
             continue
         stats = ScanStats.of(P)
         del P  # the stages read the scan again when they need its points: none holds every scan's at once
@@ -116,9 +116,29 @@ def _too_few(scans: list[Scan], skipped: dict[str, str], where: str = "") -> Inp
 
 def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
     S = np.asarray(scores, dtype=float)
-    if S.shape != (n, n) or not np.all(np.isfinite(S)) or not np.allclose(S, S.T):
-        raise InputError(f"overlap scores must be a finite symmetric {n}x{n} matrix, got shape {S.shape}")
+    if S.shape != (n, n):
+        raise InputError(f"overlap scores must be a {n}x{n} matrix (one row a scan given), got shape {S.shape}")
+    if not np.all(np.isfinite(S)) or not np.allclose(S, S.T):
+        raise InputError("overlap scores must be finite and symmetric")
     return S
+
+
+def _check_names(names: list) -> None:
+    """``InputError`` unless every scan name is a distinct, non-empty str on one line: results are matched to scans
+    by name, and pose files hold one name a line."""
+    for name in names:
+        if not isinstance(name, str) or not name or "\n" in name or "\r" in name:
+            raise InputError(f"scan names must be non-empty strings on one line; got {name!r}")
+    seen: set[str] = set()
+    for name in names:
+        if name in seen:
+            raise InputError(f"two scans are named {name!r}")
+        seen.add(name)
+
+
+def _too_sparse(points: int, min_points: int) -> str | None:
+    """Why a scan of ``points`` finite points is skipped (``Config.min_points``), or None."""
+    return f"only {points} finite points (< {min_points})" if points < min_points else None
 
 
 def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
@@ -154,18 +174,24 @@ STRAY_RATIO = 1e6
 away (one point at 1e9 m in a 10 m room); it is skipped, since it would also set the scene's voxel size."""
 
 
-def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str], log: Log) -> list[int]:
-    """The indices of the scans whose points do not all coincide, hold no stray point far away and whose extent is
-    within ``UNIT_RATIO`` of the median scan's (from their ``stats``); the others are named in ``skipped``."""
+def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str], log: Log,
+                min_points: int) -> list[int]:
+    """The indices of the scans with at least ``min_points`` finite points whose points do not all coincide, hold no
+    stray point far away and whose extent is within ``UNIT_RATIO`` of the median scan's (from their ``stats``); the
+    others are named in ``skipped``."""
     extents = np.array([st.extent for st in stats])
     spans = np.array([st.span for st in stats])
     flat, stray = spans <= 0, spans > STRAY_RATIO * extents
-    usable = ~flat & ~stray
+    sparse = [_too_sparse(st.points, min_points) for st in stats]
+    usable = ~flat & ~stray & np.array([why is None for why in sparse])
     median = float(np.median(extents[usable])) if usable.any() else 0.0
     keep = []
-    for k, (s, extent, span, is_flat, is_stray) in enumerate(zip(scans, extents, spans, flat, stray)):
+    for k, (s, extent, span, is_flat, is_stray, too_sparse) in enumerate(zip(scans, extents, spans, flat, stray,
+                                                                             sparse)):
         ratio = extent / median if median > 0 else 1.0
-        if is_flat:
+        if too_sparse:
+            skipped[s.name] = too_sparse
+        elif is_flat:
             skipped[s.name] = "all its points coincide"
         elif is_stray:
             skipped[s.name] = f"its points span {span:.3g} but 98 % of them {extent:.3g}: a stray point far away?"
@@ -274,6 +300,9 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     config.validate()
     if len(scans) < 2:
         raise InputError(f"need at least 2 scans, got {len(scans)}")
+    _check_names([s.name for s in scans])
+    if scores is not None:
+        scores = _given_scores(scores, len(scans))
     given = sum(s.keypoints is not None for s in scans)
     if 0 < given < len(scans):
         raise InputError(f"{given} of {len(scans)} scans have keypoints and descriptors: give them for all or none")
@@ -284,8 +313,10 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     timer = _Timer(recorder.begin_stage if recorder else None)
     skipped = dict(skipped or {})
     stats = [s.statistics() for s in scans]  # a scan given without them is read here, one at a time
-    keep = _same_units(scans, stats, skipped, log)
+    keep = _same_units(scans, stats, skipped, log, config.min_points)
     scans, stats = [scans[k] for k in keep], [stats[k] for k in keep]
+    if scores is not None:  # given for every scan: the skipped ones' rows go
+        scores = scores[np.ix_(keep, keep)]
     if len(scans) < 2:
         raise _too_few(scans, skipped)
     voxel = config.voxel if config.voxel else voxel_from_spans([st.span for st in stats])
@@ -305,8 +336,12 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
               recorder: Recorder | None, log: Log, skipped: dict[str, str], timer: _Timer, scores: np.ndarray | None,
               progress: Progress, cache: Cache | None) -> RunResult:
     """``register`` from the features on: ``scans`` checked and centred (at ``centres``)."""
+    index = {s.name: k for k, s in enumerate(scans)}
     scans, centres, features, counts = _local_features(scans, centres, voxel, config, store, skipped, timer, log,
                                                        progress)
+    if scores is not None:  # the rows of scans without features go
+        kept = [index[s.name] for s in scans]
+        scores = scores[np.ix_(kept, kept)]
     if recorder:
         recorder.log_scans([s.name for s in scans], Attribute(features, "points"))
     stages = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
@@ -377,7 +412,7 @@ def _global_graph(stages: _Stages, counts: list[int],
             F, feature_kind = _global_features(stages.features, counts, config)
             top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
-            scores, feature_kind = _given_scores(scores, n), "overlap scores given by the caller"
+            feature_kind = "overlap scores given by the caller"
             top_k = top_k_edges(scores, config.k)
         if config.connect:
             top_k = bridge_components(top_k, scores)

@@ -15,6 +15,7 @@ from sghr_gtsam.pipeline import Scan, register, run
 from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.synthetic import make_scene, write_scene
+from sghr_gtsam.types import InputError
 
 
 @pytest.fixture(scope="module")
@@ -132,3 +133,45 @@ def test_initial_weight_ablations_use_score_or_inliers_alone():
     np.testing.assert_allclose(runs["r"].graph.weight, np.where(r >= Config().inlier_bar, r, 0.0))
     np.testing.assert_allclose(runs["s"].graph.weight, np.where(r >= Config().inlier_bar, s, 0.0))
     np.testing.assert_allclose(g.weight, runs["s"].graph.weight * runs["r"].graph.weight)
+
+
+# --- what the API refuses or skips before any work (a hostile review, session 31) ---------------------------------
+
+
+def _room_scans(n: int = 4) -> list[Scan]:
+    scene = make_scene(kind="room", n_scans=n, seed=1)
+    return [Scan(name, P) for name, P in zip(scene.names, scene.scans)]
+
+
+@pytest.mark.parametrize("names, message", [
+    (["a", "b", "c", "a"], "two scans are named 'a'"),
+    (["a", "", "c", "d"], "non-empty strings on one line; got ''"),
+    (["a", "b\nc", "d", "e"], "non-empty strings on one line"),
+])
+def test_register_refuses_names_results_cannot_be_matched_by(names, message):
+    """Duplicate names were accepted: the first scan lost its pose in every output and two others were flagged."""
+    scans = [Scan(name, s.source) for name, s in zip(names, _room_scans())]
+    with pytest.raises(InputError, match=message):
+        register(scans, Config(workers=1, record=False), log=lambda m: None)
+
+
+def test_register_skips_a_scan_under_min_points_and_subsets_given_scores():
+    """``min_points`` was checked only when scans were read from a folder; scores given for every scan could not
+    be used once one was skipped ("must be a 3x3 matrix")."""
+    scene = make_scene(kind="room", n_scans=4, seed=1)
+    scans = [Scan(name, P) for name, P in zip(scene.names, scene.scans)]
+    scans[3] = Scan("sparse", scene.scans[3][::300])
+    scores = np.full((4, 4), 0.5)
+    result = register(scans, Config(workers=1, record=False, min_points=1000), log=lambda m: None, scores=scores)
+    assert result.skipped == {"sparse": f"only {len(scene.scans[3][::300])} finite points (< 1000)"}
+    assert result.names == scene.names[:3] and not result.unregistered
+    errors = scan_errors(result.names, result.poses, scene.poses[:3])
+    assert errors.within(2.0, 0.05).all(), errors
+
+
+def test_config_refuses_a_misspelt_setting_and_a_seed_open3d_cannot_take():
+    config = Config()
+    with pytest.raises(AttributeError, match="no setting 'voxle'"):
+        config.voxle = 0.1
+    with pytest.raises(InputError, match="seed must be an integer in"):
+        Config(seed=2**31, matcher="ransac").validate()
