@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import PurePath
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -30,8 +31,21 @@ class ScanErrors:
         return (self.rotation_deg <= max_deg) & (self.translation <= max_trans)
 
 
+def _scored(names: list[str], poses: np.ndarray, gt_poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``poses`` and ``gt_poses`` as float arrays, or an ``InputError`` unless both are (N, 4, 4) for the N names."""
+    poses, gt_poses = np.asarray(poses, dtype=float), np.asarray(gt_poses, dtype=float)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or gt_poses.shape != poses.shape or len(names) != len(poses):
+        raise InputError(f"{len(names)} names, poses {poses.shape} and GT poses {gt_poses.shape}: need N names and "
+                         f"two (N, 4, 4) arrays")
+    return poses, gt_poses
+
+
 def scan_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray, reference: int = 0) -> ScanErrors:
-    """Compare ``inv(T_ref) @ T_i`` of the estimate with the same of GT (the gauge cancels)."""
+    """Compare ``inv(T_ref) @ T_i`` of the estimate with the same of GT (the gauge cancels); a NaN pose (a scan
+    not placed) gets NaN errors."""
+    poses, gt_poses = _scored(names, poses, gt_poses)
+    if not 0 <= reference < len(poses):
+        raise InputError(f"reference scan {reference} is not one of the {len(poses)} scans")
     est = inv_T(poses[reference])[None] @ poses
     gt = inv_T(gt_poses[reference])[None] @ gt_poses
     rot, trans = relative_errors(est, gt)
@@ -39,8 +53,9 @@ def scan_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray, refer
 
 
 def fragment_id(name: str) -> int | None:
-    """3DMatch fragment number of a file name such as ``cloud_bin_21.ply``."""
-    m = re.search(r"(\d+)(?!.*\d)", name)
+    """3DMatch fragment number of a file name such as ``cloud_bin_21.ply``: the last digits before the suffix
+    (``.e57`` holds digits)."""
+    m = re.search(r"(\d+)(?!.*\d)", PurePath(name).stem)
     return int(m.group(1)) if m else None
 
 
@@ -63,12 +78,18 @@ def registration_recall(ids: list[int], poses: np.ndarray, gt_log: dict, gt_info
     For every GT pair (i, j) with |i − j| > 1 and both scans present: ``E = inv(T_gt) @ inv(T_i) @ T_j``,
     ``e = [t_E, q_E.xyz]``, ``rmse² = eᵀ·Info·e / Info[0, 0]``; recalled when ``rmse ≤ threshold``.
     """
+    if len(ids) != len(poses):
+        raise InputError(f"{len(ids)} fragment ids for {len(poses)} poses")
     index = {f: k for k, f in enumerate(ids)}
     pairs, rmse = [], []
     for (a, b), T_gt in sorted(gt_log.items()):
         if abs(a - b) <= 1 or a not in index or b not in index:
             continue
+        if (a, b) not in gt_info:
+            raise InputError(f"gt.info has no entry for the gt.log pair ({a}, {b})")
         T_est = inv_T(poses[index[a]]) @ poses[index[b]]
+        if not np.isfinite(T_est).all():
+            raise InputError(f"the pose of fragment {a} or {b} is not finite")
         gt = T_gt.copy()
         gt[:3, :3] = project_to_so3(gt[:3, :3])
         E = inv_T(gt) @ T_est
@@ -103,7 +124,9 @@ def align_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     non-collinear points the rotation about their line is not determined (SVD picks one)."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) == 0:
-        raise ValueError(f"need two (N, 3) point sets of one shape, got {src.shape} and {dst.shape}")
+        raise InputError(f"need two (N, 3) point sets of one shape, got {src.shape} and {dst.shape}")
+    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+        raise InputError("cannot align points that are not finite")
     mu_s, mu_d = src.mean(0), dst.mean(0)
     U, _, Vt = np.linalg.svd((dst - mu_d).T @ (src - mu_s))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])  # a proper rotation, never a reflection
@@ -144,6 +167,10 @@ def align_poses(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     whose sensor positions nearly coincide or lie on a circle around the object, the positions alone
     leave the rotation poorly determined; the scans' orientations fix it."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
+    if src.shape != dst.shape or src.ndim != 3 or src.shape[1:] != (4, 4) or len(src) == 0:
+        raise InputError(f"need two (N, 4, 4) pose sets of one shape, got {src.shape} and {dst.shape}")
+    if not (np.isfinite(src).all() and np.isfinite(dst).all()):
+        raise InputError("cannot align poses that are not finite")
     R = project_to_so3(np.einsum("kij,klj->il", dst[:, :3, :3], src[:, :3, :3]))
     return make_T(R, (dst[:, :3, 3] - src[:, :3, 3] @ R.T).mean(0))
 
@@ -154,9 +181,15 @@ def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray
     ``evo_ape --align``) or by whole poses (``align_poses``), then per scan the rotation error (degrees) and
     position error of ``A @ T_i`` against ``T_i^gt``. ``fit``: (N,) bool, the scans the alignment is fitted to
     (default all)."""
-    poses, gt_poses = np.asarray(poses, float), np.asarray(gt_poses, float)
+    poses, gt_poses = _scored(names, poses, gt_poses)
     if align not in ALIGNMENTS:
         raise InputError(f"align must be one of {', '.join(ALIGNMENTS)}; got {align!r}")
+    if not (np.isfinite(poses).all() and np.isfinite(gt_poses).all()):
+        raise InputError("whole-model errors need finite poses (leave out the scans not placed)")
+    if fit is not None:
+        fit = np.asarray(fit)
+        if fit.dtype != bool or fit.shape != (len(poses),) or not fit.any():
+            raise InputError(f"fit must be a boolean mask of shape ({len(poses)},) choosing at least one scan")
     src, dst = (poses, gt_poses) if fit is None else (poses[fit], gt_poses[fit])
     A = align_rigid(src[:, :3, 3], dst[:, :3, 3]) if align == "positions" else align_poses(src, dst)
     rot, trans = relative_errors(A[None] @ poses, gt_poses)
@@ -208,7 +241,12 @@ def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses
     run doubted) against GT poses by name (``io.poses.read_poses`` of a ``gt_poses.txt``); with
     ``gt_log``/``gt_info`` also the registration recall by the paper's protocol
     (``registration_recall_counting_unplaced``)."""
+    if len(names) != len(poses) or len(gt_names) != len(gt_poses):
+        raise InputError(f"{len(names)} names for {len(poses)} poses, {len(gt_names)} GT names for {len(gt_poses)} "
+                         f"GT poses")
     gt_index = {n: k for k, n in enumerate(gt_names)}
+    if len(gt_index) != len(gt_names) or len(set(names)) != len(names):
+        raise InputError("scan names must be distinct (in the run and in the ground truth)")
     strangers = [n for n in names if n not in gt_index]
     if strangers:
         raise InputError(f"{len(strangers)} scans have no ground-truth pose, e.g. {strangers[0]!r}")

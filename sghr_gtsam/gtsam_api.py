@@ -28,7 +28,10 @@ from scipy.special import chdtri  # chi2.ppf(q, df) is chdtri(df, 1 - q); scipy.
 
 from .config import KERNELS, NOISE_MODELS
 from .factor_graph import _ABSOLUTE_TOL, _METIS_NODES, _PRIOR_SCALE, edge_information
-from .io.g2o import isotropic_information
+from .io.g2o import check_information, isotropic_information
+from .io.poses import check_rigid
+from .se3 import project_to_so3
+from .sync import checked_graph
 from .types import InputError, PoseGraph
 
 if TYPE_CHECKING:
@@ -44,13 +47,54 @@ RELATIVE_TOL = 1e-6
 Keys = Callable[[int], int] | Sequence[int] | None
 
 
-def _key_of(keys: Keys) -> Callable[[int], int]:
+def _key_table(keys: Keys, nodes: Sequence[int], n: int) -> dict[int, int]:
+    """Node → gtsam key for ``nodes`` of an ``n``-node graph; ``InputError`` unless the keys are distinct integers
+    in gtsam's range (a sequence: one per node)."""
     if keys is None:
-        return lambda k: gtsam.symbol("x", k)
-    if callable(keys):
-        return keys
-    table = list(keys)
-    return lambda k: int(table[k])
+        return {k: gtsam.symbol("x", k) for k in nodes}
+    if not callable(keys):
+        keys = list(keys)
+        if len(keys) != n:
+            raise InputError(f"keys: {len(keys)} given for {n} nodes")
+    table = {k: keys(k) if callable(keys) else keys[k] for k in nodes}
+    odd = [v for v in table.values()
+           if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < 2**64]
+    if odd:
+        raise InputError(f"keys must be integers in [0, 2^64), got {odd[0]!r}")
+    if len(set(table.values())) != len(table):
+        raise InputError("keys: two nodes have the same key")
+    return {k: int(v) for k, v in table.items()}
+
+
+def _mask(edges: np.ndarray, count: int) -> np.ndarray:
+    """``edges`` as a boolean mask over ``count`` edges; an index array or a mask of another length is refused
+    (numpy would read the one as a mask, or fail deep inside on the other)."""
+    mask = np.asarray(edges)
+    if mask.dtype != bool or mask.shape != (count,):
+        raise InputError(f"edges must be a boolean mask of shape ({count},), got {mask.dtype} {mask.shape}")
+    return mask
+
+
+def _selected(graph: PoseGraph, edges: np.ndarray | None) -> tuple[PoseGraph, np.ndarray, list[int]]:
+    """``graph`` checked, the mask of its ``edges`` (default: weight > 0) and the nodes they join. The pose graph
+    check (``sync.checked_graph``) asks positive definite information; gtsam takes semi-definite (zero: no
+    measurement), so the information is checked apart."""
+    checked = checked_graph(replace(graph, information=None))
+    if graph.information is not None:
+        checked = replace(checked, information=check_information(graph.information, checked.num_edges))
+    chosen = checked.weight > 0 if edges is None else _mask(edges, checked.num_edges)
+    return checked, chosen, sorted(set(checked.i[chosen].tolist()) | set(checked.j[chosen].tolist()))
+
+
+def _poses(poses: np.ndarray | None, n: int, nodes: Sequence[int]) -> np.ndarray:
+    """``poses`` (n, 4, 4) with those of ``nodes`` rigid (projected onto SO(3), as ``checked_graph`` does the
+    edges'); the others may be anything (NaN: an unregistered scan)."""
+    if poses is None or np.shape(poses) != (n, 4, 4):
+        raise InputError(f"needs poses of shape ({n}, 4, 4), got {np.shape(poses)}")
+    poses = np.array(poses, dtype=float)
+    check_rigid(poses[nodes], "pose", labels=nodes)
+    poses[nodes, :3, :3] = project_to_so3(poses[nodes, :3, :3])
+    return poses
 
 
 def check_choice(name: str, value: str, allowed: Sequence[str]) -> None:
@@ -61,8 +105,14 @@ def check_choice(name: str, value: str, allowed: Sequence[str]) -> None:
 
 def noise_model(information: np.ndarray, kernel: str = "none") -> gtsam.noiseModel.Base:
     """Gaussian noise with ``information`` (6, 6), wrapped in the Huber or Cauchy m-estimator (scale
-    ``KERNEL_THRESHOLD``) when asked; ``"tls"`` and ``"none"`` give the plain Gaussian (TLS acts in ``optimize``)."""
+    ``KERNEL_THRESHOLD``) when asked; ``"tls"`` and ``"none"`` give the plain Gaussian (TLS acts in ``optimize``).
+    ``InputError`` unless ``information`` is finite, symmetric and positive semi-definite."""
     check_choice("kernel", kernel, KERNELS)
+    return _noise_model(check_information(information), kernel)
+
+
+def _noise_model(information: np.ndarray, kernel: str) -> gtsam.noiseModel.Base:
+    """``noise_model`` of a checked ``information`` and ``kernel``."""
     gaussian = gtsam.noiseModel.Gaussian.Information(information)
     if kernel == "huber":
         return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(KERNEL_THRESHOLD), gaussian)
@@ -86,10 +136,16 @@ def graph_information(graph: PoseGraph, edges: np.ndarray, noise: str = "informa
     or SE-Sync's isotropic precisions (``"isotropic"``). A graph without information gets the polish's
     default (``factor_graph.edge_information`` with unit weights: a 2° rotation sigma, not calibrated)."""
     check_choice("noise", noise, NOISE_MODELS)
+    edges = _mask(edges, graph.num_edges)
     info = graph.information if graph.information is not None else edge_information(graph, edges.astype(float))
-    if noise == "isotropic":
-        info = isotropic_information(info)
-    return np.where(edges[:, None, None], info, 0.0)
+    info = np.where(edges[:, None, None], info, 0.0)
+    if noise == "isotropic":  # of the chosen edges alone: the others' may be zero (a failed registration)
+        try:
+            info[edges] = isotropic_information(info[edges])
+        except np.linalg.LinAlgError:
+            raise InputError("isotropic noise needs each chosen edge's rotation and translation information "
+                             "invertible") from None
+    return info
 
 
 def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *, keys: Keys = None,
@@ -100,28 +156,33 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
 
     ``keys``: node index → gtsam key, as a function or a sequence; default ``gtsam.symbol('x', k)``. Factor
     ``f`` of the graph is the ``f``-th selected edge in the graph's order. Values hold every node of a selected
-    edge (and, for a run, every registered scan).
+    edge (and, for a run, every registered scan). ``edges``: a boolean mask over the graph's edges. A
+    ``PoseGraph`` is checked (``sync.checked_graph``; information finite, symmetric, positive semi-definite) and
+    the poses of the values must be rigid: ``InputError`` otherwise. (A run's graph is the pipeline's own.)
     """
-    key = _key_of(keys)
     if isinstance(source, PoseGraph):
-        if poses is None or np.shape(poses) != (source.n, 4, 4):
-            raise InputError(f"to_gtsam: a PoseGraph needs poses of shape ({source.n}, 4, 4)")
-        graph = source
-        chosen = source.weight > 0 if edges is None else np.asarray(edges, dtype=bool)
-        nodes = sorted(set(graph.i[chosen].tolist()) | set(graph.j[chosen].tolist()))
+        graph, chosen, nodes = _selected(source, edges)
     else:
         graph, poses = source.graph, source.poses if poses is None else poses
         chosen, nodes = _edges_of(source)
         if edges is not None:
-            chosen &= np.asarray(edges, dtype=bool)
+            chosen &= _mask(edges, graph.num_edges)
+    return _factor_graph(graph, _poses(poses, graph.n, nodes), chosen, nodes, keys, noise, kernel)
+
+
+def _factor_graph(graph: PoseGraph, poses: np.ndarray, chosen: np.ndarray, nodes: Sequence[int], keys: Keys,
+                  noise: str, kernel: str) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+    """``to_gtsam`` of a checked graph, its poses, the chosen edges and the nodes that get values."""
+    check_choice("kernel", kernel, KERNELS)
+    key = _key_table(keys, nodes, graph.n)
     information = graph_information(graph, chosen, noise)
     factors = gtsam.NonlinearFactorGraph()
     for e in np.flatnonzero(chosen):
-        factors.add(gtsam.BetweenFactorPose3(key(int(graph.i[e])), key(int(graph.j[e])), gtsam.Pose3(graph.T[e]),
-                                             noise_model(information[e], kernel)))
+        factors.add(gtsam.BetweenFactorPose3(key[int(graph.i[e])], key[int(graph.j[e])], gtsam.Pose3(graph.T[e]),
+                                             _noise_model(information[e], kernel)))
     values = gtsam.Values()
     for k in nodes:
-        values.insert(key(k), gtsam.Pose3(poses[k]))
+        values.insert(key[k], gtsam.Pose3(poses[k]))
     return factors, values
 
 
@@ -149,22 +210,38 @@ def optimize(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, *, kerne
     indices GNC must not reject; default every factor that is not a ``BetweenFactorPose3`` (priors, GNSS).
     Huber and Cauchy live in the factors' noise models (``to_gtsam(kernel=...)``), so LM handles them."""
     check_choice("kernel", kernel, KERNELS)
+    _check_keys(factors, values)
     params = _lm_params(factors, values)
     if kernel != "tls":
         return gtsam.LevenbergMarquardtOptimizer(factors, values, params).optimize()
     if known_inliers is None:
         known_inliers = [f for f in range(factors.size())
                          if not isinstance(factors.at(f), gtsam.BetweenFactorPose3)]
+    outside = [f for f in known_inliers if not (isinstance(f, (int, np.integer)) and 0 <= f < factors.size())]
+    if outside:
+        raise InputError(f"known_inliers: {outside[0]!r} is not a factor index of [0, {factors.size()})")
     gnc = gtsam.GncLMParams(params)
     gnc.setLossType(gtsam.GncLossType.TLS)
     gnc.setKnownInliers(list(known_inliers))
     return gtsam.GncLMOptimizer(factors, values, gnc).optimize()
 
 
+def _check_keys(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+    """``InputError`` unless every key of ``factors`` has a value (gtsam would raise deep inside)."""
+    missing = {k for f in range(factors.size()) for k in factors.at(f).keys() if not values.exists(k)}
+    if missing:
+        raise InputError(f"{len(missing)} key(s) of the factors have no value, e.g. "
+                         f"{gtsam.DefaultKeyFormatter(min(missing))}")
+
+
 def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
                          keys: Sequence[int]) -> np.ndarray:
     """(K, 6, 6) marginal covariance of each Pose3 key, [rotation (rad), translation] at the pose. The graph must
     be anchored (a prior or another absolute factor), else the covariances are unbounded and gtsam raises."""
+    _check_keys(factors, values)
+    absent = [k for k in keys if not values.exists(int(k))]
+    if absent:
+        raise InputError(f"marginal_covariances: key {gtsam.DefaultKeyFormatter(int(absent[0]))} has no value")
     marginals = gtsam.Marginals(factors, values)
     return np.stack([marginals.marginalCovariance(int(k)) for k in keys]) if len(keys) else np.zeros((0, 6, 6))
 
@@ -198,10 +275,9 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
     anchor = int(np.flatnonzero(result.sync.component == 0)[0])
     information = graph_information(result.graph, _edges_of(result)[0], noise)
     stiff = _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0)
-    key = _key_of(None)
-    factors.add(gtsam.PriorFactorPose3(key(anchor), gtsam.Pose3(result.poses[anchor]),
+    factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
                                        gtsam.noiseModel.Isotropic.Precision(6, stiff)))
-    out[nodes] = marginal_covariances(factors, values, [key(k) for k in nodes])
+    out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])
     if factor > 1.0:
         out[nodes] *= factor
     out[anchor] = 0.0
@@ -222,6 +298,9 @@ def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Scalar summaries of (N, 6, 6) covariances: the rotation σ in degrees and the translation σ in scene
     units, each the root of the largest eigenvalue of its 3×3 block (the longest axis of the ellipsoid); NaN
     where the covariance is."""
+    covariances = np.asarray(covariances, dtype=float)
+    if covariances.ndim != 3 or covariances.shape[1:] != (6, 6):
+        raise InputError(f"sigmas: covariances must be (N, 6, 6), got {covariances.shape} (of one: C[None])")
     rot, trans = np.full(len(covariances), np.nan), np.full(len(covariances), np.nan)
     ok = np.isfinite(covariances).all(axis=(1, 2))
     rot[ok] = np.degrees(np.sqrt(np.maximum(np.linalg.eigvalsh(covariances[ok, :3, :3])[:, -1], 0.0)))
@@ -231,10 +310,17 @@ def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def repolish(graph: PoseGraph, poses: np.ndarray, edges: np.ndarray, component: np.ndarray, *,
              noise: str = "information", kernel: str = "none") -> np.ndarray:
-    """``poses`` re-optimized over ``graph``'s ``edges`` with ``noise`` and ``kernel`` (``optimize``), every
-    part of ``component`` held at its first node's pose by a stiff prior; nodes on no edge stay as they are."""
-    factors, values = to_gtsam(graph, poses, keys=lambda k: k, noise=noise, kernel=kernel, edges=edges)
-    information = graph_information(graph, np.asarray(edges, dtype=bool), noise)
+    """``poses`` re-optimized over ``graph``'s ``edges`` (a boolean mask) with ``noise`` and ``kernel``
+    (``optimize``), every part of ``component`` (N,) held at its first node's pose by a stiff prior; nodes on no
+    edge stay as they are. Bad input (``to_gtsam``'s checks, a ``component`` of another shape) is an
+    ``InputError``."""
+    graph, chosen, nodes = _selected(graph, edges)
+    component = np.asarray(component)
+    if component.shape != (graph.n,):
+        raise InputError(f"repolish: component must have shape ({graph.n},), got {component.shape}")
+    poses = _poses(poses, graph.n, nodes)
+    factors, values = _factor_graph(graph, poses, chosen, nodes, lambda k: k, noise, kernel)
+    information = graph_information(graph, chosen, noise)
     prior = gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0))
     for a in np.unique(component, return_index=True)[1]:
         if values.exists(int(a)):

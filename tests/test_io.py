@@ -471,5 +471,8 @@ def test_g2o_edges_only_file_names_its_vertices_by_id(tmp_path):
     assert ids == [7, 8, 9]
     np.testing.assert_allclose(back.T, graph.T, atol=1e-12)
     np.testing.assert_array_equal(back.information, info)
-    with pytest.raises(InputError, match="refers to a vertex"):
-        read_g2o(tmp_path / "edges.g2o")
+    # Alone it reads as the edges between the ids they name, without poses (a run's graph_rejected.g2o).
+    ids, poses, alone = read_g2o(tmp_path / "edges.g2o")
+    assert ids == [7, 8, 9] and poses is None
+    np.testing.assert_array_equal(alone.i, back.i)
+    np.testing.assert_array_equal(alone.information, info)

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from ..se3 import make_T
 from ..types import InputError, PoseGraph
 from .atomic import atomic_write
+from .poses import check_rigid
 
 _UPPER = np.triu_indices(6)
 _G2O_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # gtsam index k holds g2o index _G2O_TO_GTSAM[k]
@@ -34,6 +35,38 @@ def _poses(x: np.ndarray, where: list[str]) -> np.ndarray:
     return make_T(Rotation.from_quat(q / norm[:, None]).as_matrix().reshape(-1, 3, 3), x[:, :3])
 
 
+def _lowest_eigenvalues(omega: np.ndarray) -> np.ndarray:
+    """Each symmetric matrix's (E, 6, 6) lowest eigenvalue relative to its largest entry: no overflow, and a
+    tolerance that scales."""
+    scale = np.abs(omega).max(axis=(1, 2))
+    return np.linalg.eigvalsh(omega / np.where(scale > 0, scale, 1.0)[:, None, None])[:, 0]
+
+
+def check_information(information: np.ndarray, edges: int | None = None) -> np.ndarray:
+    """``information`` as floats, one (6, 6) matrix or with ``edges`` (edges, 6, 6), or a one-line ``InputError``
+    unless each matrix is finite, symmetric and positive semi-definite (zero: a failed registration, no
+    measurement)."""
+    shape = (6, 6) if edges is None else (edges, 6, 6)
+    try:
+        info = np.asarray(information, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"information must be a numeric {shape} array") from None
+    if info.shape != shape:
+        raise InputError(f"information must have shape {shape}, got {info.shape}")
+    stack = info.reshape(-1, 6, 6)
+
+    def refuse(bad: np.ndarray, what: str) -> None:
+        if bad.any():
+            where = "" if edges is None else f"edge {np.flatnonzero(bad)[0]}: "
+            raise InputError(f"{where}information is not {what}")
+
+    refuse(~np.isfinite(stack).all(axis=(1, 2)), "finite")
+    scale = np.abs(stack).max(axis=(1, 2))
+    refuse(np.abs(stack - np.swapaxes(stack, 1, 2)).max(axis=(1, 2)) > 1e-9 * scale, "symmetric")
+    refuse(_lowest_eigenvalues(stack) < -1e-9, "positive semi-definite")
+    return info
+
+
 def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
     """Integer ids and float values of a vertex (1 id, 7 values) or edge (2 ids, 28 values) line."""
     n_ids = {"VERTEX_SE3:QUAT": 1, "EDGE_SE3:QUAT": 2}.get(tok[0])
@@ -46,8 +79,11 @@ def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
         raise InputError(f"{where}: malformed number in {' '.join(tok)[:60]!r}") from None
 
 
-def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[int], np.ndarray, PoseGraph]:
-    """Vertex ids (file order), their poses (N, 4, 4) and the edges as a ``PoseGraph`` (weight 1).
+def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[int], np.ndarray | None, PoseGraph]:
+    """Vertex ids (file order), their poses (N, 4, 4) and the edges as a ``PoseGraph`` (weight 1). A file without
+    vertex lines (a run's graph_rejected.g2o: edges only, its scans may have no pose) gives the sorted ids its
+    edges name, poses None, and an empty graph when it has no edges either; with ``positive_definite`` (a graph to
+    optimize, as ``sync`` reads it) such a file is refused.
 
     ``FIX`` lines (gauge hints), blank lines and ``#`` comments are skipped; anything else that is not a
     well-formed vertex or edge (finite values, a non-zero quaternion, a symmetric positive semi-definite information
@@ -80,7 +116,7 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
             ends.append((keys[0], keys[1]))
             edges.append(x)
             edge_lines.append(where)
-    poses = _poses(np.array(vertices), vertex_lines)
+    poses = _poses(np.array(vertices), vertex_lines) if ids else None
     values = np.array(edges).reshape(-1, 28)
     T = _poses(values[:, :7], edge_lines)
     finite = np.all(np.isfinite(values[:, 7:]), axis=1)
@@ -90,14 +126,16 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
     omega = np.zeros((E, 6, 6))
     omega[:, _UPPER[0], _UPPER[1]] = values[:, 7:]
     omega = omega + np.swapaxes(np.triu(omega, 1), 1, 2)
-    if E:  # eigenvalues relative to each matrix's largest entry: no overflow, and a tolerance that scales
-        scale = np.abs(omega).max(axis=(1, 2))
-        lowest = np.linalg.eigvalsh(omega / np.where(scale > 0, scale, 1.0)[:, None, None])[:, 0]
-        bad = lowest <= 1e-12 if positive_definite else lowest < -1e-9
-        if bad.any():
-            raise InputError(f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
-                             f"{'definite' if positive_definite else 'semi-definite'}")
+    lowest = _lowest_eigenvalues(omega)
+    bad = lowest <= 1e-12 if positive_definite else lowest < -1e-9
+    if bad.any():
+        raise InputError(f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
+                         f"{'definite' if positive_definite else 'semi-definite'}")
     information = omega[:, _G2O_TO_GTSAM][:, :, _G2O_TO_GTSAM]
+    if not ids:
+        if positive_definite:
+            raise InputError(f"{path}: no VERTEX_SE3:QUAT lines")
+        ids = sorted({v for edge in ends for v in edge})
     index = {v: k for k, v in enumerate(ids)}
     if len(index) != len(ids):
         raise InputError(f"{path}: duplicate vertex ids")
@@ -106,8 +144,6 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
             raise InputError(f"{where}: edge {a}-{b} refers to a vertex that is not defined")
         if a == b:
             raise InputError(f"{where}: edge {a}-{b} joins a vertex to itself")
-    if not ids:
-        raise InputError(f"{path}: no VERTEX_SE3:QUAT lines")
     graph = PoseGraph(n=len(ids), i=np.array([index[a] for a, _ in ends], dtype=int).reshape(E),
                       j=np.array([index[b] for _, b in ends], dtype=int).reshape(E), T=T, weight=np.ones(E),
                       information=information)
@@ -125,20 +161,52 @@ def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph:
     (node ``k`` of ``graph`` written as ``ids[k]``).
 
     Without ``graph.information`` an edge's information is written as ``weight · I``. Numbers are written
-    with ``repr`` so that reading the file back gives the same values.
+    with ``repr`` so that reading the file back gives the same values. What ``read_g2o`` would refuse is refused
+    before anything is written (``InputError``): ids that are not distinct integers, poses or edge transforms that
+    are not finite rigid transforms, an edge that is not between two different nodes, information that is not
+    finite, symmetric and positive semi-definite.
     """
-    if (poses is not None and len(ids) != len(poses)) or len(ids) != graph.n:
-        raise InputError(f"write_g2o: {len(ids)} ids, {'no' if poses is None else len(poses)} poses and "
+    ids = list(ids)
+    odd = [v for v in ids if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer))]
+    if odd:
+        raise InputError(f"write_g2o: vertex ids must be integers, got {odd[0]!r}")
+    if len(set(ids)) != len(ids):
+        raise InputError("write_g2o: duplicate vertex ids")
+    n = len(ids)
+    if (poses is not None and len(poses) != n) or n != graph.n:
+        raise InputError(f"write_g2o: {n} ids, {'no' if poses is None else len(poses)} poses and "
                          f"{graph.n} graph nodes differ")
-    info = graph.information
-    if info is None:
-        info = graph.weight[:, None, None] * np.eye(6)
+    if poses is not None:
+        if not n:
+            raise InputError("write_g2o: no vertices to write (poses=None writes the edges alone)")
+        poses = np.asarray(poses, dtype=float)
+        if poses.shape != (n, 4, 4):
+            raise InputError(f"write_g2o: poses must have shape ({n}, 4, 4), got {poses.shape}")
+        check_rigid(poses, "write_g2o: pose")
+    i, j, T = np.asarray(graph.i), np.asarray(graph.j), np.asarray(graph.T, dtype=float)
+    E = len(i)
+    if i.shape != (E,) or j.shape != (E,) or T.shape != (E, 4, 4):
+        raise InputError(f"write_g2o: edge arrays disagree: i {i.shape}, j {j.shape}, T {T.shape}")
+    if E and not (np.issubdtype(i.dtype, np.integer) and np.issubdtype(j.dtype, np.integer)):
+        raise InputError("write_g2o: edge node indices must be integers")
+    out = np.flatnonzero((i < 0) | (i >= n) | (j < 0) | (j >= n) | (i == j))
+    if len(out):
+        raise InputError(f"write_g2o: edge {out[0]} joins nodes {i[out[0]]} and {j[out[0]]}: not two different "
+                         f"nodes of [0, {n})")
+    check_rigid(T, "write_g2o: edge")
+    if graph.information is None:
+        weight = np.asarray(graph.weight, dtype=float)
+        if weight.shape != (E,) or not np.all(np.isfinite(weight) & (weight >= 0)):
+            raise InputError(f"write_g2o: without information, the weights must be {E} finite values >= 0")
+        info = weight[:, None, None] * np.eye(6)
+    else:
+        info = check_information(graph.information, E)
     back = np.argsort(_G2O_TO_GTSAM)
     upper = info[:, back][:, :, back][:, _UPPER[0], _UPPER[1]]
     with atomic_write(path) as f:
-        for v, fields in zip(ids, [] if poses is None else _pose_fields(np.asarray(poses).reshape(-1, 4, 4))):
+        for v, fields in zip(ids, [] if poses is None else _pose_fields(poses)):
             f.write(f"VERTEX_SE3:QUAT {v} {fields}\n")
-        for a, b, fields, values in zip(graph.i, graph.j, _pose_fields(graph.T), upper.tolist()):
+        for a, b, fields, values in zip(i, j, _pose_fields(T), upper.tolist()):
             f.write(f"EDGE_SE3:QUAT {ids[a]} {ids[b]} {fields} {' '.join(map(repr, values))}\n")
 
 

@@ -75,22 +75,51 @@ def _matrix(path: Path, what: str, lines: list[tuple[int, str]], n: int) -> np.n
     return np.array([_numbers(path, what, line, n) for line in lines])
 
 
+RIGID_TOL = 1e-2
+"""How far a rotation may be from orthonormal (largest entry of ``RᵀR − I``): the pose graph check's tolerance
+(``sync.checked_graph``), which admits the 3DMatch ground truth (off by up to 5e-4)."""
+
+
+def check_rigid(poses: np.ndarray, what: str, labels: Sequence[int] | None = None) -> None:
+    """One-line ``InputError`` naming the first of ``poses`` (N, 4, 4) (by its index, or its entry of ``labels``)
+    that is not finite or not a rigid transform (rotation orthonormal with determinant +1 to ``RIGID_TOL``, last
+    row ``0 0 0 1``)."""
+    name = range(len(poses)) if labels is None else labels
+    finite = np.isfinite(poses).all(axis=(1, 2))
+    if not finite.all():
+        raise InputError(f"{what} {name[np.flatnonzero(~finite)[0]]} is not finite")
+    R = poses[:, :3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge entry overflows to inf: not orthonormal either
+        bad = ~(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)) <= RIGID_TOL)
+    bad |= (np.linalg.det(R) <= 0) | (np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-9)
+    if bad.any():
+        raise InputError(f"{what} {name[np.flatnonzero(bad)[0]]} is not a rigid transform (rotation orthonormal "
+                         f"with determinant +1, last row 0 0 0 1)")
+
+
 def _check_poses(poses: np.ndarray) -> np.ndarray:
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
-        raise ValueError(f"poses must be (N, 4, 4), got {poses.shape}")
+    """``poses`` as a non-empty (N, 4, 4) float array: a file without entries is one its reader refuses."""
+    try:
+        poses = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("poses must be a numeric (N, 4, 4) array") from None
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or not len(poses):
+        raise InputError(f"poses must be a non-empty (N, 4, 4) array, got shape {poses.shape}")
     return poses
 
 
 def write_poses(path: str | Path, names: Sequence[str], poses: np.ndarray, comment: str | None = None) -> None:
-    """Write poses (N, 4, 4) ``T_i`` with their scan names; ``comment`` becomes leading ``#`` lines.
-    Numbers are written in the shortest form that reads back exactly."""
+    """Write poses (N, 4, 4) ``T_i`` with their scan names (str); ``comment`` becomes leading ``#`` lines.
+    Numbers are written in the shortest form that reads back exactly; NaN (a pose not known) too, as
+    ``read_poses`` keeps it."""
     poses = _check_poses(poses)
     if len(names) != len(poses):
-        raise ValueError(f"{len(names)} names for {len(poses)} poses")
+        raise InputError(f"{len(names)} names for {len(poses)} poses")
     for name in names:
+        if not isinstance(name, str):
+            raise InputError(f"pose name {name!r} is not a string")
         if not name.strip() or name.strip() != name or name.splitlines() != [name] or name.startswith("#"):
-            raise ValueError(f"pose name {name!r} cannot be written on its own line")
+            raise InputError(f"pose name {name!r} cannot be written on its own line")
     out = [f"# {line}" for line in comment.splitlines()] if comment else []
     for name, T in zip(names, poses):
         out.append(name)
@@ -128,13 +157,18 @@ def read_kitti(path: str | Path) -> np.ndarray:
 
 
 def write_tum(path: str | Path, poses: np.ndarray, stamps: Sequence[float]) -> None:
-    """Write poses (N, 4, 4) in the TUM form with their timestamps (N,), which must increase."""
+    """Write rigid poses (N, 4, 4) in the TUM form with their finite timestamps (N,), which must increase. A
+    rotation off-orthonormal within ``RIGID_TOL`` is written as the quaternion of its nearest rotation."""
     from scipy.spatial.transform import Rotation
 
     poses = _check_poses(poses)
-    stamps = np.asarray(stamps, dtype=np.float64)
-    if stamps.shape != (len(poses),) or np.any(np.diff(stamps) <= 0):
-        raise ValueError(f"need {len(poses)} increasing timestamps, got {stamps.tolist()[:10]}")
+    check_rigid(poses, "TUM pose")
+    try:
+        stamps = np.asarray(stamps, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError("TUM timestamps must be numbers") from None
+    if stamps.shape != (len(poses),) or not np.isfinite(stamps).all() or np.any(np.diff(stamps) <= 0):
+        raise InputError(f"need {len(poses)} finite increasing timestamps, got {stamps.ravel().tolist()[:10]}")
     q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
     q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
     with atomic_write(path) as f:
