@@ -13,35 +13,46 @@
    update runs. A scan with no edge to a placed scan waits, and is placed when a later scan connects it.
 4. Contradiction: where the new scan's edges propose different placements, those agreeing with the placement
    most of their weight proposes are kept and the rest rejected (``sync.consensus`` tolerances); when no
-   placement has a majority, or a kept new edge is not consistent with the updated poses (``sync.consensus.consistent_edges``:
-   off by more than the registration tolerances and more than its own noise), the robust stage re-runs
-   (``synchronize`` with the ``Config``'s method and polish, over every edge so far) and ISAM2 restarts from
-   its poses and the edges it kept.
+   placement has a majority, or a kept new edge is not consistent with the updated poses
+   (``sync.consensus.consistent_edges``: off by more than the registration tolerances and more than its own
+   noise), the robust stage re-runs (``synchronize`` with the ``Config``'s method and polish, over every edge
+   so far) and ISAM2 restarts from its poses and the edges it kept.
 
 Factors carry each edge's calibrated information, as the batch polish's do (``factor_graph.edge_information``),
 so a session fed every scan ends where batch synchronization of the same registrations does.
 ``run_result()`` returns a ``RunResult`` for ``gtsam_api`` and the writers (covariances from the calibrated
 information, as for a batch run).
+
+Georeferenced scans (``local_frame``): a scan farther than ``local_frame.FAR_VOXELS`` voxels from the origin is
+registered centred at its median, in float64, with its normals towards its input frame's origin, as ``register``
+does; the edges and ISAM2 live in those centred frames (``centres``) and ``poses``, ``graph()`` and ``run_result()``
+hand everything back in the input frames. A node from ``add_node`` has no scan: its frame is its input frame.
+
+A call refused (``InputError``) leaves the session as it was: its input is checked before anything changes, and a
+back end that gtsam cannot solve (an information too ill-conditioned to fix the pose) is rolled back.
 """
 
 from __future__ import annotations
 
+import numbers
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import gtsam
 import numpy as np
 
+from . import local_frame
 from .config import Config
 from .features.local import ScanFeatures, compute_features
 from .features.netvlad import global_features, load_default_head
-from .gtsam_api import noise_model
+from .gtsam_api import noise_model, pose_covariances
+from .io.scans import finite_points
 from .registration.pairwise import PairResult, register_pair
 from .registration.refine import Pyramid, build_pyramid, confirms, refine_pair
 from .result import RunResult
-from .se3 import inv_T
+from .se3 import inv_T, rotation_angle
 from .sync import synchronize
-from .se3 import rotation_angle
 from .sync.consensus import MAX_DEG, consistent_edges, translation_tolerance
 from .sync.rotation import connected_components, rotation_residuals
 from .types import InputError, PoseGraph, SyncResult
@@ -51,17 +62,27 @@ PRIOR_PRECISION = 1e12
 RELINEARIZE = 1e-6
 """ISAM2 relinearizes a variable whose update exceeds this (radians / scene units), at every update: the
 default (0.1 every 10th update) stops short of the batch optimum by more than a bunny registration's error."""
+RIGID_TOL = 1e-6
+"""An edge's ``T`` is rigid when ``RᵀR`` is the identity and its last row ``0 0 0 1`` to within this (a
+registration's rotation is orthonormal to ~1e-15; a scaled or sheared one is off by far more)."""
+SYMMETRY_TOL = 1e-8
+"""An information is symmetric to within this fraction of its largest entry."""
+
+EdgeInput = tuple[int, np.ndarray, float, np.ndarray]
 
 
 @dataclass
 class Edge:
-    """A registered pair: ``T`` maps scan ``j`` into scan ``i``; ``weight`` is ``w⁰`` (score × inliers)."""
+    """A registered pair: ``T`` maps scan ``j`` into scan ``i`` (their centred frames, ``Session.centres``);
+    ``weight`` is ``w⁰`` (score × inliers); ``pair`` the registration it came from (for a caller's edge from
+    ``add_node``: its ``T`` and information, no inliers)."""
 
     i: int
     j: int
     T: np.ndarray
     weight: float
     information: np.ndarray
+    pair: PairResult
     kept: bool = True  # False once the robust stage rejected it
     in_isam: bool = False  # its factor is in ISAM2
 
@@ -82,46 +103,77 @@ class Step:
 @dataclass
 class Session:
     """Scans in, poses out, one scan at a time (module doc). ``voxel``: the grid size in scene units (as
-    ``Config.voxel``; it cannot be derived from scans not seen yet)."""
+    ``Config.voxel``, which None falls back to; it cannot be derived from scans not seen yet).
+    ``features[k]`` is node k's (in its centred frame), None for a node from ``add_node``; ``pairs`` every
+    registration ``add_scan`` ran, kept or not."""
 
     config: Config
-    voxel: float
+    voxel: float | None
     names: list[str] = field(default_factory=list)
-    features: list[ScanFeatures] = field(default_factory=list)
+    features: list[ScanFeatures | None] = field(default_factory=list)
     edges: list[Edge] = field(default_factory=list)
     pairs: list[PairResult] = field(default_factory=list)
     robust_runs: int = 0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.config, Config):
+            raise InputError(f"config must be a Config; got {type(self.config).__name__}")
         self.config.validate()
-        if not (self.voxel > 0):
-            raise InputError(f"voxel must be positive; got {self.voxel!r}")
+        voxel = self.config.voxel if self.voxel is None else self.voxel
+        if voxel is None:
+            raise InputError("voxel: give the grid size in scene units (Config.voxel is not set either, and a "
+                             "session cannot derive it from scans not seen yet)")
+        if not _real(voxel):
+            raise InputError(f"voxel must be a number (the grid size in scene units); got {voxel!r}")
+        if not (np.isfinite(voxel) and voxel > 0):
+            raise InputError(f"voxel must be positive and finite; got {voxel!r}")
+        self.voxel = float(voxel)
         self._head = None
-        self._F: list[np.ndarray] = []
-        self._pyramids: list[Pyramid | None] = []  # the refinement grids, None without Config.refine
+        self._F: list[np.ndarray | None] = []  # global features, None for a node without a scan
+        self._pyramids: list[Pyramid | None] = []  # the refinement grids, None without Config.refine or a scan
+        self._centres: list[np.ndarray] = []  # where each node's scan is centred (local_frame)
         self._placed: dict[int, np.ndarray] = {}
         self._reset_isam()
 
+    @property
+    def centres(self) -> np.ndarray:
+        """(N, 3) the point each node's scan is centred at (zero near the origin and for ``add_node``'s nodes)."""
+        return np.array(self._centres).reshape(-1, 3)
+
     # --- front end -------------------------------------------------------------------------------
     def add_scan(self, name: str, points: np.ndarray) -> Step:
-        """Register scan ``points`` (P, 3) against its top-k partners so far and update the poses."""
+        """Register scan ``points`` (P, 3) against its top-k partners so far and update the poses. Rows with a
+        non-finite coordinate are dropped (as the batch loader does); fewer than ``Config.min_points`` left is
+        an ``InputError``."""
         start = time.perf_counter()
         cfg = self.config
+        self._check_name(name)
         try:
-            f = compute_features(np.asarray(points, dtype=float), self.voxel, cfg.normal_radius, cfg.fpfh_radius,
+            P = np.asarray(points, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"{name}: points must be a numeric (P, 3) array") from None
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise InputError(f"{name}: points must be (P, 3), got shape {P.shape}")
+        P, _ = finite_points(P)
+        if len(P) < cfg.min_points:
+            raise InputError(f"{name}: only {len(P)} finite points (< min_points {cfg.min_points})")
+        centre = local_frame.centres(np.median(P, axis=0)[None], self.voxel)[0]
+        P = P - centre
+        try:
+            f = compute_features(P, self.voxel, cfg.normal_radius, cfg.fpfh_radius, sensor=-centre,
                                  descriptor=cfg.descriptor)
         except InputError as e:
             raise InputError(f"{name}: {e}") from None
         if self._head is None:
             self._head = load_default_head(cfg.overlap_head)
         F = global_features(self._head, [f.fpfh], seed=cfg.seed)[0]
-        self.features.append(f)
-        self._F.append(F)
-        scores = (np.array([F @ G for G in self._F[:-1]]) + 1.0) / 2.0
-        found = []
-        pyramid = build_pyramid(points, self.voxel) if cfg.refine else None
-        self._pyramids.append(pyramid)
-        for i in np.argsort(-scores, kind="stable")[: cfg.k]:
+        scanned = [k for k, G in enumerate(self._F) if G is not None]  # add_node's nodes have nothing to match
+        scores = (np.array([F @ self._F[k] for k in scanned]) + 1.0) / 2.0
+        pyramid = build_pyramid(P, self.voxel) if cfg.refine else None
+        tried, edges = [], []
+        node = len(self.names)
+        for s in np.argsort(-scores, kind="stable")[: cfg.k]:
+            i = scanned[s]
             pair = register_pair(self.features[i], f, self.voxel, matcher=cfg.matcher,
                                  icp_distance=cfg.icp_distance, seed=cfg.seed)
             if pair.inliers >= cfg.inlier_bar and cfg.refine:
@@ -131,53 +183,176 @@ class Session:
                                             cfg.icp_distance, pair.matches)
                 if confirms(refined, near, cfg.inlier_bar):
                     pair = refined
-            self.pairs.append(pair)
+            tried.append(pair)
             if pair.inliers >= cfg.inlier_bar and pair.information is not None:
-                found.append((int(i), pair.T, float(scores[i] * pair.inliers), pair.information))
+                edges.append(Edge(i, node, pair.T, float(scores[s] * pair.inliers), pair.information, pair))
         front = time.perf_counter() - start
-        step = self.add_node(name, found)
+        step = self._add_node(name, centre, f, F, pyramid, edges, tried)
         step.front_seconds = front
         return step
 
     # --- back end --------------------------------------------------------------------------------
-    def add_node(self, name: str, edges: list[tuple[int, np.ndarray, float, np.ndarray]]) -> Step:
+    def add_node(self, name: str, edges: Sequence[EdgeInput]) -> Step:
         """Add node ``len(names)`` named ``name`` with ``edges`` ``(partner, T_partner_new, w⁰, information)``
-        (information in gtsam order, calibrated) and update the poses."""
-        start = time.perf_counter()
+        (the partner's index; ``T`` rigid 4×4 in the input frames; ``w⁰`` finite ≥ 0; the information 6×6
+        symmetric positive definite, as the robust stage's ``sync.checked_graph`` requires, gtsam order,
+        calibrated) and update the poses."""
+        self._check_name(name)
         node = len(self.names)
-        self.names.append(name)
-        new = []
-        for i, T, w, info in edges:
-            if not 0 <= i < node:
-                raise InputError(f"{name}: edge to unknown node {i}")
-            self.edges.append(Edge(i, node, np.asarray(T, dtype=float), float(w), np.asarray(info, dtype=float)))
-            new.append(len(self.edges) - 1)
-        robust = False
-        if node == 0:
-            self._place(0, np.eye(4))
-            self._isam_add([], {0: np.eye(4)}, prior=True)
-        else:
-            robust = not self._local_consensus(node, new)
-            if not robust:
-                self._place_waiting()
-                robust = self._contradicted(new)
-            if robust:
-                self._robust()
-        return Step(node, len(new), node in self._placed, robust, back_seconds=time.perf_counter() - start)
+        try:
+            given = list(edges)
+        except TypeError:
+            raise InputError(f"{name}: edges must be a list of (partner, T, weight, information)") from None
+        checked = []
+        for k, edge in enumerate(given):
+            try:
+                i, T, w, info = edge
+            except (TypeError, ValueError):
+                raise InputError(f"{name}: edge {k} is not a (partner, T, weight, information) tuple") from None
+            what = f"{name}: edge {k}"
+            if isinstance(i, bool) or not isinstance(i, numbers.Integral) or not 0 <= i < node:
+                raise InputError(f"{what}: partner {i!r} is not the index of a node so far (0..{node - 1})")
+            T = _rigid(T, f"{what}: T")
+            if not (_real(w) and np.isfinite(w) and w >= 0):
+                raise InputError(f"{what}: weight must be a finite number >= 0; got {w!r}")
+            info = _information(info, f"{what}: information")
+            T = _shift(-self._centres[i]) @ T  # the new node has no scan: its centred frame is its input frame
+            pair = PairResult(T=T, inliers=0, fitness=float("nan"), rmse=float("nan"), information=info, seconds=0.0)
+            checked.append(Edge(int(i), node, T, float(w), info, pair))
+        return self._add_node(name, np.zeros(3), None, None, None, checked, [])
 
     @property
     def poses(self) -> np.ndarray:
-        """(N, 4, 4) current poses, scan 0 exactly the identity; NaN for scans not placed yet."""
+        """(N, 4, 4) current poses in the input frames, scan 0 exactly the identity; NaN for scans not placed
+        yet."""
+        c = self.centres
+        return _shift(c[:1]) @ self._local_poses() @ _shift(-c)  # scan 0: S(c₀) S(-c₀), exactly the identity
+
+    def graph(self) -> PoseGraph:
+        """Every edge so far as a ``PoseGraph`` in the input frames (``information``: the calibrated one)."""
+        g, c = self._graph(), self.centres
+        g.T = _shift(c[g.i]) @ g.T @ _shift(-c[g.j])
+        if g.information is not None:
+            back = np.stack([gtsam.Pose3(gtsam.Rot3(), -c[j]).AdjointMap() for j in g.j])  # ξ' = Ad(S(-c_j)) ξ
+            g.information = np.swapaxes(back, 1, 2) @ g.information @ back
+        return g
+
+    def run_result(self) -> RunResult:
+        """The session as a ``RunResult`` in the input frames (world = the first scan; scans not placed are
+        unregistered), each edge with its registration in ``pairs`` and the pose covariances computed in the
+        centred frames. A node from ``add_node`` has no points (an empty grid in ``features``)."""
+        n = len(self.names)
+        if not n:
+            raise InputError("run_result: the session has no scans yet")
+        graph = self._graph()
+        kept = np.array([x.kept and x.i in self._placed and x.j in self._placed for x in self.edges], dtype=bool)
+        placed = np.isin(np.arange(n), list(self._placed))
+        component = connected_components(n, graph.i, graph.j, kept)
+        component = np.where(placed, 0, component + 1)  # every placed scan hangs off scan 0
+        poses = np.where(placed[:, None, None], self._local_poses(), np.eye(4))
+        weights = np.where(kept, graph.weight, 0.0)
+        residual = np.degrees(rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3]))
+        scores = np.full((n, n), np.nan)  # unknown where a node has no scan
+        scanned = [k for k, F in enumerate(self._F) if F is not None]
+        if scanned:
+            F = np.stack([self._F[k] for k in scanned])
+            scores[np.ix_(scanned, scanned)] = (F @ F.T + 1.0) / 2.0
+        features = [f if f is not None else _no_points(self.voxel) for f in self.features]
+        sync = SyncResult(poses=poses.copy(), weights=weights, residual_deg=residual, component=component)
+        out = RunResult(names=list(self.names), poses=poses, voxel=self.voxel, scores=scores, graph=graph,
+                        pairs=[e.pair for e in self.edges], sync=sync,
+                        unregistered=[self.names[k] for k in range(n) if not placed[k]], skipped={},
+                        features=features, global_feature="learned NetVLAD head, one scan at a time")
+        out.covariances = np.full((n, 6, 6), np.nan)
+        if weights.any():
+            try:
+                out.covariances = pose_covariances(out)
+            except RuntimeError:  # gtsam: the kept edges leave a pose's marginal indeterminate (as in a batch run)
+                pass
+        out.covariances[0] = 0.0  # the world scan, also when no edge is kept
+        local_frame.to_input_frame(out, self.centres)
+        return out
+
+    # --- internals -------------------------------------------------------------------------------
+    def _check_name(self, name: str) -> None:
+        """``InputError`` unless ``name`` is new and reads back from a pose file (one name a line, stripped, '#'
+        starting a comment: ``io.poses``)."""
+        if not isinstance(name, str):
+            raise InputError(f"a scan name must be a str; got {type(name).__name__}")
+        if not name.strip():
+            raise InputError(f"a scan name must not be empty or blank; got {name!r}")
+        if name.splitlines() != [name] or name != name.strip() or name.startswith("#"):
+            raise InputError(f"scan name {name!r} would not read back from a pose file (a line break, surrounding "
+                             f"spaces or a leading '#')")
+        if name in self.names:
+            raise InputError(f"scan name {name!r} is already in the session (node {self.names.index(name)})")
+
+    def _add_node(self, name: str, centre: np.ndarray, features: ScanFeatures | None, F: np.ndarray | None,
+                  pyramid: Pyramid | None, edges: list[Edge], tried: list[PairResult]) -> Step:
+        """Append the node and its checked ``edges`` (centred frames) and run the back end; all undone if it fails."""
+        start = time.perf_counter()
+        saved = self._save()
+        node = len(self.names)
+        self.names.append(name)
+        self._centres.append(centre)
+        self.features.append(features)
+        self._F.append(F)
+        self._pyramids.append(pyramid)
+        new = list(range(len(self.edges), len(self.edges) + len(edges)))
+        self.edges.extend(edges)
+        try:
+            robust = self._update(node, new)
+        except BaseException as e:
+            self._restore(saved)
+            if isinstance(e, (RuntimeError, InputError)):  # gtsam (an indeterminate system), the robust stage's checks
+                first = (str(e).strip() or type(e).__name__).splitlines()[0]
+                raise InputError(f"{name}: the back end cannot place it ({first})") from None
+            raise
+        self.pairs.extend(tried)
+        return Step(node, len(new), node in self._placed, robust, back_seconds=time.perf_counter() - start)
+
+    def _update(self, node: int, new: list[int]) -> bool:
+        """Place node ``node`` with its ``new`` edges; whether the robust stage ran."""
+        if node == 0:
+            self._place(0, np.eye(4))
+            self._isam_add([], {0: np.eye(4)}, prior=True)
+            return False
+        robust = not self._local_consensus(node, new)
+        if not robust:
+            self._place_waiting()
+            robust = self._contradicted(new)
+        if robust:
+            self._robust()
+        return robust
+
+    def _save(self) -> tuple:
+        """What ``_add_node`` changes, to undo it (gtsam's ISAM2 copy constructor copies its Bayes tree)."""
+        return (len(self.names), len(self.edges), [(e.kept, e.in_isam) for e in self.edges], dict(self._placed),
+                self.robust_runs, gtsam.ISAM2(self._isam))
+
+    def _restore(self, saved: tuple) -> None:
+        """The session as ``_save`` found it."""
+        n, m, flags, placed, runs, isam = saved
+        for column in (self.names, self._centres, self.features, self._F, self._pyramids):
+            del column[n:]
+        del self.edges[m:]
+        for e, (kept, in_isam) in zip(self.edges, flags):
+            e.kept, e.in_isam = kept, in_isam
+        self._placed, self.robust_runs, self._isam = placed, runs, isam
+
+    def _local_poses(self) -> np.ndarray:
+        """(N, 4, 4) the poses in the centred frames, scan 0 exactly the identity; NaN for scans not placed."""
         out = np.full((len(self.names), 4, 4), np.nan)
         estimate = self._isam.calculateEstimate()
         for k in self._placed:
             out[k] = estimate.atPose3(k).matrix()
         if len(out):  # the stiff but finite prior leaves scan 0 a hair off the identity
             out = inv_T(out[0])[None] @ out
+            out[0] = np.eye(4)
         return out
 
-    def graph(self) -> PoseGraph:
-        """Every edge so far as a ``PoseGraph`` (``information``: the calibrated one)."""
+    def _graph(self) -> PoseGraph:
+        """Every edge so far as a ``PoseGraph`` in the centred frames."""
         e = self.edges
         return PoseGraph(n=len(self.names), i=np.array([x.i for x in e], dtype=np.int64),
                          j=np.array([x.j for x in e], dtype=np.int64),
@@ -185,26 +360,6 @@ class Session:
                          weight=np.array([x.weight for x in e]),
                          information=np.stack([x.information for x in e]) if e else None)
 
-    def run_result(self) -> RunResult:
-        """The session as a ``RunResult`` (world = the first scan; scans not placed are unregistered)."""
-        poses = self.poses
-        graph = self.graph()
-        n = len(self.names)
-        kept = np.array([x.kept and x.i in self._placed and x.j in self._placed for x in self.edges], dtype=bool)
-        placed = np.isin(np.arange(n), list(self._placed))
-        component = connected_components(n, graph.i, graph.j, kept)
-        component = np.where(placed, 0, component + 1)  # every placed scan hangs off scan 0
-        poses = np.where(placed[:, None, None], poses, np.eye(4))
-        weights = np.where(kept, graph.weight, 0.0)
-        residual = np.degrees(rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3]))
-        F = np.stack(self._F) if self._F else np.zeros((0, 1))
-        sync = SyncResult(poses=poses, weights=weights, residual_deg=residual, component=component)
-        return RunResult(names=list(self.names), poses=poses, voxel=self.voxel, scores=(F @ F.T + 1.0) / 2.0,
-                         graph=graph, pairs=[], sync=sync,
-                         unregistered=[self.names[k] for k in range(n) if not placed[k]], skipped={},
-                         features=list(self.features), global_feature="learned NetVLAD head, one scan at a time")
-
-    # --- internals -------------------------------------------------------------------------------
     def _reset_isam(self) -> None:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(RELINEARIZE)
@@ -220,7 +375,8 @@ class Session:
         for k in edges:
             factors.add(self._factor(self.edges[k]))
         if prior:
-            factors.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Precision(6, PRIOR_PRECISION)))
+            stiff = gtsam.noiseModel.Isotropic.Precision(6, PRIOR_PRECISION)
+            factors.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(), stiff))
         initial = gtsam.Values()
         for k, T in values.items():
             initial.insert(k, gtsam.Pose3(T))
@@ -268,7 +424,7 @@ class Session:
         weights = np.array([self.edges[k].weight for k in linked])
         D = inv_T(proposals)[:, None] @ proposals[None]
         agree = ((np.degrees(rotation_angle(D[..., :3, :3])) <= MAX_DEG)
-                 & (np.linalg.norm(D[..., :3, 3], axis=-1) <= translation_tolerance(self.graph())))
+                 & (np.linalg.norm(D[..., :3, 3], axis=-1) <= translation_tolerance(self._graph())))
         support = agree @ weights
         best = int(np.argmax(support))
         if support[best] <= 0.5 * weights.sum():
@@ -279,20 +435,21 @@ class Session:
 
     def _contradicted(self, new: list[int]) -> bool:
         """Does an edge just added disagree with the updated poses?"""
-        idx = [k for k in new if self.edges[k].kept and self.edges[k].i in self._placed and self.edges[k].j in self._placed]
+        idx = [k for k in new
+               if self.edges[k].kept and self.edges[k].i in self._placed and self.edges[k].j in self._placed]
         if not idx:
             return False
-        graph = self.graph()
+        graph = self._graph()
         sub = PoseGraph(n=graph.n, i=graph.i[idx], j=graph.j[idx], T=graph.T[idx], weight=graph.weight[idx],
                         information=graph.information[idx])
-        poses = np.where(np.isnan(self.poses), 0.0, self.poses)
+        poses = np.nan_to_num(self._local_poses())
         # The fixed tolerances scale with the median edge length: measure it on every edge so far.
         return not consistent_edges(sub, poses, max_trans=translation_tolerance(graph)).all()
 
     def _robust(self) -> None:
         """The batch robust stage over every edge so far; ISAM2 restarts from its poses and kept edges."""
         self.robust_runs += 1
-        graph = self.graph()
+        graph = self._graph()
         cfg = self.config
         result = synchronize(graph, method=cfg.method, iters=cfg.iters, reweight=cfg.reweight, polish=cfg.polish,
                              min_weight=cfg.min_weight)
@@ -304,3 +461,56 @@ class Session:
         self._placed = {int(k): poses[k] for k in np.flatnonzero(main)}
         self._reset_isam()
         self._isam_add([k for k, e in enumerate(self.edges) if e.kept], dict(self._placed), prior=True)
+
+
+def _real(x: object) -> bool:
+    """A real number, not a bool (``True`` is an int to Python, never a voxel or a weight)."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
+
+
+def _shift(c: np.ndarray) -> np.ndarray:
+    """(..., 4, 4) the translations by ``c`` (..., 3)."""
+    S = np.broadcast_to(np.eye(4), c.shape[:-1] + (4, 4)).copy()
+    S[..., :3, 3] = c
+    return S
+
+
+def _array(value: object, shape: tuple[int, int], what: str) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``, else a one-line ``InputError`` naming ``what``."""
+    try:
+        M = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a numeric {shape[0]}x{shape[1]} array") from None
+    if M.shape != shape:
+        raise InputError(f"{what} must be {shape[0]}x{shape[1]}; got shape {M.shape}")
+    if not np.isfinite(M).all():
+        raise InputError(f"{what} has non-finite entries")
+    return M
+
+
+def _rigid(value: object, what: str) -> np.ndarray:
+    """``value`` as a rigid 4×4 transform (``RIGID_TOL``): a scale, shear or reflection would reach the poses."""
+    T = _array(value, (4, 4), what)
+    R = T[:3, :3]
+    if (np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or np.linalg.det(R) < 0
+            or np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOL):
+        raise InputError(f"{what} is not a rigid transform (rotation orthonormal with det +1, last row 0 0 0 1)")
+    return T
+
+
+def _information(value: object, what: str) -> np.ndarray:
+    """``value`` as a symmetric (``SYMMETRY_TOL``, then exactly) positive definite 6×6 information: a direction
+    it leaves free would stop every later robust stage (``sync.checked_graph`` refuses the graph)."""
+    info = _array(value, (6, 6), what)
+    if np.abs(info - info.T).max() > SYMMETRY_TOL * float(np.abs(info).max()):
+        raise InputError(f"{what} is not symmetric")
+    info = (info + info.T) / 2.0
+    if np.linalg.eigvalsh(info)[0] <= 0:
+        raise InputError(f"{what} is not positive definite")
+    return info
+
+
+def _no_points(voxel: float) -> ScanFeatures:
+    """The features of a node without a scan (``add_node``): an empty grid."""
+    empty = np.zeros((0, 3))
+    return ScanFeatures(empty, empty, None, voxel, empty, np.zeros((0, 33), dtype=np.float32))

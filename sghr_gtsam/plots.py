@@ -178,7 +178,8 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     hist.set_xlabel("rotation residual at the final poses [deg]")
     hist.set_ylabel("edges")
     hist.set_title("edge residuals", fontsize=10)
-    hist.legend(fontsize=8)
+    if kept + rejected:  # no edge, no legend (matplotlib warns of an empty one)
+        hist.legend(fontsize=8)
     return fig
 
 
