@@ -25,8 +25,8 @@ information, as for a batch run).
 
 Georeferenced scans (``local_frame``): a scan farther than ``local_frame.FAR_VOXELS`` voxels from the origin is
 registered centred at its median, in float64, with its normals towards its input frame's origin, as ``register``
-does; the edges and ISAM2 live in those centred frames (``centres``) and ``poses``, ``graph()`` and ``run_result()``
-hand everything back in the input frames. A node from ``add_node`` has no scan: its frame is its input frame.
+does; the edges and ISAM2 live in those centred frames, and ``poses``, ``graph()`` and ``run_result()`` hand
+everything back in the input frames. A node from ``add_node`` has no scan: its frame is its input frame.
 
 A call refused (``InputError``) leaves the session as it was: its input is checked before anything changes, and a
 back end that gtsam cannot solve (an information too ill-conditioned to fix the pose) is rolled back.
@@ -73,7 +73,7 @@ EdgeInput = tuple[int, np.ndarray, float, np.ndarray]
 
 @dataclass
 class Edge:
-    """A registered pair: ``T`` maps scan ``j`` into scan ``i`` (their centred frames, ``Session.centres``);
+    """A registered pair: ``T`` maps scan ``j`` into scan ``i`` (their centred frames, ``Session._centre_rows``);
     ``weight`` is ``w⁰`` (score × inliers); ``pair`` the registration it came from (for a caller's edge from
     ``add_node``: its ``T`` and information, no inliers)."""
 
@@ -136,7 +136,7 @@ class Session:
         self._reset_isam()
 
     @property
-    def centres(self) -> np.ndarray:
+    def _centre_rows(self) -> np.ndarray:
         """(N, 3) the point each node's scan is centred at (zero near the origin and for ``add_node``'s nodes)."""
         return np.array(self._centres).reshape(-1, 3)
 
@@ -225,12 +225,12 @@ class Session:
     def poses(self) -> np.ndarray:
         """(N, 4, 4) current poses in the input frames, scan 0 exactly the identity; NaN for scans not placed
         yet."""
-        c = self.centres
+        c = self._centre_rows
         return _shift(c[:1]) @ self._local_poses() @ _shift(-c)  # scan 0: S(c₀) S(-c₀), exactly the identity
 
     def graph(self) -> PoseGraph:
         """Every edge so far as a ``PoseGraph`` in the input frames (``information``: the calibrated one)."""
-        g, c = self._graph(), self.centres
+        g, c = self._graph(), self._centre_rows
         g.T = _shift(c[g.i]) @ g.T @ _shift(-c[g.j])
         if g.information is not None:
             back = np.stack([gtsam.Pose3(gtsam.Rot3(), -c[j]).AdjointMap() for j in g.j])  # ξ' = Ad(S(-c_j)) ξ
@@ -270,7 +270,7 @@ class Session:
             except RuntimeError:  # gtsam: the kept edges leave a pose's marginal indeterminate (as in a batch run)
                 pass
         out.covariances[0] = 0.0  # the world scan, also when no edge is kept
-        local_frame.to_input_frame(out, self.centres)
+        local_frame.to_input_frame(out, self._centre_rows)
         return out
 
     # --- internals -------------------------------------------------------------------------------
