@@ -274,7 +274,7 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
     out = np.full((len(result.names), 6, 6), np.nan)
     anchor = int(np.flatnonzero(result.sync.component == 0)[0])
     information = graph_information(result.graph, _edges_of(result)[0], noise)
-    stiff = _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0)
+    stiff = _PRIOR_SCALE * max(float(np.abs(information).max(initial=0.0)), 1.0)  # initial: no edge (one scan)
     factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
                                        gtsam.noiseModel.Isotropic.Precision(6, stiff)))
     out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])

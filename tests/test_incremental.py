@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
+from sghr_gtsam.gtsam_api import pose_covariances
 from sghr_gtsam.incremental import Session
 from sghr_gtsam.io.poses import read_poses, write_poses
 from sghr_gtsam.io.results import write_results
@@ -252,6 +253,7 @@ def test_run_result_of_an_empty_session_is_refused_and_of_one_scan_is_the_world(
     r = session.run_result()
     assert r.names == ["a"] and r.unregistered == [] and r.graph.num_edges == 0
     assert np.array_equal(r.poses[0], np.eye(4)) and np.array_equal(r.covariances, np.zeros((1, 6, 6)))
+    assert np.array_equal(pose_covariances(r), np.zeros((1, 6, 6)))  # no edge: the max over none failed
     write_results(tmp_path, r, Config(voxel=0.05), time.perf_counter(), merged_cloud(r))
     assert read_poses(tmp_path / "poses.txt")[0] == ["a"]
 
