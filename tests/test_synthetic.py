@@ -134,3 +134,10 @@ def test_bad_arguments():
         make_scene("garden")
     with pytest.raises(ValueError, match="at least 2"):
         make_scene(n_scans=1)
+
+
+@pytest.mark.parametrize("noise", [float("nan"), float("inf"), -0.01])
+def test_a_noise_no_sensor_has_is_refused(noise):
+    """A NaN noise gave scans of NaN points without a word."""
+    with pytest.raises(ValueError, match="noise must be a finite number"):
+        make_scene(kind="room", n_scans=2, noise=noise)

@@ -41,6 +41,8 @@ def make_scene(kind: str = "room", n_scans: int = 6, seed: int = 0, noise: float
         raise ValueError(f"unknown scene kind {kind!r} (choose from {', '.join(SCENE_KINDS)})")
     if n_scans < 2:
         raise ValueError("a scene needs at least 2 scans")
+    if not (np.isfinite(noise) and noise >= 0):  # a NaN noise made every point NaN, silently
+        raise ValueError(f"noise must be a finite number >= 0; got {noise!r}")
     if kind not in KINDS:
         return make_building(n_scans, seed, noise, identical_rooms=kind == "hotel")
     rng = np.random.default_rng(seed)
