@@ -126,6 +126,8 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for k in placed:
         xy = world(k) @ axes
+        if not len(xy):  # a node without points (an incremental session's add_node): drawn at its origin
+            xy = (result.poses[k, :3, 3] @ axes)[None]
         centres[k] = xy.mean(0)
         lo, hi = np.minimum(lo, xy.min(0)), np.maximum(hi, xy.max(0))
     raster = _Raster(lo, hi, np.random.default_rng(0))

@@ -297,3 +297,15 @@ def test_non_finite_rows_are_dropped_as_the_batch_loader_drops_them(world, near)
     sparse[60:] = np.nan  # 60 finite points, fewer than min_points
     assert "60 finite points" in _refused(session.add_scan, "sparse", sparse)
     _assert_unchanged(session, before)
+
+
+def test_a_session_with_a_node_without_points_writes_every_output(world, tmp_path):
+    """An ``add_node`` node has no points: summary.png failed on its empty grid (a zero-size minimum)."""
+    session = Session(_config(), voxel=0.05)
+    session.add_scan("a", world[0])
+    session.add_scan("b", world[1])
+    session.add_node("fix", [(0, np.eye(4), 1.0, 100.0 * np.eye(6))])
+    r = session.run_result()
+    write_results(tmp_path, r, Config(voxel=0.05), time.perf_counter(), merged_cloud(r))
+    assert (tmp_path / "summary.png").stat().st_size > 0
+    assert read_poses(tmp_path / "poses.txt")[0] == ["a", "b", "fix"]
