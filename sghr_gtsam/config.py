@@ -9,6 +9,8 @@ import re
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+import numpy as np
+
 from .types import InputError
 
 MATCHERS = ("sc2", "kiss", "ransac")
@@ -178,7 +180,10 @@ class Config:
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
         for f in fields(self):
-            _check_type(f.name, f.type, getattr(self, f.name))
+            value = getattr(self, f.name)
+            if isinstance(value, (np.integer, np.floating, np.bool_)):  # numpy's scalars as Python's: to_json
+                setattr(self, f.name, value := value.item())
+            _check_type(f.name, f.type, value)
         for name in ("k", "iters", "min_points", "rounds"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
@@ -221,7 +226,7 @@ class Config:
     def from_json(cls, path: str | Path) -> "Config":
         try:
             data = json.loads(Path(path).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:  # ValueError: also a 5000-digit int
             raise InputError(f"cannot read config {path}: {e}") from None
         if not isinstance(data, dict):
             raise InputError(f"config {path} must hold a JSON object")

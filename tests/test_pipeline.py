@@ -175,3 +175,14 @@ def test_config_refuses_a_misspelt_setting_and_a_seed_open3d_cannot_take():
         config.voxle = 0.1
     with pytest.raises(InputError, match="seed must be an integer in"):
         Config(seed=2**31, matcher="ransac").validate()
+
+
+def test_config_takes_numpy_scalars_as_python_numbers_and_reads_odd_json_in_one_line(tmp_path):
+    """``k=np.int64(3)`` was refused ("k must be int") and a numpy float32 broke ``to_json``; a config file nested
+    50,000 deep or holding a 5,000-digit number raised RecursionError / ValueError."""
+    config = Config(k=np.int64(3), voxel=np.float32(0.5), record=np.bool_(False)).validate()
+    assert json.loads(config.to_json())["k"] == 3 and type(config.voxel) is float
+    for name, text in (("deep.json", "[" * 50_000 + "]" * 50_000), ("long.json", '{"k": ' + "9" * 5000 + "}")):
+        (tmp_path / name).write_text(text)
+        with pytest.raises(InputError, match=f"cannot read config .*{name}"):
+            Config.from_json(tmp_path / name)
