@@ -450,7 +450,8 @@ def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
     out = _old_result(tmp_path / "out")
     code, err, left = _stopped_run(small_room, out, signal.SIGINT, when, group=True)
     assert code == 130 and not left, (err, left)
-    assert err.strip().splitlines() == ["error: stopped by SIGINT: nothing written, earlier results left as they were"], err
+    assert err.strip().splitlines() == ["error: stopped by SIGINT: nothing written, earlier results left as they "
+                                        "were"], err
     assert {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE} == OLD
 
 
