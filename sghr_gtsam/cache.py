@@ -31,8 +31,8 @@ if TYPE_CHECKING:
     from .config import Config
     from .types import Scan
 
-FORMAT = 1
-"""Bumped when what a file holds changes meaning."""
+FORMAT = 2
+"""Bumped when what a file holds changes meaning (2: each entry holds its own key)."""
 KINDS = ("features", "pyramids", "pairs", "refined")
 _SOURCES = ("features/local.py", "features/learned.py", "weights/patch_rooms.npz", "registration/pairwise.py",
             "registration/estimators.py", "registration/information.py", "registration/refine.py")
@@ -115,12 +115,20 @@ def entry_path(folder: str | Path, name: str, key: str) -> Path:
     return Path(folder) / name / f"{key}.npz"
 
 
+_KEY = "_key"
+"""The array of an entry that holds the key it was stored under: a file renamed or copied under another key (two
+entries swapped) is another scan's or pair's result, which its readable arrays alone would not betray."""
+
+
 def read_entry(path: Path, kind: Kind) -> Any:
-    """The result of ``kind`` stored at ``path``, ``MISS`` when there is none; raises when it cannot be read."""
+    """The result of ``kind`` stored at ``path``, ``MISS`` when there is none; raises when it cannot be read or
+    holds another key's result."""
     if not path.is_file():
         return MISS
     with np.load(path, allow_pickle=False) as archive:
         arrays = {name: archive[name] for name in archive.files}  # reading each checks its CRC
+    if str(arrays.pop(_KEY, "")) != path.stem:
+        raise ValueError(f"{path.name} holds another entry's result")
     return kind.decode(arrays)
 
 
@@ -167,7 +175,7 @@ class Cache:
         arrays = None if key is None else kind.encode(result)
         if arrays is not None:
             with atomic_write(self._path(kind, key), "wb") as f:
-                np.savez(f, **arrays)
+                np.savez(f, **arrays, **{_KEY: np.array(key)})
 
     def map(self, kind: Kind, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
             workers: int | None, on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,

@@ -60,8 +60,11 @@ class ScanStats:
             median[k] = np.median(column, overwrite_input=True)
             low[k], high[k] = np.percentile(column, [1, 99], overwrite_input=True)
         span = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
-        return cls(len(points), float(np.linalg.norm(high - low)), span, median,
-                   hashlib.sha1(np.ascontiguousarray(points)).hexdigest())
+        return cls(len(points), float(np.linalg.norm(high - low)), span, median, _digest(points))
+
+
+def _digest(points: np.ndarray) -> str:
+    return hashlib.sha1(np.ascontiguousarray(points)).hexdigest()
 
 
 @dataclass(eq=False)
@@ -103,7 +106,12 @@ class Scan:
         given = self.keypoints
         if given is not None and self.centre.any():
             given = Keypoints(given.points - self.centre, given.descriptors)
-        return self.input_points() - self.centre, given
+        points = self.input_points()
+        # The resume cache files a scan's results under the digest of its points as first read: a file changed since
+        # would put other points' results under that key (a wrong answer for every later run).
+        if self.stats is not None and _digest(points) != self.stats.digest:
+            raise InputError(f"scan {self.name} changed while the run was using it: start the run again")
+        return points - self.centre, given
 
 
 @dataclass

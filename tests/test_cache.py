@@ -18,9 +18,9 @@ import pytest
 from sghr_gtsam.cache import Cache, pair_key, refined_key, scan_key
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.results import CACHE
-from sghr_gtsam.pipeline import register
+from sghr_gtsam.pipeline import load_scene, register
 from sghr_gtsam.synthetic import make_scene, write_scene
-from sghr_gtsam.types import Keypoints, Scan
+from sghr_gtsam.types import InputError, Keypoints, Scan
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -89,6 +89,33 @@ def test_cache_reuses_what_matches_recomputes_what_changed_or_is_damaged(room, t
     assert icp.cache["pairs"]["cached"] == 0 and icp.cache["refined"]["cached"] == 0
     voxel = register(room, replace(config, voxel=first.voxel * 1.1), cache=Cache(tmp_path), **quiet)
     assert all(cached == 0 for cached, _ in _counts(voxel).values()), voxel.cache
+
+
+def test_entries_swapped_between_keys_are_recomputed_not_used(room, tmp_path):
+    """Two features entries (and two pairs) swapped: each is a readable result of another scan (or pair), and was
+    used as it was: 2 of 4 scans placed, poses off by up to 1.07, exit 0. Each entry holds its own key now."""
+    config = Config(record=False, workers=1)
+    first = register(room, config, cache=Cache(tmp_path), log=lambda m: None)
+    for kind in ("features", "pairs"):
+        a, b = sorted((tmp_path / kind).iterdir())[:2]
+        a.rename(tmp_path / "swap")
+        b.rename(a)
+        (tmp_path / "swap").rename(b)
+    again = register(room, config, cache=Cache(tmp_path), log=lambda m: None)
+    assert again.cache["unreadable"] == 4 and again.cache["features"]["computed"] == 2
+    np.testing.assert_array_equal(again.poses, first.poses)
+
+
+def test_a_scan_changed_while_the_run_uses_it_is_named(tmp_path):
+    """A scan file replaced after the run first read it put the new points' features under the old points' key:
+    every later run took them from the cache (a scan given another's pose, exit 0)."""
+    scene = make_scene(kind="room", n_scans=3, seed=2)
+    write_scene(scene, tmp_path / "scene")
+    scans, _ = load_scene(tmp_path / "scene", Config(), log=lambda m: None)
+    (tmp_path / "scene" / scene.names[2]).write_bytes((tmp_path / "scene" / scene.names[1]).read_bytes())
+    with pytest.raises(InputError, match=f"scan {scene.names[2]} changed while the run was using it"):
+        scans[2].read()
+    scans[1].read()  # unchanged: read as before
 
 
 def test_temporaries_of_a_killed_write_are_removed(tmp_path):
