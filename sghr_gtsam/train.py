@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -341,8 +342,12 @@ def train(
         raise InputError(f"bad alpha {alpha} / beta {beta} ranges")
     if loss not in LOSSES:
         raise InputError(f"unknown loss {loss!r} ({', '.join(LOSSES)})")
-    if not tau > 0:
-        raise InputError(f"tau must be positive, got {tau}")
+    if not (math.isfinite(tau) and tau > 0):
+        raise InputError(f"tau must be positive and finite, got {tau}")
+    if not (math.isfinite(lr) and lr > 0):  # torch's Adam refused a negative one mid-start, NaN it took
+        raise InputError(f"lr must be positive and finite, got {lr}")
+    if clusters < 1:
+        raise InputError(f"clusters must be at least 1, got {clusters}")
     started = time.perf_counter()
     torch.manual_seed(seed)
     scenes = load_cache(data_dir, limit)

@@ -214,3 +214,13 @@ def test_listwise_loss_is_a_kl_divergence_blind_to_overlap_scale(scene, scale, l
     if not torch.allclose(torch.softmax(C / np.exp(log_tau) - 1e9 * torch.eye(len(C)), 1),
                           torch.softmax(ideal / np.exp(log_tau) - 1e9 * torch.eye(len(C)), 1), atol=1e-3):
         assert float(listwise_loss(C, positive, log_tau)) > 0
+
+
+@pytest.mark.parametrize("option, value", [("clusters", 0), ("lr", -1.0), ("lr", float("nan")),
+                                           ("tau", float("inf"))])
+def test_a_setting_training_cannot_use_is_refused_before_anything_is_written(cache, tmp_path, option, value):
+    """``--clusters 0`` and ``--lr -1`` failed deep in training ("argmax of an empty sequence", torch's "Invalid
+    learning rate") and left an empty output folder; ``--lr nan`` trained on NaN."""
+    with pytest.raises(InputError, match=f"{option} must be"):
+        train(cache, tmp_path / "out", epochs=1, progress=False, log=lambda _: None, **{option: value})
+    assert not (tmp_path / "out").exists()
