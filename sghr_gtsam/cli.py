@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import signal
 import sys
@@ -88,10 +89,19 @@ def _guarded(out: Path | None = None, started: float = 0.0) -> Iterator[None]:
     except (KeyboardInterrupt, _Stopped) as e:
         signum = e.signum if isinstance(e, _Stopped) else signal.SIGINT
         _fail(stopped(signal.Signals(signum).name, str(out) if _written(out, started) else None), code=128 + signum)
+    except OSError as e:
+        if e.errno not in (errno.ENOSPC, errno.EDQUOT) or os.environ.get("SGHR_DEBUG"):
+            _unexpected(e)
+        # a full disk is no fault of the tool's: say where, not "unexpected"
+        _fail(f"cannot write {e.filename or out or 'the output'}: {e.strerror}", code=1)
     except Exception as e:  # noqa: BLE001 - the CLI's last line of defence
-        if os.environ.get("SGHR_DEBUG"):
-            raise
-        _fail(f"unexpected {type(e).__name__}: {e} (set SGHR_DEBUG=1 for the traceback)", code=1)
+        _unexpected(e)
+
+
+def _unexpected(e: Exception) -> None:
+    if os.environ.get("SGHR_DEBUG"):
+        raise e
+    _fail(f"unexpected {type(e).__name__}: {e} (set SGHR_DEBUG=1 for the traceback)", code=1)
 
 
 def _main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:

@@ -197,3 +197,18 @@ def test_a_stop_after_the_results_are_in_says_so(tmp_path, capsys):
             raise _Stopped(signal.SIGTERM)
     assert capsys.readouterr().err.strip() == (f"error: stopped by SIGTERM after the results were written: {out} "
                                                f"is complete")
+
+
+def test_a_full_disk_is_named_not_unexpected(tmp_path, capsys):
+    """A full disk ended in "unexpected OSError: [Errno 28] No space left on device", naming no folder."""
+    import errno
+
+    import typer
+
+    from sghr_gtsam.cli import _guarded
+
+    with pytest.raises(typer.Exit) as stop:
+        with _guarded(tmp_path / "out"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert stop.value.exit_code == 1
+    assert capsys.readouterr().err.strip() == f"error: cannot write {tmp_path / 'out'}: No space left on device"
