@@ -106,6 +106,29 @@ def test_entries_swapped_between_keys_are_recomputed_not_used(room, tmp_path):
     np.testing.assert_array_equal(again.poses, first.poses)
 
 
+def test_entries_readable_but_damaged_inside_are_recomputed(room, tmp_path):
+    """Arrays that read but cannot be a result (points cut to two columns, NaN points, a NaN transform) ended every
+    later run with an unexpected IndexError, LinAlgError or "edge 1: T is not finite"."""
+    config = Config(record=False, workers=1)
+    first = register(room, config, cache=Cache(tmp_path), log=lambda m: None)
+
+    def rewrite(path: Path, change) -> None:
+        with np.load(path) as archive:
+            arrays = dict(archive)
+        change(arrays)
+        with open(path, "wb") as f:
+            np.savez(f, **arrays)
+
+    features = sorted((tmp_path / "features").iterdir())
+    rewrite(features[0], lambda a: a.update(points=a["points"][:, :2]))
+    rewrite(features[1], lambda a: a["points"].__setitem__(0, np.nan))
+    rewrite(sorted((tmp_path / "pyramids").iterdir())[0], lambda a: a["grid0"].__setitem__(0, np.nan))
+    rewrite(sorted((tmp_path / "pairs").iterdir())[0], lambda a: a["T"].__setitem__((0, 3), np.nan))
+    again = register(room, config, cache=Cache(tmp_path), log=lambda m: None)
+    assert again.cache["unreadable"] == 4
+    np.testing.assert_array_equal(again.poses, first.poses)
+
+
 def test_a_scan_changed_while_the_run_uses_it_is_named(tmp_path):
     """A scan file replaced after the run first read it put the new points' features under the old points' key:
     every later run took them from the cache (a scan given another's pose, exit 0)."""

@@ -115,7 +115,14 @@ def _encode_features(f: ScanFeatures | str) -> dict[str, np.ndarray] | None:
 def _decode_features(a: dict[str, np.ndarray]) -> ScanFeatures:
     fpfh = a.get("fpfh")
     keypoints = a["points"] if fpfh is not None else a["keypoints"]
-    return ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, a.get("descriptors", fpfh))
+    features = ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints,
+                            a.get("descriptors", fpfh))
+    # Readable arrays of the wrong shape or with NaN (an entry edited or damaged inside) failed every later run.
+    m, k = len(features.points), len(features.keypoints)
+    shapes = [(features.points, (m, 3)), (features.normals, (m, 3)), (features.keypoints, (k, 3))]
+    if any(x.shape != shape or not np.isfinite(x).all() for x, shape in shapes) or len(features.descriptors) != k:
+        raise ValueError("features entry of inconsistent shapes or non-finite values")
+    return features
 
 
 FEATURES = Kind("features", _encode_features, _decode_features)

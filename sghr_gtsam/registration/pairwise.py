@@ -98,8 +98,8 @@ def _encode_pair(p: PairResult) -> dict[str, np.ndarray]:
 def _decode_pair(a: dict[str, np.ndarray]) -> PairResult:
     inliers, fitness, rmse, seconds, coverage, free = a["numbers"].tolist()
     matches = (a["match_i"], a["match_j"]) if "match_i" in a else None
-    if a["T"].shape != (4, 4):
-        raise ValueError(f"T of shape {a['T'].shape}")
+    if a["T"].shape != (4, 4) or not np.isfinite(a["T"]).all():
+        raise ValueError(f"T of shape {a['T'].shape}, or not finite")
     return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
                       int(free), a.get("bounded"), a.get("loose"), a.get("grid"))
 

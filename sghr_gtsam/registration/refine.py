@@ -100,7 +100,10 @@ def _encode_pyramid(p: Pyramid) -> dict[str, np.ndarray]:
 
 def _decode_pyramid(a: dict[str, np.ndarray]) -> Pyramid:
     voxels = tuple(float(v) for v in a["voxels"])
-    return Pyramid(voxels, tuple(a[f"grid{k}"] for k in range(len(voxels))))
+    grids = tuple(a[f"grid{k}"] for k in range(len(voxels)))
+    if any(g.ndim != 2 or g.shape[1] != 3 or not np.isfinite(g).all() for g in grids):
+        raise ValueError("pyramid entry of (n, 3) grids with non-finite values or another shape")
+    return Pyramid(voxels, grids)
 
 
 def _encode_refined(result: tuple[PairResult, bool]) -> dict[str, np.ndarray]:
