@@ -47,11 +47,12 @@ from .config import Config
 from .features.local import ScanFeatures, compute_features
 from .features.netvlad import global_features, load_default_head
 from .gtsam_api import noise_model, pose_covariances
+from .io.poses import unwritable_name
 from .io.scans import finite_points
 from .registration.pairwise import PairResult, register_pair
 from .registration.refine import Pyramid, build_pyramid, confirms, refine_pair
 from .result import RunResult
-from .se3 import inv_T, rotation_angle
+from .se3 import inv_T, non_rigid, rotation_angle
 from .sync import synchronize
 from .sync.consensus import MAX_DEG, consistent_edges, translation_tolerance
 from .sync.rotation import connected_components, rotation_residuals
@@ -277,13 +278,9 @@ class Session:
     def _check_name(self, name: str) -> None:
         """``InputError`` unless ``name`` is new and reads back from a pose file (one name a line, stripped, '#'
         starting a comment: ``io.poses``)."""
-        if not isinstance(name, str):
-            raise InputError(f"a scan name must be a str; got {type(name).__name__}")
-        if not name.strip():
-            raise InputError(f"a scan name must not be empty or blank; got {name!r}")
-        if name.splitlines() != [name] or name != name.strip() or name.startswith("#"):
-            raise InputError(f"scan name {name!r} would not read back from a pose file (a line break, surrounding "
-                             f"spaces or a leading '#')")
+        if why := unwritable_name(name):
+            raise InputError(f"scan name {name!r} {why} (a pose file: one name a line, read back stripped, '#' "
+                             f"starting a comment)")
         if name in self.names:
             raise InputError(f"scan name {name!r} is already in the session (node {self.names.index(name)})")
 
@@ -491,9 +488,7 @@ def _array(value: object, shape: tuple[int, int], what: str) -> np.ndarray:
 def _rigid(value: object, what: str) -> np.ndarray:
     """``value`` as a rigid 4×4 transform (``RIGID_TOL``): a scale, shear or reflection would reach the poses."""
     T = _array(value, (4, 4), what)
-    R = T[:3, :3]
-    if (np.abs(R.T @ R - np.eye(3)).max() > RIGID_TOL or np.linalg.det(R) < 0
-            or np.abs(T[3] - [0.0, 0.0, 0.0, 1.0]).max() > RIGID_TOL):
+    if non_rigid(T, RIGID_TOL, RIGID_TOL):
         raise InputError(f"{what} is not a rigid transform (rotation orthonormal with det +1, last row 0 0 0 1)")
     return T
 

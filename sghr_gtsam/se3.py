@@ -55,6 +55,22 @@ def _svd_project(M: np.ndarray) -> np.ndarray:
     return U @ Vt
 
 
+RIGID_TOL = 1e-2
+"""How far a measured rotation may be from orthonormal (largest entry of ``RᵀR − I``): the 3DMatch ground truth is
+off by up to 5e-4."""
+
+
+def non_rigid(T: np.ndarray, rotation_tol: float = RIGID_TOL, row_tol: float = 1e-9) -> np.ndarray:
+    """(...,) bool: which of ``T`` (..., 4, 4) are no rigid transform: a rotation block not orthonormal to
+    ``rotation_tol`` or of determinant ≤ 0, or a last row not ``0 0 0 1`` to ``row_tol``; non-finite ones too."""
+    R = T[..., :3, :3]
+    with np.errstate(over="ignore", invalid="ignore"):  # a huge entry overflows to inf: not orthonormal either
+        orthonormal = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1)) <= rotation_tol
+        last_row = np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(axis=-1) <= row_tol
+        proper = np.linalg.det(R) > 0
+    return ~(orthonormal & proper & last_row)
+
+
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Stack rotations (..., 3, 3) and translations (..., 3) into homogeneous (..., 4, 4)."""
     T = np.zeros(R.shape[:-2] + (4, 4))

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from sghr_gtsam.se3 import project_to_so3
+from sghr_gtsam.se3 import make_T, non_rigid, project_to_so3
 
 
 def _nearest_by_svd(M: np.ndarray) -> np.ndarray:
@@ -47,3 +47,18 @@ def test_rotations_stay_and_degenerate_matrices_still_give_rotations():
         np.testing.assert_allclose(np.linalg.det(out), 1.0, atol=1e-12)
     np.testing.assert_allclose(project_to_so3(reflected), _nearest_by_svd(reflected), atol=1e-9)
     assert project_to_so3(np.zeros((0, 3, 3))).shape == (0, 3, 3)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(0.5, 2.0), st.sampled_from(["rigid", "scaled", "reflected", "row"]))
+def test_non_rigid_tells_rotations_from_scales_reflections_and_bad_rows(seed, scale, change):
+    """The one rigidity test the pose graph check, the pose writers and the incremental session share."""
+    T = make_T(Rotation.random(random_state=seed).as_matrix(), np.random.default_rng(seed).normal(size=3))
+    if change == "scaled":
+        T[:3, :3] *= scale if abs(scale - 1.0) > 0.02 else 1.5
+    elif change == "reflected":
+        T[:3, 2] *= -1
+    elif change == "row":
+        T[3, 0] = 1e-6
+    assert bool(non_rigid(T)) == (change != "rigid")
+    assert bool(non_rigid(np.where(np.eye(4, dtype=bool), np.nan, T)))

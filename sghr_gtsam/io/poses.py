@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from sghr_gtsam.io.atomic import atomic_write
+from sghr_gtsam.se3 import non_rigid
 from sghr_gtsam.types import InputError
 
 
@@ -75,26 +76,27 @@ def _matrix(path: Path, what: str, lines: list[tuple[int, str]], n: int) -> np.n
     return np.array([_numbers(path, what, line, n) for line in lines])
 
 
-RIGID_TOL = 1e-2
-"""How far a rotation may be from orthonormal (largest entry of ``RᵀR − I``): the pose graph check's tolerance
-(``sync.checked_graph``), which admits the 3DMatch ground truth (off by up to 5e-4)."""
-
-
 def check_rigid(poses: np.ndarray, what: str, labels: Sequence[int] | None = None) -> None:
     """One-line ``InputError`` naming the first of ``poses`` (N, 4, 4) (by its index, or its entry of ``labels``)
-    that is not finite or not a rigid transform (rotation orthonormal with determinant +1 to ``RIGID_TOL``, last
-    row ``0 0 0 1``)."""
+    that is not finite or not a rigid transform (``se3.non_rigid``)."""
     name = range(len(poses)) if labels is None else labels
     finite = np.isfinite(poses).all(axis=(1, 2))
     if not finite.all():
         raise InputError(f"{what} {name[np.flatnonzero(~finite)[0]]} is not finite")
-    R = poses[:, :3, :3]
-    with np.errstate(over="ignore", invalid="ignore"):  # a huge entry overflows to inf: not orthonormal either
-        bad = ~(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)) <= RIGID_TOL)
-    bad |= (np.linalg.det(R) <= 0) | (np.abs(poses[:, 3] - [0.0, 0.0, 0.0, 1.0]).max(axis=1) > 1e-9)
+    bad = non_rigid(poses)
     if bad.any():
         raise InputError(f"{what} {name[np.flatnonzero(bad)[0]]} is not a rigid transform (rotation orthonormal "
                          f"with determinant +1, last row 0 0 0 1)")
+
+
+def unwritable_name(name: object) -> str | None:
+    """Why ``name`` cannot name a pose in a pose file, or None: a name is a line of its own, read back stripped,
+    and a line starting with '#' is a comment."""
+    if not isinstance(name, str):
+        return "is not a string"
+    if not name.strip() or name.strip() != name or name.splitlines() != [name] or name.startswith("#"):
+        return "cannot be written on its own line"
+    return None
 
 
 def _check_poses(poses: np.ndarray) -> np.ndarray:
@@ -116,10 +118,8 @@ def write_poses(path: str | Path, names: Sequence[str], poses: np.ndarray, comme
     if len(names) != len(poses):
         raise InputError(f"{len(names)} names for {len(poses)} poses")
     for name in names:
-        if not isinstance(name, str):
-            raise InputError(f"pose name {name!r} is not a string")
-        if not name.strip() or name.strip() != name or name.splitlines() != [name] or name.startswith("#"):
-            raise InputError(f"pose name {name!r} cannot be written on its own line")
+        if why := unwritable_name(name):
+            raise InputError(f"pose name {name!r} {why}")
     out = [f"# {line}" for line in comment.splitlines()] if comment else []
     for name, T in zip(names, poses):
         out.append(name)
@@ -158,7 +158,7 @@ def read_kitti(path: str | Path) -> np.ndarray:
 
 def write_tum(path: str | Path, poses: np.ndarray, stamps: Sequence[float]) -> None:
     """Write rigid poses (N, 4, 4) in the TUM form with their finite timestamps (N,), which must increase. A
-    rotation off-orthonormal within ``RIGID_TOL`` is written as the quaternion of its nearest rotation."""
+    rotation off-orthonormal within ``se3.RIGID_TOL`` is written as the quaternion of its nearest rotation."""
     from scipy.spatial.transform import Rotation
 
     poses = _check_poses(poses)

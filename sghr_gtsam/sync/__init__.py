@@ -19,7 +19,7 @@ import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from ..io.g2o import sesync_precisions
-from ..se3 import inv_T, project_to_so3
+from ..se3 import inv_T, non_rigid, project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import biconnected_core, blocks
 from .consensus import MAX_DEG, consensus_placement, consistent_edges, edge_residuals, translation_tolerance
@@ -364,8 +364,7 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     if not np.all(np.isfinite(w)) or np.any(w < 0):
         raise InputError(f"edge {np.flatnonzero(~(np.isfinite(w) & (w >= 0)))[0]}: weight is not finite and >= 0")
     R = T[:, :3, :3]
-    bad = ((np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2)) > 1e-2) | (np.linalg.det(R) <= 0)
-           | (np.abs(T[:, 3] - [0, 0, 0, 1]).max(axis=1) > 1e-9))
+    bad = non_rigid(T)
     if bad.any():
         raise InputError(f"edge {np.flatnonzero(bad)[0]}: T is not a rigid transform")
     info = graph.information
