@@ -10,7 +10,7 @@ import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, NoReturn, Optional
 
 import typer
 
@@ -51,13 +51,13 @@ def _default(value: object) -> str:
     return " " + escape(f"[default: {value}]")
 
 
-def _fail(message: str, code: int = 2) -> None:
+def _fail(message: str, code: int = 2) -> NoReturn:
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(code)
 
 
 class _Stopped(BaseException):
-    """SIGTERM (``timeout``, ``docker stop``, SLURM) or SIGINT as an exception (``main``): a run unwinds as on
+    """SIGTERM (``timeout``, ``docker stop``, SLURM) or SIGINT as an exception (``_main``): a run unwinds as on
     a KeyboardInterrupt, which typer would end in a silent exit."""
 
     def __init__(self, signum: int):
@@ -98,7 +98,8 @@ def _guarded(out: Path | None = None, started: float = 0.0) -> Iterator[None]:
         _unexpected(e)
 
 
-def _unexpected(e: Exception) -> None:
+def _unexpected(e: Exception) -> NoReturn:
+    """The line of a failure the tool did not foresee (its traceback with SGHR_DEBUG=1)."""
     if os.environ.get("SGHR_DEBUG"):
         raise e
     _fail(f"unexpected {type(e).__name__}: {e} (set SGHR_DEBUG=1 for the traceback)", code=1)

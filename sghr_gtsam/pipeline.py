@@ -126,11 +126,10 @@ def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
 def _check_names(names: list) -> None:
     """``InputError`` unless every scan name is a distinct, non-empty str on one line: results are matched to scans
     by name, and pose files hold one name a line."""
+    seen: set[str] = set()
     for name in names:
         if not isinstance(name, str) or not name or "\n" in name or "\r" in name:
             raise InputError(f"scan names must be non-empty strings on one line; got {name!r}")
-    seen: set[str] = set()
-    for name in names:
         if name in seen:
             raise InputError(f"two scans are named {name!r}")
         seen.add(name)
