@@ -28,6 +28,7 @@ from .graph import bridge_components, top_k_edges, top_k_graph
 from .gtsam_api import pose_covariances
 from .io.features import read_features
 from .io.atomic import staged_folder
+from .io.poses import unwritable_name
 from .io.results import CACHE, check_output_folder, write_results
 from .io.scans import check_memory, finite_points, list_scans, load_scan
 from .merged import merged_cloud
@@ -74,6 +75,11 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     skipped: dict[str, str] = {}
     digests: dict[str, str] = {}
     for path in list_scans(folder):
+        if unwritable_name(path.name):  # the results name scans by their file names
+            skipped[path.name] = (f"its name {path.name!r} cannot be written on its own line in the pose files: "
+                                  f"rename it")
+            log(f"skipped {path.name}: {skipped[path.name]}")
+            continue
         check_memory(path)  # a scan too large for this machine ends the run: it is no bad file to skip
         try:
             P, dropped = finite_points(load_scan(path))
@@ -124,12 +130,13 @@ def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
 
 
 def _check_names(names: list) -> None:
-    """``InputError`` unless every scan name is a distinct, non-empty str on one line: results are matched to scans
-    by name, and pose files hold one name a line."""
+    """``InputError`` unless every scan name is distinct and a pose file can hold it (``io.poses.unwritable_name``):
+    results are matched to scans by name, and pose files hold one name a line, read back stripped."""
     seen: set[str] = set()
     for name in names:
-        if not isinstance(name, str) or not name or "\n" in name or "\r" in name:
-            raise InputError(f"scan names must be non-empty strings on one line; got {name!r}")
+        if why := unwritable_name(name):
+            raise InputError(f"scan name {name!r} {why} (pose files hold one name a line, read back stripped, '#' "
+                             f"starting a comment)")
         if name in seen:
             raise InputError(f"two scans are named {name!r}")
         seen.add(name)
@@ -352,7 +359,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
     graph = stages.pose_graph(edges)
     if not np.any(graph.weight > 0):
-        raise InputError(f"no pair of scans could be registered (do the scans overlap?{_voxel_doubt(voxel, scans)})")
+        doubt = _voxel_doubt(voxel, scans, given=config.voxel is not None)
+        raise InputError(f"no pair of scans could be registered (do the scans overlap?{doubt})")
     result = stages.synchronize(graph, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
     if config.free_space:
@@ -368,13 +376,31 @@ VOXEL_DOUBT = 10.0
 (5 voxels) then hold one point each, or a scan is a handful of cells; either way nothing matches."""
 
 
-def _voxel_doubt(voxel: float, scans: list[Scan]) -> str:
-    default = voxel_from_spans([s.stats.span for s in scans])
-    ratio = voxel / default
-    if 1 / VOXEL_DOUBT <= ratio <= VOXEL_DOUBT:
+SPREAD = 3.0
+"""When no pair registers with the default voxel, the scans whose extent is this many times the median scan's, or
+1/this of it, are named: a majority of scans of noise or of another scene sets the median, and so the voxel (two room
+scans among three small clouds of noise: 1/10 of the rooms' voxel). The kitchen's and the bunny's are within 1.3x."""
+
+
+def _voxel_doubt(voxel: float, scans: list[Scan], given: bool) -> str:
+    """Why ``voxel`` may be what kept every pair from registering, or "": a ``given`` one far from the default, or a
+    default that scans far from the others set."""
+    spans = np.array([s.stats.span for s in scans])
+    if given:
+        default = voxel_from_spans(spans)
+        ratio = voxel / default
+        if 1 / VOXEL_DOUBT <= ratio <= VOXEL_DOUBT:
+            return ""
+        return (f" is the voxel {voxel:.3g} right? it is {ratio:.3g}x the default {default:.3g}, 1/100 of the median "
+                f"scan's extent")
+    ratios = spans / (100 * voxel)
+    far = [f"{s.name} ({ratio:.2g}x)" for s, ratio in zip(scans, ratios) if not 1 / SPREAD <= ratio <= SPREAD]
+    if not far:
         return ""
-    return (f" is the voxel {voxel:.3g} right? it is {ratio:.3g}x the default {default:.3g}, 1/100 of the median "
-            f"scan's extent")
+    named = ", ".join(far[:3]) + (f" and {len(far) - 3} more" if len(far) > 3 else "")
+    return (f" is the voxel {voxel:.3g} right? it is 1/100 of the median scan's extent ({100 * voxel:.3g}), and "
+            f"{named} differ{'s' if len(far) == 1 else ''} from it by more than {SPREAD:g}x: scans of noise or of "
+            f"another scene may have set the median (leave them out, or set --voxel)")
 
 
 def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,

@@ -6,6 +6,7 @@ evo (the odometry evaluation tool) reads them to the same trajectory."""
 import io
 import struct
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -155,6 +156,21 @@ def _laz_chunks(data):
     return data
 
 
+def _laz_chunk_table(data, entries):
+    """``data`` with its LAZ chunk table written again by lazrs, holding ``entries`` ((points, bytes) per chunk)."""
+    import lazrs
+
+    offset = struct.unpack_from("<I", data, 96)[0]
+    out = io.BytesIO(bytes(data[:struct.unpack_from("<q", data, offset)[0]]))
+    out.seek(0, io.SEEK_END)
+    lazrs.write_chunk_table(out, entries, lazrs.LazVlr(bytes(data[offset - 52:offset])))  # the laszip VLR is last
+    return bytearray(out.getvalue())
+
+
+def _laz_chunk_bytes(data):
+    return _laz_chunk_table(data, [(50000, 2**31)])  # coded as int32: read back as 2**64 - 2**31 bytes
+
+
 # name -> (LAS version, suffix, corruption of the file's bytes, words of the reason)
 LAS_CORRUPTIONS = {
     "VLR count": ("1.2", ".las", _put(100, "<I", 0xFFFFFFF0), "corrupt header: 4,294,967,280 VLRs declared in 0"),
@@ -165,16 +181,29 @@ LAS_CORRUPTIONS = {
     "LASF and random bytes": ("1.2", ".las", lambda data: b"LASF" + np.random.default_rng(3).bytes(400),
                               "corrupt header"),
     "chunk count of a LAZ": ("1.2", ".laz", _laz_chunks, "corrupt chunk table: 4,294,967,280 chunks"),
+    "chunk sizes of a LAZ": ("1.2", ".laz", _laz_chunk_bytes, "corrupt chunk table: chunks of "
+                             "18,446,744,071,562,067,968 bytes declared in"),
+    "point count of a LAZ": ("1.2", ".laz", _put(107, "<I", 10**9), "corrupt header: 1,000,000,000 points declared "
+                             "where the chunk table holds at most 50,000"),
+    "scale factor": ("1.2", ".las", _put(131, "<d", 1e300), "corrupt header: x scale 1e+300 and offset -49.981 put "
+                     "coordinates past ±3.9e+153"),
+    "scale not a number": ("1.4", ".las", _put(147, "<d", float("nan")), "corrupt header: z scale nan and offset"),
+    "offset infinite": ("1.2", ".las", _put(155, "<d", float("inf")), "corrupt header: x scale 0.001 and offset inf "
+                        "are not finite"),
 }
 
 
 @pytest.mark.parametrize("case", list(LAS_CORRUPTIONS))
 def test_corrupt_las_header_is_skipped_before_laspy_reads_it(tmp_path, laspy_bounded, case):
     """Counts and sizes a LAS/LAZ header declares beyond what the file holds: skipped with the first that does
-    not fit, instead of laspy looping over 4 billion VLRs (a hung run) or lazrs aborting the process."""
+    not fit, instead of laspy looping over 4 billion VLRs (a hung run), lazrs aborting the process or panicking (a
+    chunk past the data), the memory check ending the run (points the chunks cannot hold) or numpy's overflow
+    warning on the terminal (coordinates past float64's range)."""
     version, suffix, corrupt, reason = LAS_CORRUPTIONS[case]
     content = corrupt(_las_bytes(_points(3000), version, compress=suffix == ".laz"))
-    found = _skipped_reason(tmp_path, f"bad{suffix}", content)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        found = _skipped_reason(tmp_path, f"bad{suffix}", content)
     assert f"not a readable {suffix[1:].upper()} file ({reason}" in found, found
     assert point_count(tmp_path / "scene" / f"bad{suffix}") == 0  # left to the reader to refuse
 
@@ -188,6 +217,39 @@ def test_las_overstating_its_point_count_is_skipped_not_a_memory_error(tmp_path,
     assert f"1,000,000,000 points of 34 bytes declared in {len(content) - (375 if version == '1.4' else 227):,} " \
            "bytes of point data" in reason, reason
     check_memory(tmp_path / "scene" / "s3.las")
+
+
+def _variable_chunks(data, P):
+    """The LAZ ``data`` of the points ``P`` compressed again in chunks of variable size (1,000 points, then the
+    rest), which its chunk table counts one by one."""
+    import lazrs
+
+    offset = struct.unpack_from("<I", data, 96)[0]
+    struct.pack_into("<I", data, offset - 52 + 12, 0xFFFFFFFF)  # the laszip VLR's chunk size: variable
+    las = _las_bytes(P)
+    records = bytes(las[struct.unpack_from("<I", las, 96)[0]:])
+    out = io.BytesIO(bytes(data[:offset]))
+    out.seek(0, io.SEEK_END)
+    compressor = lazrs.LasZipCompressor(out, lazrs.LazVlr(bytes(data[offset - 52:offset])))
+    compressor.compress_chunks([records[:1000 * 34], records[1000 * 34:]])
+    compressor.done()
+    return bytearray(out.getvalue())
+
+
+@pytest.mark.parametrize("variable", [False, True], ids=["fixed chunks", "variable chunks"])
+@pytest.mark.parametrize("version, at, fmt", [("1.2", 107, "<I"), ("1.4", 247, "<Q")])
+def test_laz_overstating_its_point_count_is_skipped_not_a_memory_error(tmp_path, version, at, fmt, variable):
+    """The same for a LAZ, whose compressed size bounds no count: its chunk table does (each chunk's points, or the
+    chunk size for chunks of a fixed size). It ended the run as "reading it needs about 111.8 GB"."""
+    P = _points(3000)
+    data = _las_bytes(P, version, compress=True)
+    data = _variable_chunks(data, P) if variable else data
+    (tmp_path / "whole.laz").write_bytes(data)
+    np.testing.assert_allclose(load_scan(tmp_path / "whole.laz"), P, atol=0.5e-3)
+    reason = _skipped_reason(tmp_path, "s3.laz", _put(at, fmt, 10**9)(data))
+    assert f"corrupt header: 1,000,000,000 points declared where the chunk table holds at most " \
+           f"{3000 if variable else 50000:,}" in reason, reason
+    check_memory(tmp_path / "scene" / "s3.laz")
 
 
 LAS_FIELDS = {

@@ -342,10 +342,15 @@ def _reason(error: Exception) -> str:
 _LAS_HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235}  # public header bytes by minor version; 375 from LAS 1.4
 _LAS_RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)  # bytes of a point record, by point format 0-10
 _LAS_VLR_HEADER, _LAS_EVLR_HEADER = 54, 60
+_LASZIP_VLR = (b"laszip encoded", 22204)  # user id and record id of the VLR that says how the points are compressed
+_LAS_COORDINATE_LIMIT = float(np.sqrt(np.finfo(np.float64).max / 12))
+"""How far from 0 a LAS coordinate (int32 record × scale + offset) may reach: the diagonal of a box of such points
+still fits in float64 (about 3.9e153, past any survey); beyond it the scan's statistics overflow."""
 
 
 def _las_point_count(path: Path) -> int:
-    """The point count of a LAS/LAZ public header, once its sizes and counts are found to fit in the file.
+    """The point count of a LAS/LAZ public header, once its sizes and counts are found to fit in the file (for LAZ,
+    in its chunk table) and its scales and offsets to give finite coordinates.
 
     laspy trusts them: it loops over as many (E)VLRs as declared, reading nothing once past the end, and allocates
     the declared points, so a corrupt header would hang the run, eat memory without limit or pass as a scan too
@@ -378,19 +383,29 @@ def _las_point_count(path: Path) -> int:
     point_format = format_id & 0x3F
     if point_format >= len(_LAS_RECORD_SIZES) or record < _LAS_RECORD_SIZES[point_format]:
         raise InputError(f"corrupt header: point format {point_format} with {record}-byte records")
+    for axis, scale, shift in zip("xyz", struct.unpack_from("<3d", head, 131), struct.unpack_from("<3d", head, 155)):
+        if not abs(scale) * 2**31 + abs(shift) <= _LAS_COORDINATE_LIMIT:  # also NaN
+            why = (f"put coordinates past ±{_LAS_COORDINATE_LIMIT:.2g}" if np.isfinite([scale, shift]).all()
+                   else "are not finite")
+            raise InputError(f"corrupt header: {axis} scale {scale:g} and offset {shift:g} {why}")
     compressed = bool(format_id & 0x80) and not format_id & 0x40
     if compressed:
-        _check_laz_chunk_table(path, offset, size)
+        _check_laz_chunk_table(path, header_size, offset, size, count)
     elif count * record > size - offset:
         raise InputError(f"corrupt header: {count:,} points of {record} bytes declared in {size - offset:,} bytes "
                          f"of point data")
     return count
 
 
-def _check_laz_chunk_table(path: Path, offset: int, size: int) -> None:
-    """``InputError`` when the LAZ chunk table (located by the int64 at the start of the point data) declares more
-    chunks than there are bytes of compressed points before it: lazrs reserves memory for them all first and
-    aborts the process when it cannot. A table outside the file is left to lazrs, which reports it."""
+def _check_laz_chunk_table(path: Path, header_size: int, offset: int, size: int, count: int) -> None:
+    """``InputError`` when the LAZ chunk table (located by the int64 at the start of the point data) does not fit
+    the bytes of compressed points before it or the header's ``count``: more chunks declared than there are bytes
+    (lazrs reserves memory for them all first and aborts the process when it cannot), chunks whose sizes add up past
+    the bytes (lazrs panics), or fewer points in the chunks than ``count`` (the file's size bounds no count, so the
+    memory check would take it for a scan too large for the machine). A table outside the file, or a file without
+    the laszip VLR, is left to lazrs, which reports it."""
+    import lazrs
+
     with open(path, "rb") as f:
         f.seek(offset)
         raw = f.read(8)
@@ -399,9 +414,36 @@ def _check_laz_chunk_table(path: Path, offset: int, size: int) -> None:
             return
         f.seek(table)
         _, chunks = struct.unpack("<II", f.read(8))
-    if chunks > table - offset - 8:
-        raise InputError(f"corrupt chunk table: {chunks:,} chunks declared for {table - offset - 8:,} bytes of "
+        available = table - offset - 8
+        if chunks > available:
+            raise InputError(f"corrupt chunk table: {chunks:,} chunks declared for {available:,} bytes of compressed "
+                             f"points")
+        vlr = _laszip_vlr(f, header_size, offset)
+        if vlr is None:
+            return
+        f.seek(offset)
+        # (points, bytes) a chunk; for chunks of a fixed size, the size: the last one's count is then a bound
+        entries = lazrs.read_chunk_table(f, lazrs.LazVlr(vlr))
+    points, used = sum(n for n, _ in entries), sum(b for _, b in entries)
+    if used > available:
+        raise InputError(f"corrupt chunk table: chunks of {used:,} bytes declared in {available:,} bytes of "
                          f"compressed points")
+    if count > points:
+        raise InputError(f"corrupt header: {count:,} points declared where the chunk table holds at most {points:,}")
+
+
+def _laszip_vlr(f, header_size: int, offset: int) -> bytes | None:
+    """The data of the laszip VLR among the VLRs between the header and the point data of the LAZ file open as
+    ``f``, or None."""
+    at = header_size
+    while at + _LAS_VLR_HEADER <= offset:
+        f.seek(at)
+        head = f.read(_LAS_VLR_HEADER)
+        record_id, length = struct.unpack_from("<HH", head, 18)
+        if (head[2:18].rstrip(b"\0"), record_id) == _LASZIP_VLR:
+            return f.read(length)
+        at += _LAS_VLR_HEADER + length
+    return None
 
 
 def _read_las(path: Path) -> np.ndarray:
