@@ -266,7 +266,8 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
     per-point noise does not see); NaN for unregistered scans."""
     if result.graph.information is not None and any(p.bounded is not None or (grid and p.grid is not None)
                                                      for p in result.pairs):
-        information = np.stack([_reported_information(p, stiffen, grid) for p in result.pairs])
+        information = np.stack([_reported_information(p, info, stiffen, grid)
+                                for p, info in zip(result.pairs, result.graph.information)])
         result = replace(result, graph=replace(result.graph, information=information))
     factor = variance_factor(result, noise=noise)
     factors, values = to_gtsam(result, noise=noise)
@@ -284,10 +285,11 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
     return out
 
 
-def _reported_information(pair: "PairResult", stiffen: float, grid: bool) -> np.ndarray:
+def _reported_information(pair: "PairResult", information: np.ndarray, stiffen: float, grid: bool) -> np.ndarray:
     """The information ``pose_covariances`` gives an edge: ``bounded`` (free directions ``stiffen`` times stiffer)
-    or ``information``, and with ``grid`` the inverse of its covariance plus ``grid gridᵀ`` (Sherman-Morrison)."""
-    info = pair.information if pair.bounded is None else pair.bounded + (stiffen - 1.0) * pair.loose
+    or its ``information`` in the graph (a pair without any has a placeholder there), and with ``grid`` the inverse
+    of its covariance plus ``grid gridᵀ`` (Sherman-Morrison)."""
+    info = information if pair.bounded is None else pair.bounded + (stiffen - 1.0) * pair.loose
     if grid and pair.grid is not None:
         w = info @ pair.grid
         info = info - np.outer(w, w) / (1.0 + pair.grid @ w)

@@ -159,7 +159,7 @@ def test_reported_information_adds_the_grid_term_to_the_covariance(seed, scale, 
     A = rng.normal(size=(6, 6))
     information = A @ A.T + 6 * np.eye(6)
     pair = PairResult(np.eye(4), 10, 0.5, 0.01, information, 0.0, grid=scale * rng.normal(size=6))
-    got = _reported_information(pair, 1.0, with_grid)
+    got = _reported_information(pair, information, 1.0, with_grid)
     want = np.linalg.inv(np.linalg.inv(information) + np.outer(pair.grid, pair.grid)) if with_grid else information
     np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(information).max())
 

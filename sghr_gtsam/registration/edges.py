@@ -10,6 +10,7 @@ import numpy as np
 
 from ..store import Stored
 from ..types import PoseGraph
+from .information import FREE_FLOOR
 from .pairwise import PairResult
 from .visibility import conflicts, contradicted
 
@@ -29,6 +30,19 @@ EDGE_STATUS = {
                  "other registrations agree on: no measurement (registration.overrule; graph_rejected.g2o)",
     "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
 }
+
+
+def _information(pairs: list[PairResult]) -> np.ndarray | None:
+    """(E, 6, 6) the pairs' information; None when none has any. A pair without (fewer than 3 matches, or under
+    ``information.MIN_PAIRS`` close points: a failed registration) gets ``FREE_FLOOR`` of the weakest measured
+    information on each axis: positive definite, as synchronization and the g2o files ask, and too weak to pull.
+    A single such pair (a featureless scan) used to take the information of every edge, calibrated covariances
+    and g2o included."""
+    measured = [p.information for p in pairs if p.information is not None]
+    if not measured:
+        return None
+    weakest = np.diag(FREE_FLOOR * np.diagonal(np.stack(measured), axis1=1, axis2=2).min(axis=0))
+    return np.stack([weakest if p.information is None else p.information for p in pairs])
 
 
 def edge_status(result: "RunResult") -> list[str]:
@@ -100,10 +114,9 @@ class EdgeSet:
         s = scores[i, j]
         r = np.array([p.inliers for p in self.pairs], dtype=float)
         r[(r < min_inliers) | self.contradicted() | self.overruled] = 0.0
-        info = [p.information for p in self.pairs]
         return PoseGraph(
             n=n, i=i, j=j,
             T=np.stack([p.T for p in self.pairs]) if self.pairs else np.zeros((0, 4, 4)),
             weight={"s*r": s * r, "s": np.where(r > 0, s, 0.0), "r": r}[initial_weight],
-            information=np.stack(info) if self.pairs and all(x is not None for x in info) else None,
+            information=_information(self.pairs),
         )

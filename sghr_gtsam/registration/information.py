@@ -156,6 +156,14 @@ def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: n
         values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
     except np.linalg.LinAlgError:  # collinear points (A singular) or a non-finite information: nothing to test
         return Information(information, 0, np.zeros((6, 6)), information)
+    AV = A @ vectors
+    if values[0] < FREE_FLOOR * values[-1]:
+        # A direction the close points do not measure at all (a few points of a wrong registration: rank 4 seen on
+        # noise scans) leaves the information singular, which synchronization and the g2o files refuse. It gets
+        # the floor a free direction keeps; never reached on the real scenes' pairs (docs/BENCHMARKS.md).
+        values = np.maximum(values, FREE_FLOOR * values[-1])
+        information = AV @ np.diag(values) @ AV.T
+        information = (information + information.T) / 2
     free = 0
     for k in range(6):
         xi = step * vectors[:, k]
@@ -165,7 +173,6 @@ def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: n
         free += 1
     if free == 0:
         return Information(information, 0, np.zeros((6, 6)), information)
-    AV = A @ vectors
     bound = max(1.0 / float(np.sum(np.var(q, axis=0))), FREE_FLOOR * values[-1])
     fixed = AV[:, free:] @ np.diag(values[free:]) @ AV[:, free:].T
     loose = bound * AV[:, :free] @ AV[:, :free].T
