@@ -47,7 +47,7 @@ from .result import RunResult
 from .se3 import inv_T
 from .store import Attribute, Store, Stored
 from .sync import contested, synchronize, unverified
-from .types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
+from .types import COORDINATE_LIMIT, InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
 
 Log = Callable[[str], None]
 
@@ -88,7 +88,7 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
             log(f"skipped {path.name}: {e}")
             continue
         if dropped:
-            log(f"{path.name}: dropped {dropped} non-finite points")
+            log(f"{path.name}: dropped {dropped} points not finite or past ±{COORDINATE_LIMIT:.2g}")
         if sparse := _too_sparse(len(P), config.min_points):
             skipped[path.name] = sparse
             log(f"skipped {path.name}: {sparse}")

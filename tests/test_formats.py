@@ -422,3 +422,20 @@ def test_evo_reads_tum_and_kitti_to_the_same_trajectory(tmp_path):
     ape = metrics.APE(metrics.PoseRelation.translation_part)
     ape.process_data((ref, est))
     assert ape.get_statistic(metrics.StatisticsType.max) == pytest.approx(0.5)
+
+
+def test_coordinates_past_float64_geometry_are_dropped_as_not_finite(tmp_path):
+    """An ``.npy`` at 1e200: the scan's statistics squared past float64 (numpy's overflow warning on the terminal),
+    then the scan was skipped as "its extent inf is infx the median scan's"; one such point among good ones made
+    the extent inf the same way."""
+    stray = _points(300, 2)
+    stray[7] = [1e200, 0.0, 0.0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        reason = _skipped_reason(tmp_path, "far.npy", _npy_bytes(np.full((300, 3), 1e200)))
+        assert reason == "only 0 finite points (< 100)", reason
+        np.save(tmp_path / "scene" / "stray.npy", stray)
+        logged = []
+        scans, skipped = load_scene(tmp_path / "scene", Config(), log=logged.append)
+    assert "stray.npy" in [s.name for s in scans] and next(s for s in scans if s.name == "stray.npy").stats.points == 299
+    assert "stray.npy: dropped 1 points not finite or past ±3.9e+153" in logged, logged

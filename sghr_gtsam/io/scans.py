@@ -19,6 +19,7 @@ import open3d as o3d
 
 from sghr_gtsam.io.atomic import atomic_path, atomic_write
 from sghr_gtsam.errors import InputError
+from sghr_gtsam.types import COORDINATE_LIMIT, finite_rows
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
@@ -343,9 +344,6 @@ _LAS_HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235}  # public header bytes by m
 _LAS_RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)  # bytes of a point record, by point format 0-10
 _LAS_VLR_HEADER, _LAS_EVLR_HEADER = 54, 60
 _LASZIP_VLR = (b"laszip encoded", 22204)  # user id and record id of the VLR that says how the points are compressed
-_LAS_COORDINATE_LIMIT = float(np.sqrt(np.finfo(np.float64).max / 12))
-"""How far from 0 a LAS coordinate (int32 record × scale + offset) may reach: the diagonal of a box of such points
-still fits in float64 (about 3.9e153, past any survey); beyond it the scan's statistics overflow."""
 
 
 def _las_point_count(path: Path) -> int:
@@ -384,8 +382,8 @@ def _las_point_count(path: Path) -> int:
     if point_format >= len(_LAS_RECORD_SIZES) or record < _LAS_RECORD_SIZES[point_format]:
         raise InputError(f"corrupt header: point format {point_format} with {record}-byte records")
     for axis, scale, shift in zip("xyz", struct.unpack_from("<3d", head, 131), struct.unpack_from("<3d", head, 155)):
-        if not abs(scale) * 2**31 + abs(shift) <= _LAS_COORDINATE_LIMIT:  # also NaN
-            why = (f"put coordinates past ±{_LAS_COORDINATE_LIMIT:.2g}" if np.isfinite([scale, shift]).all()
+        if not abs(scale) * 2**31 + abs(shift) <= COORDINATE_LIMIT:  # also NaN
+            why = (f"put coordinates past ±{COORDINATE_LIMIT:.2g}" if np.isfinite([scale, shift]).all()
                    else "are not finite")
             raise InputError(f"corrupt header: {axis} scale {scale:g} and offset {shift:g} {why}")
     compressed = bool(format_id & 0x80) and not format_id & 0x40
@@ -593,8 +591,8 @@ def _is_text(path: Path) -> bool:
 
 
 def finite_points(points: np.ndarray) -> tuple[np.ndarray, int]:
-    """The rows of ``points`` whose coordinates are all finite, and how many rows were dropped."""
-    keep = np.isfinite(points).all(axis=1)
+    """The rows of ``points`` whose coordinates are all finite (``types.finite_rows``), and how many were dropped."""
+    keep = finite_rows(points)
     return points[keep], int(len(points) - keep.sum())
 
 
