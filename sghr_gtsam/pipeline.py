@@ -30,7 +30,7 @@ from .io.features import read_features
 from .io.atomic import staged_folder
 from .io.poses import unwritable_name
 from .io.results import CACHE, check_output_folder, write_results
-from .io.scans import check_memory, finite_points, list_scans, load_scan
+from .io.scans import COORDINATE_LIMIT, check_memory, finite_points, list_scans, load_scan
 from .merged import merged_cloud
 from .progress import QUIET, Progress
 from .recording import Recorder
@@ -47,7 +47,7 @@ from .result import RunResult
 from .se3 import inv_T
 from .store import Attribute, Store, Stored
 from .sync import contested, synchronize, unverified
-from .types import COORDINATE_LIMIT, InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
+from .types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
 
 Log = Callable[[str], None]
 

@@ -63,17 +63,6 @@ class ScanStats:
         return cls(len(points), float(np.linalg.norm(high - low)), span, median, _digest(points))
 
 
-COORDINATE_LIMIT = float(np.sqrt(np.finfo(np.float64).max / 12))
-"""How far from 0 a coordinate may lie (about 3.9e153, past any survey): the diagonal of a box of such points, what
-the checks before registration measure, still fits in float64. A point beyond counts as not finite."""
-
-
-def finite_rows(points: np.ndarray) -> np.ndarray:
-    """(P,) bool: the rows of (P, 3) ``points`` whose coordinates are finite and within ``COORDINATE_LIMIT`` (NaN
-    fails both comparisons); bools only, no float copy of a large scan."""
-    return ((points <= COORDINATE_LIMIT) & (points >= -COORDINATE_LIMIT)).all(axis=1)
-
-
 def _digest(points: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(points)).hexdigest()
 
@@ -94,16 +83,16 @@ class Scan:
     def input_points(self) -> np.ndarray:
         """The scan's finite points in its input frame, (P, 3) float64, read from its file if it has one
         (``InputError`` when it cannot be read or would not fit in memory: ``io.scans.check_memory``)."""
-        if isinstance(self.source, (str, os.PathLike)):
-            from .io.scans import check_memory, load_scan  # io builds on this module
+        from .io.scans import check_memory, finite_points, load_scan  # io builds on this module
 
+        if isinstance(self.source, (str, os.PathLike)):
             check_memory(self.source)
             points = load_scan(self.source)
         else:
             points = np.asarray(self.source, dtype=np.float64)
             if points.ndim != 2 or points.shape[1] != 3:
                 raise InputError(f"scan {self.name}: points must be (N, 3), got shape {points.shape}")
-        points = points[finite_rows(points)]
+        points, _ = finite_points(points)
         if not len(points):
             raise InputError(f"scan {self.name} has no finite points")
         return points

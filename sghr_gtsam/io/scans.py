@@ -19,7 +19,6 @@ import open3d as o3d
 
 from sghr_gtsam.io.atomic import atomic_path, atomic_write
 from sghr_gtsam.errors import InputError
-from sghr_gtsam.types import COORDINATE_LIMIT, finite_rows
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
@@ -340,6 +339,9 @@ def _reason(error: Exception) -> str:
     return " ".join(str(error).split("****")[0].split()) or type(error).__name__
 
 
+COORDINATE_LIMIT = float(np.sqrt(np.finfo(np.float64).max / 12))
+"""How far from 0 a coordinate may lie (about 3.9e153, past any survey): the diagonal of a box of such points, what
+the checks before registration measure, still fits in float64. A point beyond counts as not finite."""
 _LAS_HEADER_SIZES = {0: 227, 1: 227, 2: 227, 3: 235}  # public header bytes by minor version; 375 from LAS 1.4
 _LAS_RECORD_SIZES = (20, 28, 26, 34, 57, 63, 30, 36, 38, 59, 67)  # bytes of a point record, by point format 0-10
 _LAS_VLR_HEADER, _LAS_EVLR_HEADER = 54, 60
@@ -591,8 +593,9 @@ def _is_text(path: Path) -> bool:
 
 
 def finite_points(points: np.ndarray) -> tuple[np.ndarray, int]:
-    """The rows of ``points`` whose coordinates are all finite (``types.finite_rows``), and how many were dropped."""
-    keep = finite_rows(points)
+    """The rows of ``points`` whose coordinates are all finite and within ``COORDINATE_LIMIT`` (NaN fails both
+    comparisons: bools only, no float copy of a large scan), and how many rows were dropped."""
+    keep = ((points <= COORDINATE_LIMIT) & (points >= -COORDINATE_LIMIT)).all(axis=1)
     return points[keep], int(len(points) - keep.sum())
 
 
