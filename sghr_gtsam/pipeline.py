@@ -30,7 +30,7 @@ from .io.features import read_features
 from .io.atomic import staged_folder
 from .io.poses import unwritable_name
 from .io.results import CACHE, check_output_folder, write_results
-from .io.scans import COORDINATE_LIMIT, check_memory, finite_points, list_scans, load_scan
+from .io.scans import COORDINATE_LIMIT, check_memory, finite_points, left_out, list_scans, load_scan
 from .merged import merged_cloud
 from .progress import QUIET, Progress
 from .recording import Recorder
@@ -74,7 +74,10 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     scans: list[Scan] = []
     skipped: dict[str, str] = {}
     digests: dict[str, str] = {}
-    for path in list_scans(folder):
+    paths = list_scans(folder)
+    for name in left_out(folder):
+        log(f"not a scan, by its name: {name} (poses, a trajectory, overlaps or a readme)")
+    for path in paths:
         if unwritable_name(path.name):  # the results name scans by their file names
             skipped[path.name] = (f"its name {path.name!r} cannot be written on its own line in the pose files: "
                                   f"rename it")

@@ -305,6 +305,35 @@ def test_comma_separated_text_reads_exactly(rows, separator):
         np.testing.assert_array_equal(load_scan(path), P)
 
 
+@pytest.mark.parametrize("first", ["-3.011641 -1.440960 1.749830", "1 -1,440960 1,749830", "0 0 0"])
+def test_decimal_commas_after_the_first_line_are_refused_naming_the_line(tmp_path, first):
+    """Only the first data line was tested: a file whose first line has dots (or an integer) and the rest decimal
+    commas was read as x_int, x_frac, y_int from line 2 on, without a word."""
+    path = tmp_path / "scan.xyz"
+    path.write_text(first + "\n" + "-2,965948 -1,467908 1,752290\n" * 5)
+    line = 1 if "," in first else 2
+    with pytest.raises(InputError, match=f"scan.xyz: line {line}: decimal commas"):
+        load_scan(path)
+
+
+@pytest.mark.parametrize("header", ["x y z intensity", "//X Y Z R G B", "X,Y,Z", "6"])
+@pytest.mark.parametrize("separator", [" ", ",", ";"])
+def test_text_with_a_header_line_or_semicolons_reads(tmp_path, header, separator):
+    """Column names (CloudCompare's ``//X Y Z``), a point count first (``.pts``) and semicolon-separated columns were
+    refused whole with numpy's "could not convert string 'x' to float64 at row 0"."""
+    P = _points(6)
+    path = tmp_path / "scan.txt"
+    path.write_text(header + "\n" + "".join(separator.join(map(repr, row)) + " 0.5\n" for row in P.tolist()))
+    np.testing.assert_array_equal(load_scan(path), P)
+
+
+def test_a_data_line_with_a_typo_is_no_header(tmp_path):
+    path = tmp_path / "scan.txt"
+    path.write_text("1.0 2.0 3.O\n" + "1.0 2.0 3.0\n" * 5)
+    with pytest.raises(InputError, match="expected x y z numbers on every line"):
+        load_scan(path)
+
+
 def test_text_with_a_byte_order_mark_reads(tmp_path):
     """Windows tools write a UTF-8 byte-order mark; it was read as part of the first number and the file refused."""
     P = _points(50)

@@ -23,7 +23,7 @@ from sghr_gtsam.io.poses import (
     write_kitti,
     write_poses,
 )
-from sghr_gtsam.io.scans import finite_points, list_scans, load_scan, point_count, write_ply, write_scan
+from sghr_gtsam.io.scans import finite_points, left_out, list_scans, load_scan, point_count, write_ply, write_scan
 from sghr_gtsam.se3 import inv_T, make_T, project_to_so3
 from sghr_gtsam.types import InputError
 
@@ -269,7 +269,7 @@ BAD_SCANS = {
     "truncated pcd": (_truncated_pcd, "truncated PCD"),
     "binary labelled txt": (_write("b.txt", bytes(range(256))), "not a text file"),
     "text with two columns": (_write("two.xyz", "1 2 3\n3 4\n"), "expected x y z numbers"),
-    "text with words": (_write("w.txt", "x y z\n1 2 3\n"), "could not convert string 'x'"),
+    "text with words": (_write("w.txt", "1 2 3\nx y z\n"), "could not convert string 'x'"),
     "text with comments only": (_write("c.xyz", "# nothing\n\n"), "no points"),
     "npy with two columns": (_save_npy("two.npy", np.zeros((10, 2))), "shape (10, 2)"),
     "npy 1-d": (_save_npy("flat.npy", np.zeros(30)), "shape (30,)"),
@@ -307,6 +307,18 @@ def test_list_scans_natural_order_and_non_scans_skipped(tmp_path):
         (tmp_path / name).write_text("x")
     (tmp_path / "sub.ply").mkdir()
     assert [p.name for p in list_scans(tmp_path)] == ["b.npz", "c.pcd", "s1.xyz", "s2.npy", "S3.TXT", "s10.ply"]
+    assert left_out(tmp_path) == ["0.pose.txt", "README.txt", "gt_poses.txt", "overlap.txt", "poses.txt",
+                                  "poses_kitti.txt"]
+
+
+def test_scans_whose_names_hold_a_non_scan_word_inside_another_word_are_listed(tmp_path):
+    """``*pose*.txt`` left ``exposed_wall_03.txt`` (and "composed", "purpose", ``license_plates.ply``) out of the
+    run without a word."""
+    for name in ["exposed_wall_03.txt", "composed.txt", "purpose.txt", "license_plates.ply", "trajan.txt"]:
+        (tmp_path / name).write_text("x")
+    assert sorted(p.name for p in list_scans(tmp_path)) == ["composed.txt", "exposed_wall_03.txt",
+                                                           "license_plates.ply", "purpose.txt", "trajan.txt"]
+    assert left_out(tmp_path) == []
 
 
 def test_list_scans_missing_empty_or_scanless_folder(tmp_path):

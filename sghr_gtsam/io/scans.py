@@ -8,7 +8,6 @@ are checked against the file's size before laspy, which trusts them, reads it.
 
 from __future__ import annotations
 
-import fnmatch
 import re
 import struct
 from dataclasses import dataclass
@@ -22,10 +21,11 @@ from sghr_gtsam.errors import InputError
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
-NON_SCAN_PATTERNS = ("*pose*.txt", "*traj*.txt", "*overlap*.txt", "readme*", "license*")
-"""``.txt`` is also a scan format, so files matching these (lower-cased) names are not listed as
-scans: ground truth and outputs such as ``gt_poses.txt``, ``poses.txt``, ``0.pose.txt``,
-``overlap.txt``. ``.log`` / ``.conf`` / ``.info`` files are never scans (not in ``SCAN_SUFFIXES``)."""
+NON_SCAN_WORDS = frozenset({"pose", "poses", "traj", "trajectory", "overlap", "overlaps", "readme", "license"})
+"""``.txt`` is also a scan format, so a ``.txt`` file whose name holds one of these words (its letter runs,
+lower-cased) is no scan: ground truth and outputs such as ``gt_poses.txt``, ``poses_kitti.txt``, ``0.pose.txt``,
+``overlap.txt``, and READMEs. Whole words: ``exposed_wall.txt`` is a scan (substrings left it out silently).
+``.log`` / ``.conf`` / ``.info`` files are never scans (not in ``SCAN_SUFFIXES``)."""
 
 
 def _natural_key(path: Path) -> tuple[list[str | int], str]:
@@ -35,26 +35,31 @@ def _natural_key(path: Path) -> tuple[list[str | int], str]:
     return [int(part) if k % 2 else part.lower() for k, part in enumerate(parts)], path.name
 
 
-def _is_scan_file(path: Path) -> bool:
+def _named_not_scan(path: Path) -> bool:
+    return path.suffix.lower() == ".txt" and not NON_SCAN_WORDS.isdisjoint(re.findall("[a-z]+", path.stem.lower()))
+
+
+def _scan_like(path: Path) -> bool:
     """A file, or a symbolic link that does not lead to one (broken, a loop: listed, so that it is skipped with a
-    reason instead of silently), with a scan suffix and not a known non-scan name."""
-    name = path.name.lower()
-    return (
-        (path.is_file() or path.is_symlink() and not path.is_dir())
-        and path.suffix.lower() in SCAN_SUFFIXES
-        and not name.startswith(".")  # hidden files, including atomic_write's temporaries
-        and not any(fnmatch.fnmatch(name, pattern) for pattern in NON_SCAN_PATTERNS)
-    )
+    reason instead of silently), with a scan suffix, not hidden (atomic_write's temporaries are)."""
+    return ((path.is_file() or path.is_symlink() and not path.is_dir()) and path.suffix.lower() in SCAN_SUFFIXES
+            and not path.name.startswith("."))
+
+
+def left_out(folder: str | Path) -> list[str]:
+    """The names of ``folder``'s files with a scan suffix that ``list_scans`` leaves out by their names
+    (``NON_SCAN_WORDS``), for the run to say so."""
+    return sorted(p.name for p in Path(folder).iterdir() if _scan_like(p) and _named_not_scan(p))
 
 
 def list_scans(folder: str | Path) -> list[Path]:
     """Scan files in ``folder`` (not recursive), in natural file-name order (``cloud_bin_2`` before
-    ``cloud_bin_10``); the order defines the scan indices. Raises ``InputError`` when the folder does
-    not exist or holds no scans."""
+    ``cloud_bin_10``); the order defines the scan indices; ``.txt`` files named as poses, trajectories, overlaps or
+    READMEs are left out (``left_out``). Raises ``InputError`` when the folder does not exist or holds no scans."""
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"scan folder {folder} does not exist" if not folder.exists() else f"{folder} is not a folder")
-    scans = sorted((p for p in folder.iterdir() if _is_scan_file(p)), key=_natural_key)
+    scans = sorted((p for p in folder.iterdir() if _scan_like(p) and not _named_not_scan(p)), key=_natural_key)
     if not scans:
         raise InputError(f"no scans in {folder} (looked for {', '.join(SCAN_SUFFIXES)})")
     return scans
@@ -271,8 +276,20 @@ def _read_open3d(path: Path, fmt: str, expected: int) -> np.ndarray:
     return points
 
 
-_DECIMAL_COMMAS = re.compile(r"\s*[-+]?\d+,\d+([eE][-+]?\d+)?(\s+[-+]?\d+,\d+([eE][-+]?\d+)?){2,}\s*")
-"""A line of whitespace-separated numbers each with one decimal comma (a European-locale export)."""
+_DECIMAL_COMMA = re.compile(r"(?:^|[ \t])[-+]?\d+,\d+(?:[eE][-+]?\d+)?(?=[ \t\r]|$)", re.MULTILINE)
+"""A number with a decimal comma standing alone between blanks (a European-locale export); CSV's commas have no
+blank on one side (``1.5,2.5``) or no digits after them (``1, 2``)."""
+
+
+def _decimal_comma_line(text: str) -> tuple[int, str] | None:
+    """The first line (number, text) where a number with a decimal comma stands beside other numbers, or None: read
+    with commas as separators, such lines give wrong coordinates, on any line of the file."""
+    for match in _DECIMAL_COMMA.finditer(text):
+        start = text.rfind("\n", 0, match.start()) + 1
+        row = text[start:match.end()].split("#", 1)[0] + text[match.end():].split("\n", 1)[0].split("#", 1)[0]
+        if match.end() - start <= len(row.rstrip("\r")) and len(row.split()) >= 2:
+            return text.count("\n", 0, start) + 1, row
+    return None
 
 
 def _read_text(path: Path) -> np.ndarray:
@@ -280,19 +297,37 @@ def _read_text(path: Path) -> np.ndarray:
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (Windows exports) is no number
     except UnicodeDecodeError:
         raise InputError("not a text file") from None
-    rows = (line.split("#", 1)[0] for line in text.splitlines())
-    first = next(((number, row) for number, row in enumerate(rows, 1) if row.replace(",", " ").strip()), None)
-    if first is None:
-        raise InputError("no points")
-    number, row = first
-    if _DECIMAL_COMMAS.fullmatch(row):  # read with commas as separators, these would be wrong coordinates
+    text = text.replace(";", " ")  # semicolons separate columns in some exports
+    if found := _decimal_comma_line(text):
+        number, row = found
         raise InputError(f"line {number}: decimal commas ({row.strip()[:60]!r}) are not read: convert them to points")
     # Commas as separators are common in exported .xyz/.txt; extra columns (normals, colour) are ignored.
     lines = text.replace(",", " ").splitlines()
+    first = next((k for k, line in enumerate(lines) if line.split("#", 1)[0].strip()), None)
+    if first is None:
+        raise InputError("no points")
+    if _header_line(lines[first].split("#", 1)[0].split()):
+        lines[first] = ""
     try:
         return np.loadtxt(lines, comments="#", usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
     except ValueError as e:
         raise InputError(f"expected x y z numbers on every line ({' '.join(str(e).split())})") from None
+
+
+def _header_line(words: list[str]) -> bool:
+    """Whether the first line of a text scan is a header to skip: column names (``x y z``, CloudCompare's ``//X Y Z``:
+    no word a number, so a data line with a typo is still refused) or a point count alone (as ``.pts`` files begin)."""
+    if len(words) == 1 and words[0].isdigit():
+        return True
+    return not any(_number(word) for word in words)
+
+
+def _number(word: str) -> bool:
+    try:
+        float(word)
+    except ValueError:
+        return False
+    return True
 
 
 def _as_points(array: object) -> np.ndarray:
@@ -475,8 +510,9 @@ def _read_e57(path: Path) -> np.ndarray:
 def load_scan(path: str | Path) -> np.ndarray:
     """Points of one scan as a C-contiguous (N, 3) float64 array, N >= 1.
 
-    .ply / .pcd (ASCII or binary; x, y, z of any numeric type); .xyz / .txt: x y z per line (whitespace or commas,
-    ``#`` comments, extra columns ignored; decimal commas refused); .npy: an (N, >=3) numeric array; .npz: the array
+    .ply / .pcd (ASCII or binary; x, y, z of any numeric type); .xyz / .txt: x y z per line (whitespace, commas or
+    semicolons; ``#`` comments, extra columns and a first line of column names or a point count ignored; decimal
+    commas refused); .npy: an (N, >=3) numeric array; .npz: the array
     ``points``, else the first one; .las / .laz: the point records' coordinates (laspy, lazrs); .e57: all its point
     sets in the file's frame (pye57).
     Non-finite rows are kept (see ``finite_points``). Raises ``InputError`` when the file cannot be
