@@ -573,7 +573,7 @@ SYNC_ERRORS = {
                          "not positive definite"),
     "self-loop": (_V.format(0) + _V.format(1) + _edge(1, 1), "line 3: edge 1-1 joins a vertex to itself"),
     "edge to an undefined vertex": (_V.format(0) + _edge(0, 5), "refers to a vertex that is not defined"),
-    "duplicate vertex": (_V.format(0) + _V.format(0) + _edge(0, 0), "duplicate vertex ids"),
+    "duplicate vertex": (_V.format(0) + _V.format(0) + _edge(0, 0), "line 2: vertex 0 is defined a second time"),
     "empty file": ("", "no VERTEX_SE3:QUAT lines"),
 }
 

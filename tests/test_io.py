@@ -488,3 +488,60 @@ def test_g2o_edges_only_file_names_its_vertices_by_id(tmp_path):
     assert ids == [7, 8, 9] and poses is None
     np.testing.assert_array_equal(alone.i, back.i)
     np.testing.assert_array_equal(alone.information, info)
+
+
+_VERTEX = "VERTEX_SE3:QUAT {} 0 0 0 0 0 0 1\n"
+
+
+def _edge_line(a, b, diagonal=(1, 1, 1, 1, 1, 1)) -> str:
+    info = [diagonal[r] if r == c else 0 for r in range(6) for c in range(r, 6)]
+    return f"EDGE_SE3:QUAT {a} {b} 1 0 0 0 0 0 1 " + " ".join(map(repr, info)) + "\n"
+
+
+def test_g2o_information_in_fine_units_is_positive_definite(tmp_path):
+    """A run's own graph.g2o of a scene in micrometres (translation information 1e-8 beside rotation's 1e8) was
+    refused by ``sync``: "information matrix is not positive definite", judged on eigenvalues relative to the
+    largest entry. Definiteness does not depend on units; a semi-definite matrix is still refused."""
+    from sghr_gtsam.io.g2o import read_g2o
+
+    path = tmp_path / "um.g2o"
+    path.write_text(_VERTEX.format(0) + _VERTEX.format(1) + _edge_line(0, 1, (1e-8, 1e-8, 1e-8, 1e8, 1e8, 1e8)))
+    _, _, graph = read_g2o(path, positive_definite=True)
+    np.testing.assert_array_equal(np.diag(graph.information[0]), [1e8] * 3 + [1e-8] * 3)
+    path.write_text(_VERTEX.format(0) + _VERTEX.format(1) + _edge_line(0, 1, (1e-8, 1e-8, 0, 1e8, 1e8, 1e8)))
+    with pytest.raises(InputError, match="line 3: information matrix is not positive definite"):
+        read_g2o(path, positive_definite=True)
+
+
+@pytest.mark.parametrize("ids", [("-1", "0"), ("0", str(2**64)), ("+1", "0"), ("0_0", "1"), ("\uff11", "0")])
+def test_g2o_ids_gtsam_cannot_hold_are_refused(tmp_path, ids):
+    """Ids gtsam reads as other keys (-1 as 2**64 - 1, 2**64 + 1 as 1) gave files it loads wrong, and int() took
+    "+1", "0_0" and fullwidth digits."""
+    from sghr_gtsam.io.g2o import read_g2o
+
+    path = tmp_path / "ids.g2o"
+    path.write_text(_VERTEX.format(ids[0]) + _VERTEX.format(ids[1]), encoding="utf-8")
+    with pytest.raises(InputError, match=r"line [12]: vertex ids must be whole numbers in \[0, 2\*\*64\)"):
+        read_g2o(path)
+
+
+def test_g2o_with_a_byte_order_mark_a_latin1_comment_or_a_form_feed_reads(tmp_path):
+    """gtsam reads them; we refused the first two ("utf-8 codec can't decode byte 0xe9") and split a line at the
+    third."""
+    from sghr_gtsam.io.g2o import read_g2o
+
+    body = _VERTEX.format(0) + _VERTEX.format(1) + _edge_line(0, 1)
+    for name, raw in [("bom", b"\xef\xbb\xbf" + body.encode()), ("latin1", b"# caf\xe9\n" + body.encode()),
+                      ("formfeed", body.replace(" 0 0 0 0 0 1 1", " 0 0 0 0 0\x0c1 1", 1).encode())]:
+        (tmp_path / f"{name}.g2o").write_bytes(raw)
+        ids, _, graph = read_g2o(tmp_path / f"{name}.g2o")
+        assert ids == [0, 1] and graph.num_edges == 1, name
+
+
+def test_g2o_from_a_device_is_refused_not_read_forever(tmp_path):
+    from sghr_gtsam.io.g2o import read_g2o
+
+    with pytest.raises(InputError, match="cannot read g2o file /dev/zero: not a regular file"):
+        read_g2o("/dev/zero")
+    with pytest.raises(InputError, match="not a regular file"):
+        read_g2o(tmp_path)

@@ -7,6 +7,7 @@ block is used as written, as gtsam's ``readG2o`` and SE-Sync do.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,15 @@ def _lowest_eigenvalues(omega: np.ndarray) -> np.ndarray:
     return np.linalg.eigvalsh(omega / np.where(scale > 0, scale, 1.0)[:, None, None])[:, 0]
 
 
+def _not_definite(omega: np.ndarray) -> np.ndarray:
+    """(E,) bool: each symmetric (E, 6, 6) matrix not positive definite, judged on its correlations
+    (``Ω_ij / √(Ω_ii Ω_jj)``): rotations in radians beside translations in micrometres span 1e16 and are definite."""
+    d = np.diagonal(omega, axis1=1, axis2=2)
+    positive = (d > 0).all(axis=1)
+    s = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))
+    return ~positive | (np.linalg.eigvalsh(omega * s[:, :, None] * s[:, None, :])[:, 0] <= 1e-12)
+
+
 def check_information(information: np.ndarray, edges: int | None = None) -> np.ndarray:
     """``information`` as floats, one (6, 6) matrix or with ``edges`` (edges, 6, 6), or a one-line ``InputError``
     unless each matrix is finite, symmetric and positive semi-definite (zero: a failed registration, no
@@ -73,10 +83,32 @@ def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
     if n_ids is None or len(tok) != 1 + n_ids + (7 if n_ids == 1 else 28):
         raise InputError(f"{where}: not a VERTEX_SE3:QUAT or EDGE_SE3:QUAT line with the right number of "
                          f"values: {' '.join(tok)[:60]!r}")
+    ids = tok[1:1 + n_ids]
+    # gtsam keys are unsigned 64-bit: it reads -1 as 2**64 - 1 and wraps larger ids, joining vertices we keep apart
+    if not all(_ID.fullmatch(t) and int(t) < 2**64 for t in ids):
+        raise InputError(f"{where}: vertex ids must be whole numbers in [0, 2**64): {' '.join(tok)[:60]!r}")
     try:
-        return [int(t) for t in tok[1:1 + n_ids]], np.array(tok[1 + n_ids:], dtype=float)
+        return [int(t) for t in ids], np.array(tok[1 + n_ids:], dtype=float)
     except ValueError:
         raise InputError(f"{where}: malformed number in {' '.join(tok)[:60]!r}") from None
+
+
+_ID = re.compile("[0-9]+")  # ASCII digits only: int() also takes "+1", "0_0" and other scripts' digits
+
+
+def _text(path: Path) -> str:
+    """The file's text: UTF-8 (a byte-order mark dropped), else Latin-1 (a comment in another encoding is still a
+    comment; the numbers are ASCII either way). Devices (/dev/zero) and folders are refused: they never end."""
+    try:
+        if not path.is_file() and path.exists() and not path.is_fifo():
+            raise InputError(f"cannot read g2o file {path}: not a regular file")
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"cannot read g2o file {path}: {exc}") from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
 
 
 def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[int], np.ndarray | None, PoseGraph]:
@@ -92,10 +124,7 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
     a run's graph_rejected.g2o is semi-definite.)
     """
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read g2o file {path}: {exc}") from None
+    lines = _text(path).split("\n")  # not splitlines: a form feed or \x1c inside a line does not end it for g2o
     ids: list[int] = []
     vertices: list[np.ndarray] = []
     vertex_lines: list[str] = []
@@ -126,8 +155,7 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
     omega = np.zeros((E, 6, 6))
     omega[:, _UPPER[0], _UPPER[1]] = values[:, 7:]
     omega = omega + np.swapaxes(np.triu(omega, 1), 1, 2)
-    lowest = _lowest_eigenvalues(omega)
-    bad = lowest <= 1e-12 if positive_definite else lowest < -1e-9
+    bad = _not_definite(omega) if positive_definite else _lowest_eigenvalues(omega) < -1e-9
     if bad.any():
         raise InputError(f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
                          f"{'definite' if positive_definite else 'semi-definite'}")
@@ -138,7 +166,9 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
         ids = sorted({v for edge in ends for v in edge})
     index = {v: k for k, v in enumerate(ids)}
     if len(index) != len(ids):
-        raise InputError(f"{path}: duplicate vertex ids")
+        seen: set[int] = set()
+        again = next(k for k, v in enumerate(ids) if v in seen or seen.add(v))
+        raise InputError(f"{vertex_lines[again]}: vertex {ids[again]} is defined a second time")
     for (a, b), where in zip(ends, edge_lines):
         if a not in index or b not in index:
             raise InputError(f"{where}: edge {a}-{b} refers to a vertex that is not defined")
