@@ -17,7 +17,7 @@ from . import local_frame
 from .cache import Cache, pyramid_key, scan_key
 from .config import Config
 from .executor import start_server
-from .features.local import FEATURES, scan_features, voxel_from_spans
+from .features.local import FEATURES, MAX_CELLS, scan_features, voxel_from_spans
 from .features.netvlad import (
     DEFAULT_HEAD,
     codebook_features,
@@ -329,6 +329,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     if len(scans) < 2:
         raise _too_few(scans, skipped)
     voxel = config.voxel if config.voxel else voxel_from_spans([st.span for st in stats])
+    if (cells := float(np.median([st.span for st in stats])) / voxel) >= np.sqrt(3) * MAX_CELLS:
+        # Then most scans span too many voxels along some axis for the grid, each skipped as if a stray point
+        # had stretched it: the voxel is what is wrong.
+        raise InputError(f"voxel {voxel:.3g} is too small: the median scan's diagonal spans {cells:.3g} voxels of it "
+                         f"(at most 2^31 along an axis)")
     centres = local_frame.centres(np.array([st.median for st in stats]), voxel)
     scans = [replace(s, centre=c, stats=st) for s, c, st in zip(scans, centres, stats)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")

@@ -216,6 +216,14 @@ def test_noise_scans_whose_registrations_measure_few_directions_do_not_stop_the_
     assert scan_errors(result.names[:2], result.poses[:2], scene.poses).within(1.0, 0.02).all()
 
 
+def test_a_voxel_too_small_for_any_scan_is_named_not_the_scans():
+    """``--voxel 1e-300``: every scan was skipped as "its points span 4.82e+300 voxels …: a stray point far away?"."""
+    scene = make_scene(kind="room", n_scans=3, seed=1)
+    with pytest.raises(InputError, match=r"^voxel 1e-300 is too small: the median scan's diagonal spans \S+ voxels"):
+        register([Scan(n, P) for n, P in zip(scene.names, scene.scans)], Config(workers=1, record=False, voxel=1e-300),
+                 log=lambda m: None)
+
+
 def test_register_skips_a_scan_under_min_points_and_subsets_given_scores():
     """``min_points`` was checked only when scans were read from a folder; scores given for every scan could not
     be used once one was skipped ("must be a 3x3 matrix")."""

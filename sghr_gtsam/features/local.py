@@ -35,6 +35,8 @@ KEYPOINT_MAX_DISTANCE = 2.0
 # normals) and its k-d tree; a scipy k-d tree on D-d descriptors copies them as float64 (8·D) and adds this.
 GICP_BYTES = 230
 TREE_BYTES = 35
+# Voxels a scan may span along an axis: open3d's voxel grid indexes its cells by int32.
+MAX_CELLS = int(np.iinfo(np.int32).max)
 
 
 @dataclass(eq=False)
@@ -174,7 +176,7 @@ def compute_features(
     if not len(points):
         raise InputError("no finite points")
     cells = float(np.ptp(points, axis=0).max()) / voxel
-    if cells >= np.iinfo(np.int32).max:  # open3d's voxel grid indexes cells by int32
+    if cells >= MAX_CELLS:
         raise InputError(f"its points span {cells:.3g} voxels of {voxel:.3g} (at most 2^31): a stray point far away?")
 
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
