@@ -298,6 +298,9 @@ def run(
 _SCENE_KINDS = ("room", "object", "building", "hotel")  # synthetic.SCENE_KINDS, spelled out as _METHOD_NAMES are
 _ONE_ROOM = 12  # --kind auto: the most scans it generates as one room
 _DEMO_ROWS = 40  # the most scans the demo lists one by one
+_MOST_SCANS = 10_000
+"""The most scans ``demo`` generates: the run's main process grows by ~1.3 MB a scan (its pairs' state, two N × N
+matrices: docs/BENCHMARKS.md, bounded memory), ~13 GB at 10,000; 2,000 took 46 min on 2 cores."""
 
 
 def _scene_kind(kind: str, scans: int) -> str:
@@ -337,6 +340,9 @@ def demo(
     def generate() -> Path:
         if scans < 2:
             raise InputError(f"--scans must be at least 2 (a registration needs two scans); got {scans}")
+        if scans > _MOST_SCANS:
+            raise InputError(f"--scans must be at most {_MOST_SCANS:,} (the run's memory grows with the scans and "
+                             f"their pairs: ~13 GB at {_MOST_SCANS:,}); got {scans:,}")
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out} is an existing file, not a folder")
         scene_kind = _scene_kind(kind, scans)

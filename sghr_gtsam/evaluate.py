@@ -180,7 +180,8 @@ def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray
     """Align ``poses`` (N, 4, 4) to ``gt_poses`` (same order) by their positions (``align_rigid``, as
     ``evo_ape --align``) or by whole poses (``align_poses``), then per scan the rotation error (degrees) and
     position error of ``A @ T_i`` against ``T_i^gt``. ``fit``: (N,) bool, the scans the alignment is fitted to
-    (default all)."""
+    (default all). Positions that leave a rotation free (fewer than three, or on one line) are aligned as whole
+    poses."""
     poses, gt_poses = _scored(names, poses, gt_poses)
     if align not in ALIGNMENTS:
         raise InputError(f"align must be one of {', '.join(ALIGNMENTS)}; got {align!r}")
@@ -191,9 +192,21 @@ def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray
         if fit.dtype != bool or fit.shape != (len(poses),) or not fit.any():
             raise InputError(f"fit must be a boolean mask of shape ({len(poses)},) choosing at least one scan")
     src, dst = (poses, gt_poses) if fit is None else (poses[fit], gt_poses[fit])
-    A = align_rigid(src[:, :3, 3], dst[:, :3, 3]) if align == "positions" else align_poses(src, dst)
+    if align == "positions" and not _on_one_line(dst[:, :3, 3]):
+        A = align_rigid(src[:, :3, 3], dst[:, :3, 3])
+    else:
+        A = align_poses(src, dst)
     rot, trans = relative_errors(A[None] @ poses, gt_poses)
     return WholeModelErrors(list(names), rot, trans, A)
+
+
+def _on_one_line(points: np.ndarray) -> bool:
+    """Whether points (N, 3) leave the rotation about their line free: fewer than three, or all on one line (the
+    SVD of ``align_rigid`` then picks any: two right scans of ``demo --scans 2`` read 0 of 2 within)."""
+    if len(points) < 3:
+        return True
+    spread = np.linalg.svd(points - points.mean(0), compute_uv=False)
+    return bool(spread[1] <= 1e-9 * spread[0])
 
 
 @dataclass

@@ -27,6 +27,8 @@ weight and metric series in tabs, and the text log. Layout of the data:
 
 from __future__ import annotations
 
+import os
+import threading
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -91,15 +93,52 @@ def _quaternion(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_quat()
 
 
+class _Pump:
+    """Rerun's file sink writes into a pipe (``sink``) and this thread copies it to ``path``. Rerun's own writer
+    reports a failed write (a full disk) only in its log on stderr, then raises "File-writer thread shut down
+    prematurely" or hangs in ``flush`` for ever; here the first error is kept, the pipe drained to its end so
+    that rerun never meets it, and ``close`` raises it."""
+
+    def __init__(self, path: str | Path) -> None:
+        self._file = open(path, "wb")
+        read, self._write = os.pipe()
+        self.sink = f"/dev/fd/{self._write}"  # held open until ``close``: rerun opens its own end by this name
+        self._error: OSError | None = None
+        self._thread = threading.Thread(target=self._copy, args=(read,), name="recording", daemon=True)
+        self._thread.start()
+
+    def _copy(self, read: int) -> None:
+        with os.fdopen(read, "rb", buffering=0) as pipe:
+            while chunk := pipe.read(1 << 20):
+                try:
+                    if self._error is None:
+                        self._file.write(chunk)
+                except OSError as e:
+                    self._error = e
+
+    def close(self) -> None:
+        """Once rerun has closed its end: the rest copied and the file closed, or the first write error raised."""
+        os.close(self._write)
+        self._thread.join()
+        try:
+            self._file.close()
+        except OSError as e:
+            self._error = self._error or e
+        if self._error is not None:
+            raise self._error
+
+
 class Recorder:
-    """Streams one run to ``path`` (an .rrd file, with its ``blueprint``). Call ``close`` to flush it.
+    """Streams one run to ``path`` (an .rrd file, with its ``blueprint``). Call ``close`` to flush it; it raises
+    the ``OSError`` of a write that failed.
 
     ``min_weight``: as ``Config.min_weight``, so that an IRLS edge counts as kept where synchronization
     keeps it."""
 
     def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3):
         self.rec = rr.RecordingStream(application_id)
-        self.rec.save(str(path), default_blueprint=blueprint())
+        self._pump = _Pump(path)
+        self.rec.save(self._pump.sink, default_blueprint=blueprint())
         self.min_weight = min_weight
         self._names: list[str] = []
         self._paths: list[str] = []
@@ -252,5 +291,8 @@ class Recorder:
             self.rec.log(f"uncertainty/{path}/sigma_translation", rr.Scalars(float(t)))
 
     def close(self) -> None:
-        self.rec.flush()
-        self.rec.disconnect()
+        try:
+            self.rec.flush()
+        finally:
+            self.rec.disconnect()  # closes rerun's end of the pipe: the pump reaches its end
+            self._pump.close()

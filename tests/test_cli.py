@@ -212,3 +212,62 @@ def test_a_full_disk_is_named_not_unexpected(tmp_path, capsys):
             raise OSError(errno.ENOSPC, "No space left on device")
     assert stop.value.exit_code == 1
     assert capsys.readouterr().err.strip() == f"error: cannot write {tmp_path / 'out'}: No space left on device"
+
+
+_RECORD_SCRIPT = """
+import errno, resource, signal, sys
+import numpy as np
+from sghr_gtsam.recording import Recorder
+if sys.argv[2] != "0":  # a file limit: EFBIG once rerun's writer is past it, mid-recording
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[2]), resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+try:
+    recorder = Recorder(sys.argv[1])
+    recorder.log_scans(["a.ply", "b.ply"], [np.random.default_rng(k).random((20000, 3)) for k in range(2)])
+    recorder.close()
+except OSError as e:
+    print("OSError", errno.errorcode[e.errno])
+"""
+
+
+@pytest.mark.parametrize("path, limit, code", [("/dev/full", 0, "ENOSPC"), ("rec.rrd", 65536, "EFBIG")])
+def test_a_recording_that_cannot_be_written_raises_its_oserror(tmp_path, path, limit, code):
+    """Rerun's file writer kept the OS's error to its log on stderr and raised a RuntimeError ("Failed to encode
+    LogMsg", "File-writer thread shut down prematurely", which the command line called unexpected) or hung in
+    ``flush`` for ever; the recording is written through a pipe now, and ``close`` raises the write's OSError."""
+    if not os.path.exists(path) and path.startswith("/dev"):
+        pytest.skip(f"no {path}")
+    done = subprocess.run([sys.executable, "-c", _RECORD_SCRIPT, str(tmp_path / path), str(limit)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.stdout.split() == ["OSError", code] and done.stderr == "", (done.stdout, done.stderr[-2000:])
+
+
+def test_merged_ply_cut_short_by_the_disk_is_an_error_not_an_output(tmp_path, capfd):
+    """open3d wrote merged.ply through RPly, which printed a line per failed row on a full disk and returned
+    success with the file cut short: the results were written with a truncated merged.ply. Under a file-size
+    limit (EFBIG, as ENOSPC without a full disk) the write raises and leaves no merged.ply."""
+    import resource
+    import signal
+
+    from sghr_gtsam.config import Config
+    from sghr_gtsam.io.results import write_results
+    from sghr_gtsam.merged import merged_cloud
+    from sghr_gtsam.pipeline import Scan, register
+
+    scene = make_scene(kind="room", n_scans=3, seed=1)
+    config = Config(workers=1, record=False, cache=False)
+    result = register([Scan(n, P) for n, P in zip(scene.names, scene.scans)], config, log=lambda m: None)
+    merged = merged_cloud(result)
+    assert 24 * len(merged) > 100_000  # larger than the limit, while every other output is smaller
+    capfd.readouterr()
+    previous = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    limits = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (100_000, limits[1]))
+    try:
+        with pytest.raises(OSError):
+            write_results(tmp_path, result, config, 0.0, merged)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limits)
+        signal.signal(signal.SIGXFSZ, previous)
+    assert not (tmp_path / "merged.ply").exists() and "RPly" not in capfd.readouterr().err
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary left

@@ -7,6 +7,7 @@ named and why), so they take milliseconds; the cases that must register share a 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -511,6 +512,81 @@ def test_swap_keeps_the_resume_cache(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
+def test_a_failed_first_run_leaves_no_empty_cache_folder(tmp_path):
+    """A first run that failed before its cache held an entry left an empty OUT/cache/features; an entry it stored
+    stays for the next run to resume from, and an earlier result keeps its folder."""
+    out = tmp_path / "out"
+    with pytest.raises(OSError):
+        with staged_folder(out, carry=CACHE):
+            (out / "cache" / "features").mkdir(parents=True)  # as the cache makes its folder before a write fails
+            raise OSError(28, "No space left on device")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(OSError):
+        with staged_folder(out, carry=CACHE):
+            (out / "cache" / "features").mkdir(parents=True)
+            (out / "cache" / "pairs").mkdir()
+            (out / "cache" / "features" / "a.npz").write_text("entry")
+            raise OSError(28, "No space left on device")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["cache", "cache/features",
+                                                                       "cache/features/a.npz"]
+    shutil.rmtree(out)
+    _old_result(out)
+    with pytest.raises(OSError):
+        with staged_folder(out, carry=CACHE):
+            (out / "cache" / "features").mkdir(parents=True)
+            raise OSError(28, "No space left on device")
+    assert _untouched(out) and not (out / "cache").exists()
+
+
+@contextlib.contextmanager
+def _tmpfs(folder: Path, size: str):
+    """A tmpfs of ``size`` mounted at ``folder`` for the block; skips the test where mounting is not allowed."""
+    folder.mkdir(parents=True, exist_ok=True)
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (needs root): {mounted.stderr.strip()}")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], check=True)
+
+
+def test_a_first_run_on_a_full_disk_says_so_and_leaves_nothing(small_room, tmp_path):
+    """A full disk under --out: one line and exit 1; the failed first run left an empty OUT/cache/features."""
+    with _tmpfs(tmp_path / "disk", "64k") as disk:
+        code, lines = _cli("run", small_room, "--out", disk / "out", "--workers", "1", "--quiet")
+        assert (code, lines) == (1, [f"error: cannot write {disk / 'out'}: No space left on device"])
+        assert list(disk.iterdir()) == []
+
+
+def test_a_cache_or_output_folder_that_is_a_mount_point_is_named(tmp_path):
+    """OUT/cache as a mount point failed the final swap ("unexpected OSError: [Errno 16] Device or resource busy"),
+    OUT as one too (EBUSY, or EXDEV when OUT/cache had to move across): a run says so before its work, and the
+    swap itself names the mount point, the earlier result and the cache left as they were."""
+    from sghr_gtsam.io.results import check_output_folder
+
+    out = _old_result(tmp_path / "out")
+    with _tmpfs(out / "cache", "1m") as cache:
+        (cache / "entry.npz").write_text("cached")
+        with pytest.raises(InputError, match=f"^{cache} is a mount point: "):
+            check_output_folder(out, tmp_path / "scene")
+        with pytest.raises(InputError, match=f"^{cache} is a mount point: "):
+            with staged_folder(out, carry=CACHE) as stage:
+                (stage / "poses.txt").write_text("new\n")
+        assert _untouched(out) and (cache / "entry.npz").read_text() == "cached"
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    shutil.rmtree(out)
+    with _tmpfs(out, "1m"):
+        (out / "poses.txt").write_text(OLD["poses.txt"])
+        with pytest.raises(InputError, match=f"^{out} is a mount point: "):
+            check_output_folder(out, tmp_path / "scene")
+        with pytest.raises(InputError, match=f"^{out} is a mount point: "):
+            with staged_folder(out, carry=CACHE) as stage:
+                (stage / "poses.txt").write_text("new\n")
+        assert (out / "poses.txt").read_text() == OLD["poses.txt"]
+
+
 # --- demo and train -------------------------------------------------------------------------------------------------
 
 
@@ -521,6 +597,16 @@ def test_demo_with_one_scan_or_a_file_as_out_is_one_line_error(tmp_path):
     code, lines = _cli("demo", "--out", tmp_path / "file")
     assert code == 2 and lines == [f"error: --out {tmp_path / 'file'} is an existing file, not a folder"]
     assert not (tmp_path / "d").exists() and (tmp_path / "file").read_text() == "x"
+
+
+def test_demo_with_an_absurd_scan_count_is_refused_before_any_work(tmp_path):
+    """`demo --scans 100000000` ran until stopped (generating a building of 1e8 scans)."""
+    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "demo", "--scans", "100000000", "--out",
+                           str(tmp_path / "d")], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2 and done.stderr.splitlines() == [
+        "error: --scans must be at most 10,000 (the run's memory grows with the scans and their pairs: ~13 GB at "
+        "10,000); got 100,000,000"], done.stderr
+    assert not (tmp_path / "d").exists()
 
 
 def test_demo_with_an_unknown_kind_or_too_small_a_building_is_one_line_error(tmp_path):
@@ -571,6 +657,8 @@ SYNC_ERRORS = {
                                           "line 3: information matrix is not positive definite"),
     "zero information": (_V.format(0) + _V.format(1) + _edge(0, 1, info=" ".join(["0"] * 21)),
                          "not positive definite"),
+    "information of 1e-300": (_V.format(0) + _V.format(1) + _edge(0, 1, info=_INFO.replace("1", "1e-300")),
+                              "edge 0: information's eigenvalues 1e-300 to 1e-300 leave the range double precision"),
     "self-loop": (_V.format(0) + _V.format(1) + _edge(1, 1), "line 3: edge 1-1 joins a vertex to itself"),
     "edge to an undefined vertex": (_V.format(0) + _edge(0, 5), "refers to a vertex that is not defined"),
     "duplicate vertex": (_V.format(0) + _V.format(0) + _edge(0, 0), "line 2: vertex 0 is defined a second time"),
@@ -647,6 +735,18 @@ def test_sync_a_vertex_without_edges(tmp_path, method):
     ids, poses, _ = read_g2o(tmp_path / "out.g2o")
     assert ids == [0, 1, 2, 9]
     np.testing.assert_allclose((inv_T(poses[0]) @ poses[2])[:3, 3], [1, 1, 0], atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["history", "lm", "shonan", "gnc_tls"])
+def test_sync_information_beyond_double_precision_is_refused_by_every_method(tmp_path, method):
+    """Information of 1e-300 on every edge of a loop: Shonan failed ("TridiagEigen: eigen decomposition failed"),
+    the other methods wrote a graph; every method refuses it, naming the edge."""
+    tiny = _INFO.replace("1", "1e-300")
+    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _edge(0, 1, info=tiny)
+                                     + _edge(1, 2, "0 1 0 0 0 0 1", tiny) + _edge(0, 2, "1 1 0 0 0 0 1", tiny))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
+    assert code == 2 and len(lines) == 1 and "edge 0: information's eigenvalues" in lines[0], lines
+    assert not (tmp_path / "out.g2o").exists()
 
 
 def test_sync_single_vertex_graph(tmp_path):

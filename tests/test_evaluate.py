@@ -197,3 +197,18 @@ def test_pose_alignment_recovers_a_rigid_change_of_world(seed):
     A = make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3))
     w = whole_model_errors([str(k) for k in range(6)], inv_T(A)[None] @ gt, gt, align="poses")
     assert w.rotation_deg.max() < 1e-4 and w.translation.max() < 1e-9  # arccos resolves ~1e-6 deg
+
+
+@settings(max_examples=50, deadline=None)
+@given(seeds, st.sampled_from(["two", "one line"]))
+def test_positions_that_leave_a_rotation_free_are_aligned_with_the_rotations(seed, layout):
+    """Two positions (``demo --scans 2``) or any on one line leave the rotation about their line free: the SVD
+    picked one, and two right scans read "0 of 2 within tolerance". The rotations fix it."""
+    rng = np.random.default_rng(seed)
+    gt = _trajectory(rng, 2 if layout == "two" else 5)
+    if layout == "one line":
+        gt[:, :3, 3] = np.linspace(-3.0, 3.0, len(gt))[:, None] * rng.normal(size=3)
+    G = _random_T(rng, 10.0)
+    err = whole_model_errors([f"s{k}" for k in range(len(gt))], G[None] @ gt, gt)
+    np.testing.assert_allclose(err.alignment, inv_T(G), atol=1e-8)
+    assert err.within(1e-4, 1e-6).all()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import os
 import re
 import shutil
@@ -134,32 +135,66 @@ def _exchange(a: Path, b: Path) -> bool:
     return renameat2(_AT_FDCWD, os.fsencode(a), _AT_FDCWD, os.fsencode(b), _RENAME_EXCHANGE) == 0
 
 
+def mounted(out: Path, carry: str | None = None) -> str | None:
+    """Why ``staged_folder`` cannot swap results into ``out``: it, or its ``carry`` subfolder, is a mount point (the
+    swap renames both, which a mount point refuses: EBUSY, or EXDEV across filesystems); None if neither is one."""
+    out = Path(os.path.realpath(out))
+    if os.path.ismount(out):
+        return (f"{out} is a mount point: the results are swapped in by renaming the folder, which a mount point "
+                f"refuses; write them into a folder inside it (e.g. {out / 'results'})")
+    if carry and os.path.ismount(out / carry):
+        return (f"{out / carry} is a mount point: the results are swapped in by renaming the folder with its "
+                f"{carry}, which a mount point refuses; mount the disk at a folder that holds {out.name} instead")
+    return None
+
+
 def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
     """Make the finished ``stage`` folder ``out``, carrying ``out``'s ``carry`` subfolder over; the old folder is
-    removed."""
+    removed. ``InputError`` when one of them is a mount point (``mounted``; a bind mount on the same filesystem
+    is seen only here), ``out`` left as it was."""
     fsync_dir(stage)
-    if not out.exists():
-        os.rename(stage, out)
-    else:
-        if carry and (out / carry).is_dir() and not (stage / carry).exists():
-            os.rename(out / carry, stage / carry)
-        if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
-            old = stage.with_name(stage.name.replace(".tmp-", ".old-", 1))
-            os.rename(out, old)
+    try:
+        if not out.exists():
             os.rename(stage, out)
-            stage = old
-        shutil.rmtree(stage, ignore_errors=True)  # the old folder, now at the staging name
+        else:
+            if carry and (out / carry).is_dir() and not (stage / carry).exists():
+                os.rename(out / carry, stage / carry)
+            if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
+                old = stage.with_name(stage.name.replace(".tmp-", ".old-", 1))
+                os.rename(out, old)
+                os.rename(stage, out)
+                stage = old
+            shutil.rmtree(stage, ignore_errors=True)  # the old folder, now at the staging name
+    except OSError as e:
+        if e.errno not in (errno.EBUSY, errno.EXDEV):
+            raise
+        raise InputError(mounted(out, carry) or f"cannot swap the results into {out}: {e.filename} is a mount "
+                         "point (a bind mount?), which cannot be renamed") from None
     fsync_dir(out.parent)
+
+
+def _remove_empty(out: Path, carry: str | None, created: bool) -> None:
+    """After a failed run: the folders of ``out``'s ``carry`` that hold nothing, and ``out`` itself if the run created
+    it and left it empty (a first run that failed before storing anything leaves no ``OUT/cache/features``).
+    Entries a failed run stored stay, for the next run to resume from."""
+    folders = [Path(d) for d, _, _ in os.walk(out / carry, topdown=False)] if carry else []
+    for folder in folders + ([out] if created else []):
+        try:
+            folder.rmdir()
+        except OSError:  # not empty, or a mount point
+            pass
 
 
 @contextlib.contextmanager
 def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     """A new folder beside ``out`` to write a folder's files into; swapped in as ``out`` when the block completes,
     removed when it raises (also on KeyboardInterrupt), so a stop at any point leaves ``out`` as it was. ``carry``:
-    a subfolder of ``out`` written in place during the block (a resume cache) and kept across the swap. Stale
+    a subfolder of ``out`` written in place during the block (a resume cache) and kept across the swap; its folders
+    left empty by a block that raised are removed (``_remove_empty``). Stale
     folders of stopped runs are removed first. A symbolic link ``out`` is followed: the folder it leads to is
     replaced, the link stays."""
     out = Path(os.path.realpath(out))
+    created = not out.exists()
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale(out, carry)
@@ -172,4 +207,5 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
         _swap_in(stage, out, carry)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
+        _remove_empty(out, carry, created)
         raise

@@ -32,7 +32,7 @@ from ..plots import write_summary
 from ..registration.edges import EDGE_STATUS, edge_status
 from ..result import peak_memory_mb
 from ..types import InputError, PoseGraph
-from .atomic import atomic_write
+from .atomic import atomic_write, mounted
 from .g2o import write_g2o
 from .poses import write_kitti, write_poses, write_tum
 from .scans import write_ply
@@ -179,6 +179,9 @@ def check_output_folder(out: Path, scene_dir: Path) -> None:
     if target in scene.parents:
         raise InputError(f"output folder {out} holds the scan folder {scene_dir}: replacing it with the results "
                          f"would delete the scans")
+    mount = mounted(out, CACHE)  # said now, not after the run's work
+    if mount:
+        raise InputError(mount)
     if out.is_dir():
         foreign = sorted(p.name for p in out.iterdir()
                          if p.name not in RESULT_FILES + _LEGACY + (CACHE,) and not _OURS_HIDDEN.match(p.name))

@@ -639,21 +639,32 @@ def finite_points(points: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:
-    """Write a binary PLY (double-precision x, y, z; optional (N, 3) colours, floats in [0, 1] or
-    uint8) atomically."""
+    """Write a binary PLY (double-precision x, y, z; optional (N, 3) colours, floats in [0, 1] or uint8, as uchar
+    red, green, blue) atomically. Written here rather than by open3d: on a full disk its RPly prints a line per
+    failed row and open3d returns success with the file cut short."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must be (N, 3), got {points.shape}")
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if colors is not None:
         colors = np.asarray(colors)
         if colors.shape != points.shape:
             raise ValueError(f"colors must be {points.shape}, got {colors.shape}")
-        rgb = colors / 255.0 if colors.dtype == np.uint8 else colors.astype(np.float64)
-        cloud.colors = o3d.utility.Vector3dVector(rgb)
-    with atomic_path(path) as tmp:
-        if not o3d.io.write_point_cloud(str(tmp), cloud, write_ascii=False):
-            raise OSError(f"open3d could not write {path}")
+        if colors.dtype != np.uint8:
+            colors = np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8)
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    rows = np.empty(len(points), dtype=fields)
+    for k, axis in enumerate("xyz"):
+        rows[axis] = points[:, k]
+    if colors is not None:
+        for k, channel in enumerate(("red", "green", "blue")):
+            rows[channel] = colors[:, k]
+    types = {"<f8": "double", "u1": "uchar"}
+    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+              + "".join(f"property {types[kind]} {name}\n" for name, kind in fields) + "end_header\n")
+    with atomic_write(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rows.tobytes())
 
 
 def write_scan(path: str | Path, points: np.ndarray) -> None:

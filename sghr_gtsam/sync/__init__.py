@@ -51,6 +51,19 @@ GNC_ITERS = 10
 """Cap of each inner Levenberg-Marquardt run of the robust polish's GNC: 10 and 100 give the same
 robustness-benchmark recall (2 seeds), and 10 halves the time at 50 scans."""
 
+LM_START_FLOOR = 1e-3
+"""Method ``lm``'s chordal start weighs each edge by its isotropic precisions raised to at least this fraction of
+the largest. The spectral solve does not resolve a wider span where the light edges alone hold a group (two
+triangles joined by edges of 1e-6 of the others' information: a start 27° off, which LM repairs), and LM cannot
+move what edges far below its tolerance hold (1e-9: 14-22° off at the end; 1e-20: 100-170°; in a loop, gtsam's
+"Factor is exactly singular"). Raised, they place it as the other methods' starts do; the parking garage (κ spans
+1e-9) ends at the same optimum."""
+
+_SQUARABLE = (float(np.sqrt(np.finfo(float).tiny)), float(np.sqrt(np.finfo(float).max)))
+"""The range of an edge's information eigenvalues whose squares are normal doubles (1.5e-154 to 1.3e154). Shonan's
+eigen-solver fails below it (1e-200: "TridiagEigen: eigen decomposition failed") where the other methods answer,
+so every method refuses such information: one answer for a graph, whatever the method."""
+
 METHODS: dict[str, str] = {
     "history": "SGHR: IRLS with history reweighting (g(m) = 2m/(M(M+1))), then the polish",
     "constant": "ablation of 'history': constant history schedule g(m) = 1/M",
@@ -130,7 +143,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         used = np.where(kept, weights, 0.0)
         if method == "lm" and graph.information is not None:
             # The chordal initial estimate weights each edge by its isotropic precisions (SE-Sync's κ, τ).
-            kappa, tau = sesync_precisions(graph.information)
+            kappa, tau = (np.maximum(p, LM_START_FLOOR * p.max()) for p in sesync_precisions(graph.information))
             poses = solve_poses(graph, used * kappa, w_trans=used * tau)
         else:
             poses = solve_poses(graph, used)
@@ -340,7 +353,8 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     """``graph`` with its checks passed: integer indices, float arrays, rotations projected onto SO(3).
 
     Raises ``InputError`` (one line) for fewer than 2 nodes, no edges, inconsistent shapes, indices out
-    of range or self-loops, non-finite values, negative weights, or a ``T`` that is not a rigid transform.
+    of range or self-loops, non-finite values, negative weights, a ``T`` that is not a rigid transform, or
+    information that is not positive definite or whose eigenvalues leave ``_SQUARABLE``.
     """
     n = int(graph.n)
     if n < 2:
@@ -372,9 +386,17 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
         info = np.asarray(info, dtype=float)
         if info.shape != (E, 6, 6) or not np.all(np.isfinite(info)):
             raise InputError(f"information must be finite with shape ({E}, 6, 6), got {info.shape}")
-        bad = np.linalg.eigvalsh(0.5 * (info + np.swapaxes(info, 1, 2)))[:, 0] <= 0
+        eigenvalues = np.linalg.eigvalsh(0.5 * (info + np.swapaxes(info, 1, 2)))
+        bad = eigenvalues[:, 0] <= 0
         if bad.any():
             raise InputError(f"edge {np.flatnonzero(bad)[0]}: information is not positive definite")
+        low, high = _SQUARABLE
+        bad = np.flatnonzero((eigenvalues[:, 0] < low) | (eigenvalues[:, -1] > high))
+        if len(bad):
+            e = bad[0]
+            raise InputError(f"edge {e}: information's eigenvalues {eigenvalues[e, 0]:.3g} to {eigenvalues[e, -1]:.3g} "
+                             f"leave the range double precision can square ({low:.2g} to {high:.2g}); scale the "
+                             "graph's information")
     T = T.copy()
     T[:, :3, :3] = project_to_so3(R)  # measured rotations can be off-orthonormal by ~1e-4 (3DMatch)
     return replace(graph, n=n, i=i.astype(np.int64), j=j.astype(np.int64), T=T, weight=w, information=info)
