@@ -124,9 +124,14 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
     into the records. Stops when an iteration decreases the error by less than ``relative_tol`` of it (or by
     a negligible absolute amount).
     """
-    factors = _between_factors(graph, information)
+    # gtsam's LM damps by an absolute λ (1e-5 to start) and stops on an absolute change of the error: information
+    # far below 1 (other units: all of it 1e-12 of a metre graph's) left it at its start. Scaled by a power of two
+    # (exact) the optimum is the same; the errors are reported at the graph's own scale.
+    peak = float(np.abs(information).max())
+    scale = 2.0 ** -np.floor(np.log2(peak)) if 0.0 < peak < 1.0 else 1.0
+    factors = _between_factors(graph, information if scale == 1.0 else scale * information)
     anchors = np.unique(component, return_index=True)[1]
-    stiff = _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0)
+    stiff = _PRIOR_SCALE * max(scale * peak, 1.0)
     prior = gtsam.noiseModel.Isotropic.Precision(6, stiff)
     for a in anchors:
         factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(poses[a]), prior))
@@ -135,13 +140,13 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
         params.setOrderingType("METIS")
     optimizer = gtsam.LevenbergMarquardtOptimizer(factors, _values(poses), params)
     record_weights = np.zeros(graph.num_edges) if weights is None else weights
-    initial = previous = error = optimizer.error()
+    initial = previous = error = optimizer.error() / scale
     history: list[IterationRecord] = []
     converged = False
     current = poses
     for k in range(1, max_iters + 1):
         optimizer.iterate()
-        error = optimizer.error()
+        error = optimizer.error() / scale
         current = _poses(optimizer.values())
         record = IterationRecord(
             stage="lm", iteration=k, poses=current, weights=record_weights.copy(),
@@ -150,7 +155,7 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
         history.append(record)
         if on_iteration is not None:
             on_iteration(record)
-        if gtsam.checkConvergence(relative_tol, _ABSOLUTE_TOL * factors.size(), 0.0, previous, error):
+        if gtsam.checkConvergence(relative_tol, _ABSOLUTE_TOL * factors.size(), 0.0, scale * previous, scale * error):
             converged = True
             break
         previous = error

@@ -547,3 +547,19 @@ def test_paper_units_keep_outliers_weighted():
     assert np.all(paper.weights[bad] > 0)
     authors = synchronize(graph, reweight="authors", polish="none")
     assert max_errors(paper.poses, truth)[0] > 2 * max_errors(authors.poses, truth)[0]
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10**6), exponent=st.sampled_from([-200, -60, -40, -20, 0, 20, 60]))
+def test_the_answer_does_not_depend_on_the_scale_of_the_information(seed, exponent):
+    """The same graph with all its information 2^exponent times as large (other units of the same graph): LM
+    damps and stops on absolute amounts, and at 1e-12 of the information a 5-scan graph ended 0.3 mm and 0.004°
+    away, its objective 56.8 instead of 50.37."""
+    graph, _, _ = random_graph(seed, 8, rot_deg=1.0, trans_sigma=0.02)
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(graph.num_edges, 6, 6))
+    graph.information = A @ np.swapaxes(A, 1, 2) + np.diag([1e4] * 3 + [1e2] * 3)
+    reference = synchronize(graph, method="history").poses
+    graph.information = graph.information * 2.0**exponent
+    rot, trans = relative_errors(gauge_free(synchronize(graph, method="history").poses), gauge_free(reference))
+    assert rot.max() < 1e-4 and trans.max() < 1e-7, (rot.max(), trans.max())
