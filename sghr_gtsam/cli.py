@@ -405,7 +405,8 @@ def sync(
     def work() -> None:
         check_choice("--noise", noise, NOISE_MODELS)
         check_choice("--kernel", kernel, KERNELS)
-        ids, _, graph = read_g2o(graph_file, positive_definite=True)
+        check_choice("--method", method, _METHOD_NAMES + _BASELINE_NAMES)
+        ids, given, graph = read_g2o(graph_file, positive_definite=True)
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
         if method in _BASELINE_NAMES:
@@ -416,10 +417,16 @@ def sync(
             result = synchronize(graph, method=method, iters=iters, polish=polish)
         if kernel != "none":
             result.poses = repolish(graph, result.poses, result.weights > 0, result.component, kernel=kernel)
-        write_g2o(out, ids, result.poses, graph)
+        poses = _in_input_frame(result.poses, result.component, given)
+        write_g2o(out, ids, poses, graph)
         parts = int(result.component.max()) + 1
         typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "
-                   f"SE-Sync objective {sesync_objective(result.poses, graph):.6g} -> {out}")
+                   f"SE-Sync objective {sesync_objective(poses, graph):.6g} -> {out}")
+        apart = [ids[k] for k in np.flatnonzero(result.component > 0)]
+        if apart:
+            shown = " ".join(map(str, apart[:10])) + (" ..." if len(apart) > 10 else "")
+            typer.echo(f"{len(apart)} pose(s) outside the largest part, joined to it by no kept edge: each part is "
+                       f"placed by its first vertex's input pose, not by the graph: {shown}", err=True)
         weak = [ids[k] for k in np.flatnonzero(unverified(graph, result))]
         if weak:
             shown = " ".join(map(str, weak[:10])) + (" ..." if len(weak) > 10 else "")
@@ -427,6 +434,21 @@ def sync(
                        f"through one node): {shown}", err=True)
 
     _guard(work)
+
+
+def _in_input_frame(poses, component, given):
+    """``poses`` (N, 4, 4) of each connected part (``component``) moved rigidly so that its first vertex keeps its
+    ``given`` input pose: the input frame, as a prior on the first pose at its initial value holds it in gtsam.
+    Synchronization anchors every part at the identity, which stacked the parts on one another."""
+    import numpy as np
+
+    from .se3 import inv_T
+
+    out = poses.copy()
+    for part in range(int(component.max()) + 1):
+        members = np.flatnonzero(component == part)
+        out[members] = given[members[0]] @ inv_T(poses[members[0]]) @ poses[members]
+    return out
 
 
 @app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True},

@@ -737,6 +737,40 @@ def test_sync_a_vertex_without_edges(tmp_path, method):
     np.testing.assert_allclose((inv_T(poses[0]) @ poses[2])[:3, 3], [1, 1, 0], atol=1e-6)
 
 
+@pytest.mark.parametrize("method", ["history", "lm", "gnc_tls", "shonan"])
+def test_sync_keeps_the_input_frame_and_does_not_stack_parts(tmp_path, method):
+    """Every part used to be written with its first vertex at the identity: two parts 100 m apart were stacked on one
+    another (exit 0, nothing said), a vertex on no edge sat on vertex 0, and an input shifted by 10 m came back at
+    the origin. Each part is now placed by its first vertex's input pose, and the parts apart are named."""
+    shifted = "VERTEX_SE3:QUAT {} 10 0 0 0 0 0 1\n"
+    far = "VERTEX_SE3:QUAT {} 100 5 0 0 0 0 1\n"
+    (tmp_path / "in.g2o").write_text(shifted.format(0) + shifted.format(1) + shifted.format(2) + far.format(7)
+                                     + far.format(8) + _edge(0, 1) + _edge(1, 2, "0 1 0 0 0 0 1")
+                                     + _edge(0, 2, "1 1 0 0 0 0 1") + _edge(7, 8, "0 0 1 0 0 0 1"))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
+    assert code == 0 and "2 connected part(s)" in lines[0], lines
+    assert lines[1] == ("2 pose(s) outside the largest part, joined to it by no kept edge: each part is placed by "
+                        "its first vertex's input pose, not by the graph: 7 8"), lines
+    ids, poses, _ = read_g2o(tmp_path / "out.g2o")
+    np.testing.assert_allclose(poses[[0, 3], :3, 3], [[10, 0, 0], [100, 5, 0]], atol=1e-9)
+    np.testing.assert_allclose(poses[[2, 4], :3, 3], [[11, 1, 0], [100, 5, 1]], atol=1e-6)
+
+
+def test_sync_names_every_method_and_refuses_absurd_translations(tmp_path):
+    """``--method bogus`` listed five of the twelve methods; an edge translation of 1e200 printed numpy's overflow
+    warnings and wrote poses of 1e199 (lm, l1_irls, rotavg, shonan, open3d)."""
+    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _edge(0, 1))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", "bogus")
+    assert code == 2 and len(lines) == 1 and "gnc_tls" in lines[0] and "open3d_all_uncertain" in lines[0], lines
+    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _edge(0, 1, "1e200 0 0 0 0 0 1")
+                                     + _edge(1, 2) + _edge(0, 2, "2 0 0 0 0 0 1"))
+    for method in ("history", "lm"):
+        code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
+        assert code == 2 and lines == ["error: edge 0: translation 1e+200 beyond what double precision can square "
+                                       "(1.3e+154)"], lines
+    assert not (tmp_path / "out.g2o").exists()
+
+
 @pytest.mark.parametrize("method", ["history", "lm", "shonan", "gnc_tls"])
 def test_sync_information_beyond_double_precision_is_refused_by_every_method(tmp_path, method):
     """Information of 1e-300 on every edge of a loop: Shonan failed ("TridiagEigen: eigen decomposition failed"),

@@ -353,8 +353,8 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     """``graph`` with its checks passed: integer indices, float arrays, rotations projected onto SO(3).
 
     Raises ``InputError`` (one line) for fewer than 2 nodes, no edges, inconsistent shapes, indices out
-    of range or self-loops, non-finite values, negative weights, a ``T`` that is not a rigid transform, or
-    information that is not positive definite or whose eigenvalues leave ``_SQUARABLE``.
+    of range or self-loops, non-finite values, negative weights, a ``T`` that is not a rigid transform or whose
+    translation leaves ``_SQUARABLE``, or information that is not positive definite or whose eigenvalues leave it.
     """
     n = int(graph.n)
     if n < 2:
@@ -381,6 +381,10 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     bad = non_rigid(T)
     if bad.any():
         raise InputError(f"edge {np.flatnonzero(bad)[0]}: T is not a rigid transform")
+    far = np.flatnonzero(np.abs(T[:, :3, 3]).max(axis=1) > _SQUARABLE[1])
+    if len(far):  # the objective squares them: overflow warnings, then poses of 1e199
+        raise InputError(f"edge {far[0]}: translation {np.abs(T[far[0], :3, 3]).max():.3g} beyond what double "
+                         f"precision can square ({_SQUARABLE[1]:.2g})")
     info = graph.information
     if info is not None:
         info = np.asarray(info, dtype=float)
