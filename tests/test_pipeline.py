@@ -70,8 +70,10 @@ def test_outputs_parse_back_to_the_result(room_run):
     assert report["unregistered"] == [] and report["unverified"] == result.unverified == []
     assert report["contested"] == result.contested == []
     assert report["underdetermined"] == result.underdetermined == []
-    assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p
-                                          in zip(result.graph.i, result.graph.j, result.pairs) if p.free]
+    # kept edges only: a failed registration's free directions listed a perfect scene as degenerate
+    assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p, r
+                                          in zip(result.graph.i, result.graph.j, result.pairs, rows)
+                                          if p.free and r["status"] == "kept"]
     assert report["peak_memory_mb"] > 0
     assert {"features", "pairwise", "sync", "total"} <= set(report["seconds"])
     assert Config.from_json(out / "config.json") == Config(seed=0)
@@ -222,6 +224,21 @@ def test_a_voxel_too_small_for_any_scan_is_named_not_the_scans():
     with pytest.raises(InputError, match=r"^voxel 1e-300 is too small: the median scan's diagonal spans \S+ voxels"):
         register([Scan(n, P) for n, P in zip(scene.names, scene.scans)], Config(workers=1, record=False, voxel=1e-300),
                  log=lambda m: None)
+
+
+def test_degenerate_pairs_lists_only_the_edges_the_result_rests_on(tmp_path):
+    """A 9-scan building every scan of which is right: report.json listed 14 "degenerate pairs", every one a failed,
+    contradicted or rejected registration (a wrong transform leaves directions free)."""
+    scene = make_scene("building", 9, seed=0)
+    write_scene(scene, tmp_path / "scene")
+    result = run(tmp_path / "scene", tmp_path / "out", Config(record=False, workers=1), log=lambda m: None)
+    with open(tmp_path / "out" / "edges.csv") as f:
+        status = [r["status"] for r in csv.DictReader(f)]
+    assert sum(p.free > 0 and s != "kept" for p, s in zip(result.pairs, status)) >= 5  # what was listed
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p, s
+                                          in zip(result.graph.i, result.graph.j, result.pairs, status)
+                                          if p.free and s == "kept"]
 
 
 def test_register_skips_a_scan_under_min_points_and_subsets_given_scores():

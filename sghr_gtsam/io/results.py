@@ -129,8 +129,9 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "ambiguous": result.ambiguous,
         "contradicted": result.contradicted,
         "underdetermined": result.underdetermined,
-        "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p
-                             in zip(result.graph.i, result.graph.j, result.pairs) if p.free],
+        # the pairs the result rests on: a failed or rejected registration's free directions say nothing of the scene
+        "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p, s
+                             in zip(result.graph.i, result.graph.j, result.pairs, status) if p.free and s == "kept"],
         "front_end": result.densify,
         "cache": result.cache,
         "skipped": result.skipped,
