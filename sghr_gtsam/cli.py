@@ -409,6 +409,10 @@ def sync(
         ids, given, graph = read_g2o(graph_file, positive_definite=True)
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
+        try:
+            checked_graph(graph)
+        except InputError as e:  # said of the file: its line, not the graph's edge index
+            raise InputError(_in_file(str(e), graph_file)) from None
         if method in _BASELINE_NAMES:
             from .sync.baselines import BASELINES
 
@@ -434,6 +438,19 @@ def sync(
                        f"through one node): {shown}", err=True)
 
     _guard(work)
+
+
+def _in_file(message: str, path: Path) -> str:
+    """A graph check's ``message`` about g2o file ``path``: "edge K: …" named by the line of its K-th edge."""
+    import re
+
+    found = re.match(r"edge (\d+): ", message)
+    if not found:
+        return f"{path}: {message}"
+    edges = (n for n, line in enumerate(path.read_text(errors="replace").split("\n"), 1)
+             if line.split()[:1] == ["EDGE_SE3:QUAT"])
+    line = next((n for k, n in enumerate(edges) if k == int(found[1])), None)
+    return f"{path}: line {line}: {message[found.end():]}" if line else f"{path}: {message}"
 
 
 def _in_input_frame(poses, component, given):

@@ -658,7 +658,7 @@ SYNC_ERRORS = {
     "zero information": (_V.format(0) + _V.format(1) + _edge(0, 1, info=" ".join(["0"] * 21)),
                          "not positive definite"),
     "information of 1e-300": (_V.format(0) + _V.format(1) + _edge(0, 1, info=_INFO.replace("1", "1e-300")),
-                              "edge 0: information's eigenvalues 1e-300 to 1e-300 leave the range double precision"),
+                              "line 3: information's eigenvalues 1e-300 to 1e-300 leave the range double precision"),
     "self-loop": (_V.format(0) + _V.format(1) + _edge(1, 1), "line 3: edge 1-1 joins a vertex to itself"),
     "edge to an undefined vertex": (_V.format(0) + _edge(0, 5), "refers to a vertex that is not defined"),
     "duplicate vertex": (_V.format(0) + _V.format(0) + _edge(0, 0), "line 2: vertex 0 is defined a second time"),
@@ -766,20 +766,20 @@ def test_sync_names_every_method_and_refuses_absurd_translations(tmp_path):
                                      + _edge(1, 2) + _edge(0, 2, "2 0 0 0 0 0 1"))
     for method in ("history", "lm"):
         code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
-        assert code == 2 and lines == ["error: edge 0: translation 1e+200 beyond what double precision can square "
-                                       "(1.3e+154)"], lines
+        assert code == 2 and lines == [f"error: {tmp_path / 'in.g2o'}: line 4: translation 1e+200 beyond what double "
+                                       "precision can square (1.3e+154)"], lines
     assert not (tmp_path / "out.g2o").exists()
 
 
 @pytest.mark.parametrize("method", ["history", "lm", "shonan", "gnc_tls"])
 def test_sync_information_beyond_double_precision_is_refused_by_every_method(tmp_path, method):
     """Information of 1e-300 on every edge of a loop: Shonan failed ("TridiagEigen: eigen decomposition failed"),
-    the other methods wrote a graph; every method refuses it, naming the edge."""
+    the other methods wrote a graph; every method refuses it, naming the edge's line."""
     tiny = _INFO.replace("1", "1e-300")
     (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _edge(0, 1, info=tiny)
                                      + _edge(1, 2, "0 1 0 0 0 0 1", tiny) + _edge(0, 2, "1 1 0 0 0 0 1", tiny))
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
-    assert code == 2 and len(lines) == 1 and "edge 0: information's eigenvalues" in lines[0], lines
+    assert code == 2 and len(lines) == 1 and "in.g2o: line 4: information's eigenvalues" in lines[0], lines
     assert not (tmp_path / "out.g2o").exists()
 
 
