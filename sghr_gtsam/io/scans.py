@@ -286,8 +286,9 @@ def _decimal_comma_line(text: str) -> tuple[int, str] | None:
     with commas as separators, such lines give wrong coordinates, on any line of the file."""
     for match in _DECIMAL_COMMA.finditer(text):
         start = text.rfind("\n", 0, match.start()) + 1
-        row = text[start:match.end()].split("#", 1)[0] + text[match.end():].split("\n", 1)[0].split("#", 1)[0]
-        if match.end() - start <= len(row.rstrip("\r")) and len(row.split()) >= 2:
+        end = text.find("\n", match.end())
+        row = text[start:end if end >= 0 else len(text)].split("#", 1)[0]
+        if match.end() - start <= len(row) and len(row.split()) >= 2:  # data, not a comment
             return text.count("\n", 0, start) + 1, row
     return None
 
