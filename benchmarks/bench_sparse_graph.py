@@ -8,7 +8,7 @@
 Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
 pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
 registration on the graph's edges, history-reweighted IRLS, gtsam polish) on the scans read once by
-``pipeline.load_scene``, default ``Config`` except ``k``, ``global_feature`` and ``record=False``.
+``scene.load_scene``, default ``Config`` except ``k``, ``global_feature`` and ``record=False``.
 Rows per scene:
 
 - **exhaustive**: k = N − 1 (every pair), with the default VLAD-codebook scores and with the learned head's
@@ -69,6 +69,7 @@ from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 from data_tools.simulate import make_training_scene  # noqa: E402
 from sghr_gtsam import pipeline  # noqa: E402
+from sghr_gtsam.scene import load_scene  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
 from sghr_gtsam.evaluate import fragment_id, registration_recall, scan_errors  # noqa: E402
 from sghr_gtsam.features.local import default_voxel  # noqa: E402
@@ -176,7 +177,7 @@ class Scene:
 
 def real_scene(name: str, data: Path) -> Scene:
     folder, gt_dir, max_deg, max_t, unit, scale = SCENES[name]
-    scans, _ = pipeline.load_scene(data / folder, Config(), log=lambda m: None)
+    scans, _ = load_scene(data / folder, Config(), log=lambda m: None)
     names = [s.name for s in scans]
     gt_names, gt_poses = read_poses(data / gt_dir / "gt_poses.txt")
     scene = Scene(name, scans, gt_poses[[gt_names.index(s) for s in names]],

@@ -17,7 +17,7 @@ from . import local_frame
 from .cache import Cache, pyramid_key, scan_key
 from .config import Config
 from .executor import start_server
-from .features.local import FEATURES, MAX_CELLS, scan_features, voxel_from_spans
+from .features.local import FEATURES, scan_features
 from .features.netvlad import (
     DEFAULT_HEAD,
     codebook_features,
@@ -26,11 +26,8 @@ from .features.netvlad import (
 )
 from .graph import bridge_components, top_k_edges, top_k_graph
 from .gtsam_api import pose_covariances
-from .io.features import read_features
 from .io.atomic import staged_folder
-from .io.poses import unwritable_name
 from .io.results import CACHE, check_output_folder, write_results
-from .io.scans import COORDINATE_LIMIT, check_memory, finite_points, left_out, list_scans, load_scan
 from .merged import merged_cloud
 from .progress import QUIET, Progress
 from .recording import Recorder
@@ -44,12 +41,11 @@ from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
 from .registration.visibility import contradicted_placements
 from .result import RunResult
+from .scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
 from .se3 import inv_T
 from .store import Attribute, Store, Stored
 from .sync import contested, synchronize, unverified
-from .types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
-
-Log = Callable[[str], None]
+from .types import InputError, IterationRecord, PoseGraph, Scan, SyncResult
 
 
 class _Timer:
@@ -64,90 +60,6 @@ class _Timer:
         t0 = time.perf_counter()
         yield
         self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
-
-
-def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[list[Scan], dict[str, str]]:
-    """The scans of ``folder``, each read once for its checks and ``ScanStats`` (its points are not kept: the
-    stages read them again), with its keypoints and descriptors from ``config.features`` if set; unusable files
-    and scans without features are skipped with a reason instead of failing the run. ``InputError`` before reading
-    a scan that would not fit in the memory available (``io.scans.check_memory``)."""
-    scans: list[Scan] = []
-    skipped: dict[str, str] = {}
-    digests: dict[str, str] = {}
-    paths = list_scans(folder)
-    for name in left_out(folder):
-        log(f"not a scan, by its name: {name} (poses, a trajectory, overlaps or a readme)")
-    for path in paths:
-        if unwritable_name(path.name):  # the results name scans by their file names
-            skipped[path.name] = (f"its name {path.name!r} cannot be written on its own line in the pose files: "
-                                  f"rename it")
-            log(f"skipped {path.name}: {skipped[path.name]}")
-            continue
-        check_memory(path)  # a scan too large for this machine ends the run: it is no bad file to skip
-        try:
-            P, dropped = finite_points(load_scan(path))
-        except InputError as e:
-            skipped[path.name] = str(e)
-            log(f"skipped {path.name}: {e}")
-            continue
-        if dropped:
-            log(f"{path.name}: dropped {dropped} points not finite or past ±{COORDINATE_LIMIT:.2g}")
-        if sparse := _too_sparse(len(P), config.min_points):
-            skipped[path.name] = sparse
-            log(f"skipped {path.name}: {sparse}")
-            continue
-        stats = ScanStats.of(P)
-        del P  # the stages read the scan again when they need its points: none holds every scan's at once
-        if stats.digest in digests:
-            log(f"note: {path.name} holds the same points as {digests[stats.digest]}")
-        digests.setdefault(stats.digest, path.name)
-        scans.append(Scan(path.name, path, stats=stats))
-    if config.features:
-        given = read_features(config.features, [Path(s.name).stem for s in scans])
-        for s in scans:
-            s.keypoints = given.get(Path(s.name).stem)
-            if s.keypoints is None:
-                skipped[s.name] = f"no keypoints and descriptors in {config.features}"
-                log(f"skipped {s.name}: {skipped[s.name]}")
-        scans = [s for s in scans if s.keypoints is not None]
-    if len(scans) < 2:
-        raise _too_few(scans, skipped, f"{folder}: ")
-    return scans, skipped
-
-
-def _too_few(scans: list[Scan], skipped: dict[str, str], where: str = "") -> InputError:
-    """The error of a run left with fewer than two scans, naming the first skipped one and why."""
-    first = next(iter(skipped.items()), None)
-    why = f"; skipped {first[0]}: {first[1]}" if first else ""
-    more = f" (and {len(skipped) - 1} more)" if len(skipped) > 1 else ""
-    return InputError(f"{where}need at least 2 usable scans, {len(scans)} left{why}{more}")
-
-
-def _given_scores(scores: np.ndarray, n: int) -> np.ndarray:
-    S = np.asarray(scores, dtype=float)
-    if S.shape != (n, n):
-        raise InputError(f"overlap scores must be a {n}x{n} matrix (one row a scan given), got shape {S.shape}")
-    if not np.all(np.isfinite(S)) or not np.allclose(S, S.T):
-        raise InputError("overlap scores must be finite and symmetric")
-    return S
-
-
-def _check_names(names: list) -> None:
-    """``InputError`` unless every scan name is distinct and a pose file can hold it (``io.poses.unwritable_name``):
-    results are matched to scans by name, and pose files hold one name a line, read back stripped."""
-    seen: set[str] = set()
-    for name in names:
-        if why := unwritable_name(name):
-            raise InputError(f"scan name {name!r} {why} (pose files hold one name a line, read back stripped, '#' "
-                             f"starting a comment)")
-        if name in seen:
-            raise InputError(f"two scans are named {name!r}")
-        seen.add(name)
-
-
-def _too_sparse(points: int, min_points: int) -> str | None:
-    """Why a scan of ``points`` finite points is skipped (``Config.min_points``), or None."""
-    return f"only {points} finite points (< {min_points})" if points < min_points else None
 
 
 def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
@@ -170,48 +82,6 @@ def _global_features(features: Stored, counts: list[int], config: Config) -> tup
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
     F, clusters = codebook_features(descriptors, seed=config.seed, counts=counts)
     return F, f"unsupervised VLAD codebook ({clusters} clusters of {kind}, k-means on this scene)"
-
-
-UNIT_RATIO = 30.0
-"""A scan whose extent (1st-99th percentile box diagonal) differs from the median scan's by more than this factor
-is skipped as in another unit or of another scene (a scan in millimetres among scans in metres: 1000×; a small
-object among room scans: 33×)."""
-
-
-STRAY_RATIO = 1e6
-"""A scan whose bounding box is this many times larger than the box of 98 % of its points holds stray points far
-away (one point at 1e9 m in a 10 m room); it is skipped, since it would also set the scene's voxel size."""
-
-
-def _same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str], log: Log,
-                min_points: int) -> list[int]:
-    """The indices of the scans with at least ``min_points`` finite points whose points do not all coincide, hold no
-    stray point far away and whose extent is within ``UNIT_RATIO`` of the median scan's (from their ``stats``); the
-    others are named in ``skipped``."""
-    extents = np.array([st.extent for st in stats])
-    spans = np.array([st.span for st in stats])
-    flat, stray = spans <= 0, spans > STRAY_RATIO * extents
-    sparse = [_too_sparse(st.points, min_points) for st in stats]
-    usable = ~flat & ~stray & np.array([why is None for why in sparse])
-    median = float(np.median(extents[usable])) if usable.any() else 0.0
-    keep = []
-    for k, (s, extent, span, is_flat, is_stray, too_sparse) in enumerate(zip(scans, extents, spans, flat, stray,
-                                                                             sparse)):
-        ratio = extent / median if median > 0 else 1.0
-        if too_sparse:
-            skipped[s.name] = too_sparse
-        elif is_flat:
-            skipped[s.name] = "all its points coincide"
-        elif is_stray:
-            skipped[s.name] = f"its points span {span:.3g} but 98 % of them {extent:.3g}: a stray point far away?"
-        elif not 1 / UNIT_RATIO <= ratio <= UNIT_RATIO:
-            skipped[s.name] = (f"its extent {extent:.3g} is {ratio:.3g}x the median scan's {median:.3g}: another unit "
-                               f"or another scene?")
-        else:
-            keep.append(k)
-            continue
-        log(f"skipped {s.name}: {skipped[s.name]}")
-    return keep
 
 
 OVERRULE_ROUNDS = 3
@@ -307,33 +177,14 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     time where they are needed, ``RunResult.features`` too.
     """
     config.validate()
-    if len(scans) < 2:
-        raise InputError(f"need at least 2 scans, got {len(scans)}")
-    _check_names([s.name for s in scans])
-    if scores is not None:
-        scores = _given_scores(scores, len(scans))
-    given = sum(s.keypoints is not None for s in scans)
-    if 0 < given < len(scans):
-        raise InputError(f"{given} of {len(scans)} scans have keypoints and descriptors: give them for all or none")
-    if len({s.keypoints.descriptors.shape[1] for s in scans if s.keypoints is not None}) > 1:
-        raise InputError("the scans' descriptors differ in dimension")
+    scores = check_given(scans, scores)
     if recorder:
         log = _also_recorded(log, recorder)
     timer = _Timer(recorder.begin_stage if recorder else None)
     skipped = dict(skipped or {})
     stats = [s.statistics() for s in scans]  # a scan given without them is read here, one at a time
-    keep = _same_units(scans, stats, skipped, log, config.min_points)
-    scans, stats = [scans[k] for k in keep], [stats[k] for k in keep]
-    if scores is not None:  # given for every scan: the skipped ones' rows go
-        scores = scores[np.ix_(keep, keep)]
-    if len(scans) < 2:
-        raise _too_few(scans, skipped)
-    voxel = config.voxel if config.voxel else voxel_from_spans([st.span for st in stats])
-    if (cells := float(np.median([st.span for st in stats])) / voxel) >= np.sqrt(3) * MAX_CELLS:
-        # Then most scans span too many voxels along some axis for the grid, each skipped as if a stray point
-        # had stretched it: the voxel is what is wrong.
-        raise InputError(f"voxel {voxel:.3g} is too small: the median scan's diagonal spans {cells:.3g} voxels of it "
-                         f"(at most 2^31 along an axis)")
+    scans, stats, scores = usable_scans(scans, stats, scores, skipped, log, config.min_points)
+    voxel = scene_voxel(config.voxel, stats)
     centres = local_frame.centres(np.array([st.median for st in stats]), voxel)
     scans = [replace(s, centre=c, stats=st) for s, c, st in zip(scans, centres, stats)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
@@ -367,7 +218,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
     graph = stages.pose_graph(edges)
     if not np.any(graph.weight > 0):
-        doubt = _voxel_doubt(voxel, scans, given=config.voxel is not None)
+        doubt = voxel_doubt(voxel, scans, given=config.voxel is not None)
         raise InputError(f"no pair of scans could be registered (do the scans overlap?{doubt})")
     result = stages.synchronize(graph, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
@@ -377,38 +228,6 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)
-
-
-VOXEL_DOUBT = 10.0
-"""A voxel this many times finer or coarser than the default is named when no pair registers: FPFH's neighbourhoods
-(5 voxels) then hold one point each, or a scan is a handful of cells; either way nothing matches."""
-
-
-SPREAD = 3.0
-"""When no pair registers with the default voxel, the scans whose extent is this many times the median scan's, or
-1/this of it, are named: a majority of scans of noise or of another scene sets the median, and so the voxel (two room
-scans among three small clouds of noise: 1/10 of the rooms' voxel). The kitchen's and the bunny's are within 1.3x."""
-
-
-def _voxel_doubt(voxel: float, scans: list[Scan], given: bool) -> str:
-    """Why ``voxel`` may be what kept every pair from registering, or "": a ``given`` one far from the default, or a
-    default that scans far from the others set."""
-    spans = np.array([s.stats.span for s in scans])
-    if given:
-        default = voxel_from_spans(spans)
-        ratio = voxel / default
-        if 1 / VOXEL_DOUBT <= ratio <= VOXEL_DOUBT:
-            return ""
-        return (f" is the voxel {voxel:.3g} right? it is {ratio:.3g}x the default {default:.3g}, 1/100 of the median "
-                f"scan's extent")
-    ratios = spans / (100 * voxel)
-    far = [f"{s.name} ({ratio:.2g}x)" for s, ratio in zip(scans, ratios) if not 1 / SPREAD <= ratio <= SPREAD]
-    if not far:
-        return ""
-    named = ", ".join(far[:3]) + (f" and {len(far) - 3} more" if len(far) > 3 else "")
-    return (f" is the voxel {voxel:.3g} right? it is 1/100 of the median scan's extent ({100 * voxel:.3g}), and "
-            f"{named} differ{'s' if len(far) == 1 else ''} from it by more than {SPREAD:g}x: scans of noise or of "
-            f"another scene may have set the median (leave them out, or set --voxel)")
 
 
 def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,
@@ -430,7 +249,7 @@ def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config
     usable = [k for k, count in enumerate(counts) if not isinstance(count, str)]
     scans, centres, counts = [scans[k] for k in usable], centres[usable], [counts[k] for k in usable]
     if len(scans) < 2:
-        raise _too_few(scans, skipped)
+        raise too_few(scans, skipped)
     features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, shared, scans))
     return scans, centres, features, counts
 

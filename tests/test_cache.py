@@ -18,7 +18,8 @@ import pytest
 from sghr_gtsam.cache import Cache, pair_key, refined_key, scan_key
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.results import CACHE
-from sghr_gtsam.pipeline import load_scene, register
+from sghr_gtsam.pipeline import register
+from sghr_gtsam.scene import load_scene
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError, Keypoints, Scan
 

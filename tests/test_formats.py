@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.poses import read_tum, write_kitti, write_tum
 from sghr_gtsam.io.scans import check_memory, list_scans, load_scan, point_count
-from sghr_gtsam.pipeline import load_scene
+from sghr_gtsam.scene import load_scene
 from sghr_gtsam.se3 import make_T
 from sghr_gtsam.types import InputError
 

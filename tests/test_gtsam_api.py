@@ -273,7 +273,7 @@ def test_session_fed_scan_by_scan_ends_at_the_batch_synchronization_of_its_edges
 def test_session_fed_real_scans_one_by_one_ends_at_the_batch_result(data_dir, scene, max_deg, max_trans):
     """Issue 12's incremental target: kitchen and bunny fed scan by scan end within 0.5° / 1 cm and 0.1° / 1 mm of
     the batch run of the same scans, every scan placed by both."""
-    from sghr_gtsam.pipeline import load_scene
+    from sghr_gtsam.scene import load_scene
 
     cfg = Config(record=False, workers=1)
     scans, _ = load_scene(data_dir / scene, cfg, log=lambda m: None)

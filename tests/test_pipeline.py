@@ -12,7 +12,8 @@ from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.io.g2o import read_g2o
 from sghr_gtsam.io.poses import read_kitti, read_poses
-from sghr_gtsam.pipeline import Scan, load_scene, register, run
+from sghr_gtsam.pipeline import Scan, register, run
+from sghr_gtsam.scene import load_scene
 from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.synthetic import make_scene, write_scene

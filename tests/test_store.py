@@ -23,6 +23,7 @@ from sghr_gtsam.features.local import FEATURES, scan_features
 from sghr_gtsam.pipeline import register, run
 from sghr_gtsam.registration.refine import PYRAMIDS, scan_pyramid
 from sghr_gtsam.store import Attribute, Store, Stored, pair_order
+from sghr_gtsam.scene import load_scene
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError, Scan
 
@@ -202,7 +203,7 @@ def demo_room(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def in_memory(demo_room):
-    scans, skipped = pipeline.load_scene(demo_room, Config(), **QUIET)
+    scans, skipped = load_scene(demo_room, Config(), **QUIET)
     return register(scans, Config(record=False, workers=1), skipped=skipped, store=_InMemory(None), **QUIET)
 
 
