@@ -28,10 +28,7 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     scans: list[Scan] = []
     skipped: dict[str, str] = {}
     digests: dict[str, str] = {}
-    paths = list_scans(folder)
-    for name in left_out(folder):
-        log(f"not a scan, by its name: {name} (poses, a trajectory, overlaps or a readme)")
-    for path in paths:
+    for path in list_scans(folder):
         if unwritable_name(path.name):  # the results name scans by their file names
             skipped[path.name] = (f"its name {path.name!r} cannot be written on its own line in the pose files: "
                                   f"rename it")
@@ -66,6 +63,8 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
         scans = [s for s in scans if s.keypoints is not None]
     if len(scans) < 2:
         raise too_few(scans, skipped, f"{folder}: ")
+    for name in left_out(folder):  # said once the scene is read: an error stays the one line printed
+        log(f"not a scan, by its name: {name} (poses, a trajectory, overlaps or a readme)")
     return scans, skipped
 
 

@@ -468,3 +468,17 @@ def test_coordinates_past_float64_geometry_are_dropped_as_not_finite(tmp_path):
         scans, skipped = load_scene(tmp_path / "scene", Config(), log=logged.append)
     assert "stray.npy" in [s.name for s in scans] and next(s for s in scans if s.name == "stray.npy").stats.points == 299
     assert "stray.npy: dropped 1 points not finite or past ±3.9e+153" in logged, logged
+
+
+def test_files_left_out_by_their_names_are_named(tmp_path):
+    """``exposed_wall_03.txt`` was left out silently (``*pose*.txt``); a file left out by a whole word is now named."""
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    for k in range(2):
+        np.save(scene / f"good_{k}.npy", _points(300, k))
+    np.savetxt(scene / "exposed_wall_03.txt", _points(300, 2))
+    (scene / "gt_poses.txt").write_text("# poses\n")
+    logged = []
+    scans, skipped = load_scene(scene, Config(), log=logged.append)
+    assert [s.name for s in scans] == ["exposed_wall_03.txt", "good_0.npy", "good_1.npy"] and not skipped
+    assert logged == ["not a scan, by its name: gt_poses.txt (poses, a trajectory, overlaps or a readme)"], logged
