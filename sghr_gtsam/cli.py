@@ -399,7 +399,7 @@ def sync(
         import numpy as np
 
         from .gtsam_api import KERNELS, NOISE_MODELS, check_choice, repolish
-        from .io.g2o import isotropic_information, read_g2o, sesync_objective, write_g2o
+        from .io.g2o import fixed_ids, isotropic_information, read_g2o, sesync_objective, write_g2o
         from .sync import checked_graph, synchronize, unverified
 
     def work() -> None:
@@ -421,7 +421,9 @@ def sync(
             result = synchronize(graph, method=method, iters=iters, polish=polish)
         if kernel != "none":
             result.poses = repolish(graph, result.poses, result.weights > 0, result.component, kernel=kernel)
-        poses = _in_input_frame(result.poses, result.component, given)
+        index = {v: k for k, v in enumerate(ids)}
+        poses, free = _in_input_frame(result.poses, result.component, given,
+                                      [index[v] for v in fixed_ids(graph_file) if v in index])
         write_g2o(out, ids, poses, graph)
         parts = int(result.component.max()) + 1
         typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "
@@ -431,6 +433,9 @@ def sync(
             shown = " ".join(map(str, apart[:10])) + (" ..." if len(apart) > 10 else "")
             typer.echo(f"{len(apart)} pose(s) outside the largest part, joined to it by no kept edge: each part is "
                        f"placed by its first vertex's input pose, not by the graph: {shown}", err=True)
+        if free:
+            typer.echo(f"FIX vertices placed by the graph (a part is held at its first FIX vertex): "
+                       f"{' '.join(str(ids[k]) for k in free)}", err=True)
         weak = [ids[k] for k in np.flatnonzero(unverified(graph, result))]
         if weak:
             shown = " ".join(map(str, weak[:10])) + (" ..." if len(weak) > 10 else "")
@@ -453,19 +458,24 @@ def _in_file(message: str, path: Path) -> str:
     return f"{path}: line {line}: {message[found.end():]}" if line else f"{path}: {message}"
 
 
-def _in_input_frame(poses, component, given):
-    """``poses`` (N, 4, 4) of each connected part (``component``) moved rigidly so that its first vertex keeps its
-    ``given`` input pose: the input frame, as a prior on the first pose at its initial value holds it in gtsam.
-    Synchronization anchors every part at the identity, which stacked the parts on one another."""
+def _in_input_frame(poses, component, given, fixed):
+    """``poses`` (N, 4, 4) of each connected part (``component``) moved rigidly so that its anchor keeps its
+    ``given`` input pose: its first vertex in ``fixed`` (node indices of the file's ``FIX`` lines), else its first
+    vertex; the input frame, as a prior on that pose at its initial value holds it in gtsam. Synchronization anchors
+    every part at the identity, which stacked the parts on one another. Also the fixed vertices left free (a part
+    holds one)."""
     import numpy as np
 
     from .se3 import inv_T
 
-    out = poses.copy()
+    out, free = poses.copy(), []
     for part in range(int(component.max()) + 1):
         members = np.flatnonzero(component == part)
-        out[members] = given[members[0]] @ inv_T(poses[members[0]]) @ poses[members]
-    return out
+        held = [k for k in fixed if component[k] == part]
+        anchor = held[0] if held else members[0]
+        out[members] = given[anchor] @ inv_T(poses[anchor]) @ poses[members]
+        free += held[1:]
+    return out, free
 
 
 @app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True},

@@ -756,6 +756,17 @@ def test_sync_keeps_the_input_frame_and_does_not_stack_parts(tmp_path, method):
     np.testing.assert_allclose(poses[[2, 4], :3, 3], [[11, 1, 0], [100, 5, 1]], atol=1e-6)
 
 
+def test_sync_holds_a_part_at_its_fix_vertex(tmp_path):
+    """``FIX`` lines were skipped: the part was held at its first vertex, so the FIX vertex moved. A part now keeps
+    its first FIX vertex at its input pose; a second FIX vertex in the same part is named as placed by the graph."""
+    (tmp_path / "in.g2o").write_text("FIX 2 1\n" + _V.format(0) + _V.format(1) + "VERTEX_SE3:QUAT 2 5 5 0 0 0 0 1\n"
+                                     + _edge(0, 1) + _edge(1, 2, "0 1 0 0 0 0 1") + _edge(0, 2, "1 1 0 0 0 0 1"))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o")
+    assert code == 0 and lines[1:] == ["FIX vertices placed by the graph (a part is held at its first FIX vertex): 1"]
+    _, poses, _ = read_g2o(tmp_path / "out.g2o")
+    np.testing.assert_allclose(poses[:, :3, 3], [[4, 4, 0], [5, 4, 0], [5, 5, 0]], atol=1e-6)
+
+
 def test_sync_names_every_method_and_refuses_absurd_translations(tmp_path):
     """``--method bogus`` listed five of the twelve methods; an edge translation of 1e200 printed numpy's overflow
     warnings and wrote poses of 1e199 (lm, l1_irls, rotavg, shonan, open3d)."""

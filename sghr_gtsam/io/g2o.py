@@ -117,7 +117,7 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
     edges name, poses None, and an empty graph when it has no edges either; with ``positive_definite`` (a graph to
     optimize, as ``sync`` reads it) such a file is refused.
 
-    ``FIX`` lines (gauge hints), blank lines and ``#`` comments are skipped; anything else that is not a
+    ``FIX`` lines (gauge hints: ``fixed_ids``), blank lines and ``#`` comments are skipped; anything else that is not a
     well-formed vertex or edge (finite values, a non-zero quaternion, a symmetric positive semi-definite information
     matrix, positive definite with ``positive_definite``, between two different vertices that are defined) raises
     ``InputError`` naming the line. Repeated edges are kept. (The zero information of a failed registration in
@@ -178,6 +178,17 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
                       j=np.array([index[b] for _, b in ends], dtype=int).reshape(E), T=T, weight=np.ones(E),
                       information=information)
     return ids, poses, graph
+
+
+def fixed_ids(path: str | Path) -> list[int]:
+    """The vertex ids of a g2o file's ``FIX`` lines, in file order (``read_g2o`` skips those lines): the vertices a
+    g2o optimizer holds at their input poses. Ids that are not whole numbers are ignored, as gtsam ignores them."""
+    ids = []
+    for line in _text(Path(path)).split("\n"):
+        tok = line.split()
+        if tok[:1] == ["FIX"]:
+            ids.extend(int(t) for t in tok[1:] if _ID.fullmatch(t))
+    return ids
 
 
 def _pose_fields(T: np.ndarray) -> list[str]:
