@@ -410,13 +410,13 @@ def sync(
         if noise == "isotropic":
             graph.information = isotropic_information(graph.information)
         try:
-            checked_graph(graph)
+            checked = checked_graph(graph)
         except InputError as e:  # said of the file: its line, not the graph's edge index
             raise InputError(_in_file(str(e), graph_file)) from None
         if method in _BASELINE_NAMES:
             from .sync.baselines import BASELINES
 
-            result = BASELINES[method](checked_graph(graph))
+            result = BASELINES[method](checked)
         else:
             result = synchronize(graph, method=method, iters=iters, polish=polish)
         if kernel != "none":
@@ -468,14 +468,16 @@ def _in_input_frame(poses, component, given, fixed):
 
     from .se3 import inv_T
 
-    out, free = poses.copy(), []
-    for part in range(int(component.max()) + 1):
-        members = np.flatnonzero(component == part)
-        held = [k for k in fixed if component[k] == part]
-        anchor = held[0] if held else members[0]
-        out[members] = given[anchor] @ inv_T(poses[anchor]) @ poses[members]
-        free += held[1:]
-    return out, free
+    anchor = np.unique(component, return_index=True)[1]  # each part's first vertex, by its label
+    held, free = set(), []
+    for k in fixed:
+        if component[k] in held:
+            free.append(k)
+        else:
+            held.add(component[k])
+            anchor[component[k]] = k
+    a = anchor[component]
+    return given[a] @ inv_T(poses[a]) @ poses, free
 
 
 @app.command("train", context_settings={"allow_extra_args": True, "ignore_unknown_options": True},

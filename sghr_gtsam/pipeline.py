@@ -201,12 +201,8 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
               recorder: Recorder | None, log: Log, skipped: dict[str, str], timer: _Timer, scores: np.ndarray | None,
               progress: Progress, cache: Cache | None) -> RunResult:
     """``register`` from the features on: ``scans`` checked and centred (at ``centres``)."""
-    index = {s.name: k for k, s in enumerate(scans)}
-    scans, centres, features, counts = _local_features(scans, centres, voxel, config, store, skipped, timer, log,
-                                                       progress)
-    if scores is not None:  # the rows of scans without features go
-        kept = [index[s.name] for s in scans]
-        scores = scores[np.ix_(kept, kept)]
+    scans, centres, features, counts, scores = _local_features(scans, centres, scores, voxel, config, store, skipped,
+                                                               timer, log, progress)
     if recorder:
         recorder.log_scans([s.name for s in scans], Attribute(features, "points"))
     stages = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
@@ -230,11 +226,11 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)
 
 
-def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,
-                    skipped: dict[str, str], timer: _Timer, log: Log,
-                    progress: Progress) -> tuple[list[Scan], np.ndarray, Stored, list[int]]:
-    """The scans with features, their centres, their features in ``store`` and their counts of descriptors; the
-    others go to ``skipped``."""
+def _local_features(scans: list[Scan], centres: np.ndarray, scores: np.ndarray | None, voxel: float, config: Config,
+                    store: Store, skipped: dict[str, str], timer: _Timer, log: Log,
+                    progress: Progress) -> tuple[list[Scan], np.ndarray, Stored, list[int], np.ndarray | None]:
+    """The scans with features, their centres, their features in ``store``, their counts of descriptors and their
+    rows of the given ``scores`` (or None); the others go to ``skipped``."""
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
     # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
     keys = [scan_key(s, voxel, config) for s in scans]
@@ -251,7 +247,7 @@ def _local_features(scans: list[Scan], centres: np.ndarray, voxel: float, config
     if len(scans) < 2:
         raise too_few(scans, skipped)
     features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, shared, scans))
-    return scans, centres, features, counts
+    return scans, centres, features, counts, None if scores is None else scores[np.ix_(usable, usable)]
 
 
 def _global_graph(stages: _Stages, counts: list[int],

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 
+from sghr_gtsam.errors import one_line
 from sghr_gtsam.types import InputError
 
 _EPS = 1e-12  # torch.nn.functional.normalize's floor on a norm
@@ -62,7 +63,7 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # noqa: BLE001 - a missing, corrupt or foreign file is bad input
-        raise InputError(f"cannot read overlap head {path}: not a PyTorch checkpoint ({_one_line(e)})") from None
+        raise InputError(f"cannot read overlap head {path}: not a PyTorch checkpoint ({one_line(e)})") from None
     try:
         state = state.get("network_state_dict", state)
         state = {k[len(prefix):]: v.detach().double().numpy() for k, v in state.items() if k.startswith(prefix)}
@@ -72,13 +73,9 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
             raise ValueError(f"centroids {centroids.shape}, conv.weight {weight.shape}, conv.bias {bias.shape} "
                              "do not make one head")
     except Exception as e:  # noqa: BLE001 - a checkpoint of something else
-        reason = f"no {prefix}{e.args[0]}" if isinstance(e, KeyError) else _one_line(e)
+        reason = f"no {prefix}{e.args[0]}" if isinstance(e, KeyError) else one_line(e)
         raise InputError(f"cannot read overlap head {path}: {reason}") from None
     return head
-
-
-def _one_line(e: Exception) -> str:
-    return " ".join(str(e).split()) or type(e).__name__
 
 
 def kmeans_codebook(descriptors: Sequence[np.ndarray], clusters: int = 64, samples: int = 20000,

@@ -17,7 +17,7 @@ import numpy as np
 import open3d as o3d
 
 from sghr_gtsam.io.atomic import atomic_path, atomic_write
-from sghr_gtsam.errors import InputError
+from sghr_gtsam.errors import InputError, one_line
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
@@ -546,8 +546,7 @@ def load_scan(path: str | Path) -> np.ndarray:
     except InputError as e:
         raise InputError(f"cannot read scan {path}: {e}") from None
     except Exception as e:  # noqa: BLE001 - any reader failure is bad input, reported on one line
-        reason = " ".join(str(e).split()) or type(e).__name__
-        raise InputError(f"cannot read scan {path}: {reason}") from None
+        raise InputError(f"cannot read scan {path}: {one_line(e)}") from None
     if len(points) == 0:
         raise InputError(f"cannot read scan {path}: no points")
     return np.ascontiguousarray(points)
