@@ -43,6 +43,7 @@ import gtsam
 import numpy as np
 
 from . import local_frame
+from .local_frame import graph_to_input_frame, translation
 from .config import Config
 from .features.local import ScanFeatures, compute_features
 from .features.netvlad import global_features, load_default_head
@@ -217,7 +218,7 @@ class Session:
             if not (_real(w) and np.isfinite(w) and w >= 0):
                 raise InputError(f"{what}: weight must be a finite number >= 0; got {w!r}")
             info = _information(info, f"{what}: information")
-            T = _shift(-self._centres[i]) @ T  # the new node has no scan: its centred frame is its input frame
+            T = translation(-self._centres[i]) @ T  # the new node has no scan: its centred frame is its input frame
             pair = PairResult(T=T, inliers=0, fitness=float("nan"), rmse=float("nan"), information=info, seconds=0.0)
             checked.append(Edge(int(i), node, T, float(w), info, pair))
         return self._add_node(name, np.zeros(3), None, None, None, checked, [])
@@ -227,15 +228,12 @@ class Session:
         """(N, 4, 4) current poses in the input frames, scan 0 exactly the identity; NaN for scans not placed
         yet."""
         c = self._centre_rows
-        return _shift(c[:1]) @ self._local_poses() @ _shift(-c)  # scan 0: S(c₀) S(-c₀), exactly the identity
+        return translation(c[:1]) @ self._local_poses() @ translation(-c)  # scan 0: S(c₀) S(-c₀), exactly the identity
 
     def graph(self) -> PoseGraph:
         """Every edge so far as a ``PoseGraph`` in the input frames (``information``: the calibrated one)."""
-        g, c = self._graph(), self._centre_rows
-        g.T = _shift(c[g.i]) @ g.T @ _shift(-c[g.j])
-        if g.information is not None:
-            back = np.stack([gtsam.Pose3(gtsam.Rot3(), -c[j]).AdjointMap() for j in g.j])  # ξ' = Ad(S(-c_j)) ξ
-            g.information = np.swapaxes(back, 1, 2) @ g.information @ back
+        g = self._graph()
+        graph_to_input_frame(g, self._centre_rows)
         return g
 
     def run_result(self) -> RunResult:
@@ -463,13 +461,6 @@ class Session:
 def _real(x: object) -> bool:
     """A real number, not a bool (``True`` is an int to Python, never a voxel or a weight)."""
     return isinstance(x, numbers.Real) and not isinstance(x, bool)
-
-
-def _shift(c: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) the translations by ``c`` (..., 3)."""
-    S = np.broadcast_to(np.eye(4), c.shape[:-1] + (4, 4)).copy()
-    S[..., :3, 3] = c
-    return S
 
 
 def _array(value: object, shape: tuple[int, int], what: str) -> np.ndarray:

@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 
 from .result import RunResult
+from .types import PoseGraph
 
 FAR_VOXELS = 1e4
 """Scans farther than this many voxels from the origin are centred (``centres``): float32 code (kiss-matcher's
@@ -25,7 +26,7 @@ def centres(medians: np.ndarray, voxel: float) -> np.ndarray:
     return medians if np.abs(medians).max() > FAR_VOXELS * voxel else np.zeros_like(medians)
 
 
-def _translation(c: np.ndarray) -> np.ndarray:
+def translation(c: np.ndarray) -> np.ndarray:
     """(..., 4, 4) translations by ``c`` (..., 3)."""
     S = np.broadcast_to(np.eye(4), c.shape[:-1] + (4, 4)).copy()
     S[..., :3, 3] = c
@@ -40,6 +41,16 @@ def _adjoint(c: np.ndarray) -> np.ndarray:
     return A
 
 
+def graph_to_input_frame(g: PoseGraph, centres: np.ndarray) -> np.ndarray:
+    """``g``'s transforms and information, between scans centred at ``centres``, mapped to the input frames in place
+    (``T_ij = S(c_i) T_ij' S(-c_j)``); returns each edge's adjoint ``Ad(-c_j)`` (E, 6, 6), with ``ξ' = Ad(c_j) ξ``."""
+    g.T = translation(centres[g.i]) @ g.T @ translation(-centres[g.j])
+    back = _adjoint(-centres[g.j])  # the information is Ad(-c_j)ᵀ Ω Ad(-c_j)
+    if g.information is not None:
+        g.information = np.swapaxes(back, 1, 2) @ g.information @ back
+    return back
+
+
 def to_input_frame(run: RunResult, centres: np.ndarray) -> None:
     """Poses, edges, their information (also its free directions' bounds and grid terms) and the pose covariances
     of a run on centred scans, in the scans' input frames: scan k centred at ``c_k``, ``T_k = S(c_a) T_k' S(-c_k)``
@@ -48,11 +59,8 @@ def to_input_frame(run: RunResult, centres: np.ndarray) -> None:
     anchor = int(np.flatnonzero(run.sync.component == 0)[0])
     g = run.graph
     run.poses[anchor] = np.eye(4)  # exactly: its rounding residue would be multiplied by the offset
-    run.poses = _translation(centres[anchor]) @ run.poses @ _translation(-centres)
-    g.T = _translation(centres[g.i]) @ g.T @ _translation(-centres[g.j])
-    back = _adjoint(-centres[g.j])  # ξ' = Ad(c_j) ξ: the information is Ad(-c_j)ᵀ Ω Ad(-c_j)
-    if g.information is not None:
-        g.information = np.swapaxes(back, 1, 2) @ g.information @ back
+    run.poses = translation(centres[anchor]) @ run.poses @ translation(-centres)
+    back = graph_to_input_frame(g, centres)
     run.pairs = [replace(p, T=T, grid=None if p.grid is None else np.linalg.solve(A, p.grid),  # ξ' = Ad(c_j) ξ
                          **{name: None if getattr(p, name) is None else A.T @ getattr(p, name) @ A
                             for name in ("information", "bounded", "loose")})
