@@ -275,9 +275,8 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
     out = np.full((len(result.names), 6, 6), np.nan)
     anchor = int(np.flatnonzero(result.sync.component == 0)[0])
     information = graph_information(result.graph, _edges_of(result)[0], noise)
-    stiff = _PRIOR_SCALE * max(float(np.abs(information).max(initial=0.0)), 1.0)  # initial: no edge (one scan)
     factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
-                                       gtsam.noiseModel.Isotropic.Precision(6, stiff)))
+                                       _anchor_prior(information)))
     out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])
     if factor > 1.0:
         out[nodes] *= factor
@@ -294,6 +293,13 @@ def _reported_information(pair: "PairResult", information: np.ndarray, stiffen: 
         w = info @ pair.grid
         info = info - np.outer(w, w) / (1.0 + pair.grid @ w)
     return info
+
+
+def _anchor_prior(information: np.ndarray) -> gtsam.noiseModel.Isotropic:
+    """The noise model of a part's anchor prior: ``_PRIOR_SCALE`` times the edges' largest information entry, at
+    least 1 (and with no edge, a run of one scan)."""
+    peak = float(np.abs(information).max(initial=0.0))
+    return gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(peak, 1.0))
 
 
 def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -323,7 +329,7 @@ def repolish(graph: PoseGraph, poses: np.ndarray, edges: np.ndarray, component: 
     poses = _poses(poses, graph.n, nodes)
     factors, values = _factor_graph(graph, poses, chosen, nodes, lambda k: k, noise, kernel)
     information = graph_information(graph, chosen, noise)
-    prior = gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(float(np.abs(information).max()), 1.0))
+    prior = _anchor_prior(information)
     for a in np.unique(component, return_index=True)[1]:
         if values.exists(int(a)):
             factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(poses[a]), prior))
