@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
+from .errors import InputError, one_line
 from .se3 import inv_T, make_T
 from .sync.rotation import connected_components, rotation_residuals
 from .types import IterationRecord, PoseGraph
@@ -215,12 +216,16 @@ def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray
     for k, node in enumerate(nodes):
         Q.insert(k, gtsam.SOn.FromMatrix(init[node]))
     # gtsam's run() throws when max_p is reached uncertified; this is its loop, keeping the last solution.
-    for p in range(3, max_p + 1):
-        Q = averaging.tryOptimizingAt(p, Q)
-        min_eigenvalue, min_eigenvector = averaging.computeMinEigenVector(Q)
-        if min_eigenvalue >= params.getOptimalityThreshold() or p == max_p:
-            break
-        Q = averaging.initializeWithDescent(p + 1, Q, min_eigenvector, min_eigenvalue)
+    try:
+        for p in range(3, max_p + 1):
+            Q = averaging.tryOptimizingAt(p, Q)
+            min_eigenvalue, min_eigenvector = averaging.computeMinEigenVector(Q)
+            if min_eigenvalue >= params.getOptimalityThreshold() or p == max_p:
+                break
+            Q = averaging.initializeWithDescent(p + 1, Q, min_eigenvector, min_eigenvalue)
+    except RuntimeError as e:  # its eigensolver, on precisions far apart (measured: 1 and 1e140 in one loop)
+        raise InputError(f"Shonan averaging failed ({one_line(e)}) on rotation precisions from {precision.min():.3g} "
+                         f"to {precision.max():.3g}: try another method") from None
     rounded = averaging.roundSolution(Q)
     R = np.array(init, dtype=float)
     R[nodes] = np.stack([rounded.atRot3(k).matrix() for k in range(len(nodes))])

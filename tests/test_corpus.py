@@ -794,6 +794,19 @@ def test_sync_information_beyond_double_precision_is_refused_by_every_method(tmp
     assert not (tmp_path / "out.g2o").exists()
 
 
+def test_sync_shonan_on_precisions_far_apart_says_so_in_one_line(tmp_path):
+    """A 5-scan loop and one edge of 1e140 × its information: gtsam's Shonan eigensolver fails ("unexpected
+    RuntimeError: TridiagEigen: …" before); the line names the method and the precisions' range."""
+    ring = "1 0 0 0 0 0.309017 0.9510565"  # 36° about z a step
+    (tmp_path / "in.g2o").write_text("".join(_V.format(k) for k in range(5))
+                                     + "".join(_edge(k, (k + 1) % 5, ring) for k in range(5))
+                                     + _edge(0, 2, "0 1 0 0.7071068 0 0 0.7071068", _INFO.replace("1", "1e140")))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", "shonan")
+    assert code == 2 and lines == ["error: Shonan averaging failed (TridiagEigen: eigen decomposition failed) on "
+                                   "rotation precisions from 1 to 1e+140: try another method"], lines
+    assert not (tmp_path / "out.g2o").exists()
+
+
 def test_sync_single_vertex_graph(tmp_path):
     (tmp_path / "in.g2o").write_text(_V.format(7))
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o")

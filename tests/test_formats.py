@@ -171,6 +171,18 @@ def _laz_chunk_bytes(data):
     return _laz_chunk_table(data, [(50000, 2**31)])  # coded as int32: read back as 2**64 - 2**31 bytes
 
 
+def _laz_streamed(data):
+    """``data`` as a streaming writer leaves a LAZ: -1 where the chunk table's offset goes, the offset appended."""
+    offset = struct.unpack_from("<I", data, 96)[0]
+    table = struct.unpack_from("<q", data, offset)[0]
+    struct.pack_into("<q", data, offset, -1)
+    return data + struct.pack("<q", table)
+
+
+def _laz_without_table(data):
+    return _put(struct.unpack_from("<I", data, 96)[0], "<q", -1)(data)  # nothing appended: no table to be found
+
+
 # name -> (LAS version, suffix, corruption of the file's bytes, words of the reason)
 LAS_CORRUPTIONS = {
     "VLR count": ("1.2", ".las", _put(100, "<I", 0xFFFFFFF0), "corrupt header: 4,294,967,280 VLRs declared in 0"),
@@ -185,6 +197,11 @@ LAS_CORRUPTIONS = {
                              "18,446,744,071,562,067,968 bytes declared in"),
     "point count of a LAZ": ("1.2", ".laz", _put(107, "<I", 10**9), "corrupt header: 1,000,000,000 points declared "
                              "where the chunk table holds at most 50,000"),
+    "point count of a streamed LAZ": ("1.2", ".laz", lambda data: _put(107, "<I", 10**9)(_laz_streamed(data)),
+                                      "corrupt header: 1,000,000,000 points declared where the chunk table holds "
+                                      "at most 50,000"),
+    "LAZ without a chunk table": ("1.2", ".laz", lambda data: _put(107, "<I", 10**9)(_laz_without_table(data)),
+                                  "corrupt chunk table: its offset "),
     "scale factor": ("1.2", ".las", _put(131, "<d", 1e300), "corrupt header: x scale 1e+300 and offset -49.981 put "
                      "coordinates past ±3.9e+153"),
     "scale not a number": ("1.4", ".las", _put(147, "<d", float("nan")), "corrupt header: z scale nan and offset"),
@@ -206,6 +223,14 @@ def test_corrupt_las_header_is_skipped_before_laspy_reads_it(tmp_path, laspy_bou
         found = _skipped_reason(tmp_path, f"bad{suffix}", content)
     assert f"not a readable {suffix[1:].upper()} file ({reason}" in found, found
     assert point_count(tmp_path / "scene" / f"bad{suffix}") == 0  # left to the reader to refuse
+
+
+def test_a_streamed_laz_reads(tmp_path):
+    """A LAZ whose chunk table's offset is appended at the end (-1 in its place: a streaming writer's) reads."""
+    P = _points(3000)
+    (tmp_path / "streamed.laz").write_bytes(_laz_streamed(_las_bytes(P, "1.2", compress=True)))
+    np.testing.assert_allclose(load_scan(tmp_path / "streamed.laz"), P, atol=0.5e-3)
+    assert point_count(tmp_path / "streamed.laz") == 3000
 
 
 @pytest.mark.parametrize("version, at, fmt", [("1.2", 107, "<I"), ("1.4", 247, "<Q")])
@@ -330,8 +355,17 @@ def test_text_with_a_header_line_or_semicolons_reads(tmp_path, header, separator
 def test_a_data_line_with_a_typo_is_no_header(tmp_path):
     path = tmp_path / "scan.txt"
     path.write_text("1.0 2.0 3.O\n" + "1.0 2.0 3.0\n" * 5)
-    with pytest.raises(InputError, match="expected x y z numbers on every line"):
+    with pytest.raises(InputError, match="line 1: expected x y z numbers, got '1.0 2.0 3.O'"):
         load_scan(path)
+
+
+@pytest.mark.parametrize("text, line", [("x y z\n1 2 3\n# c\n\n4 5 6 7\n1 2 a\n", "line 6: "),
+                                        ("1 2 3\n4 5\n", "line 2: "), ("1,2,3\n4,5,6\n7;x;9\n", "line 3: ")])
+def test_a_bad_line_is_named_by_its_line_in_the_file(tmp_path, text, line):
+    """numpy named the row from 0 among data rows only ("row 2" for line 6 above)."""
+    (tmp_path / "scan.txt").write_text(text)
+    with pytest.raises(InputError, match=line + "expected x y z numbers"):
+        load_scan(tmp_path / "scan.txt")
 
 
 def test_text_with_a_byte_order_mark_reads(tmp_path):

@@ -269,7 +269,7 @@ BAD_SCANS = {
     "truncated pcd": (_truncated_pcd, "truncated PCD"),
     "binary labelled txt": (_write("b.txt", bytes(range(256))), "not a text file"),
     "text with two columns": (_write("two.xyz", "1 2 3\n3 4\n"), "expected x y z numbers"),
-    "text with words": (_write("w.txt", "1 2 3\nx y z\n"), "could not convert string 'x'"),
+    "text with words": (_write("w.txt", "1 2 3\nx y z\n"), "line 2: expected x y z numbers, got 'x y z'"),
     "text with comments only": (_write("c.xyz", "# nothing\n\n"), "no points"),
     "npy with two columns": (_save_npy("two.npy", np.zeros((10, 2))), "shape (10, 2)"),
     "npy 1-d": (_save_npy("flat.npy", np.zeros(30)), "shape (30,)"),

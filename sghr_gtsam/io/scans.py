@@ -312,7 +312,17 @@ def _read_text(path: Path) -> np.ndarray:
     try:
         return np.loadtxt(lines, comments="#", usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
     except ValueError as e:
-        raise InputError(f"expected x y z numbers on every line ({' '.join(str(e).split())})") from None
+        raise InputError(_first_bad_line(lines) or f"expected x y z numbers on every line ({one_line(e)})") from None
+
+
+def _first_bad_line(lines: list[str]) -> str | None:
+    """The first of ``lines`` whose first three columns are not numbers, named by its line number in the file
+    (numpy's row counts from 0 among data rows only)."""
+    for number, line in enumerate(lines, start=1):
+        words = line.split("#", 1)[0].split()
+        if words and not (len(words) >= 3 and all(_number(word) for word in words[:3])):
+            return f"line {number}: expected x y z numbers, got {line.strip()[:60]!r}"
+    return None
 
 
 def _header_line(words: list[str]) -> bool:
@@ -438,16 +448,21 @@ def _check_laz_chunk_table(path: Path, header_size: int, offset: int, size: int,
     the bytes of compressed points before it or the header's ``count``: more chunks declared than there are bytes
     (lazrs reserves memory for them all first and aborts the process when it cannot), chunks whose sizes add up past
     the bytes (lazrs panics), or fewer points in the chunks than ``count`` (the file's size bounds no count, so the
-    memory check would take it for a scan too large for the machine). A table outside the file, or a file without
-    the laszip VLR, is left to lazrs, which reports it."""
+    memory check would take it for a scan too large for the machine), or no table where its offset says (lazrs
+    cannot read such a file either). An offset of -1 is a streaming writer's: the table's offset is then the file's
+    last 8 bytes. A file without the laszip VLR is left to lazrs, which reports it."""
     import lazrs
 
     with open(path, "rb") as f:
         f.seek(offset)
         raw = f.read(8)
-        table = struct.unpack("<q", raw)[0] if len(raw) == 8 else -1  # -1: no table written
-        if not offset + 8 <= table <= size - 8:
-            return
+        table = struct.unpack("<q", raw)[0] if len(raw) == 8 else None
+        if table == -1:
+            f.seek(size - 8)
+            table = struct.unpack("<q", f.read(8))[0]
+        if table is None or not offset + 8 <= table <= size - 8:
+            raise InputError(f"corrupt chunk table: its offset {table} lies outside the {size - offset:,} bytes of "
+                             f"compressed points")
         f.seek(table)
         _, chunks = struct.unpack("<II", f.read(8))
         available = table - offset - 8
