@@ -251,8 +251,12 @@ def variance_factor(result: "RunResult", *, noise: str = "information") -> float
     poses (E edges among N registered scans; ``r_e`` the edge's residual): 1 when the edges' residuals are as
     large as their information says, above 1 when the loops of the graph show them overconfident. NaN
     without redundancy (a tree of edges)."""
-    factors, values = to_gtsam(result, noise=noise)
-    dof = 6 * (factors.size() - len(result.registered) + 1)
+    return _variance_factor(*to_gtsam(result, noise=noise), len(result.registered))
+
+
+def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, nodes: int) -> float:
+    """``variance_factor`` of the edge factors ``factors`` among ``nodes`` scans at ``values``."""
+    dof = 6 * (factors.size() - nodes + 1)
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
@@ -269,9 +273,9 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen
         information = np.stack([_reported_information(p, info, stiffen, grid)
                                 for p, info in zip(result.pairs, result.graph.information)])
         result = replace(result, graph=replace(result.graph, information=information))
-    factor = variance_factor(result, noise=noise)
     factors, values = to_gtsam(result, noise=noise)
     nodes = result.registered
+    factor = _variance_factor(factors, values, len(nodes))
     out = np.full((len(result.names), 6, 6), np.nan)
     anchor = int(np.flatnonzero(result.sync.component == 0)[0])
     information = graph_information(result.graph, _edges_of(result)[0], noise)
