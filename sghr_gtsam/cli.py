@@ -197,7 +197,10 @@ def _console() -> "Console":
 
 
 def _names(names: list[str], shown: int = 4) -> str:
-    return ", ".join(names[:shown]) + (f" (+{len(names) - shown} more)" if len(names) > shown else "")
+    from .io.poses import shown_name
+
+    return ", ".join(map(shown_name, names[:shown])) + (f" (+{len(names) - shown} more)" if len(names) > shown
+                                                        else "")
 
 
 def _summary_table(result: "RunResult", out: Path) -> "Table":

@@ -13,7 +13,7 @@ import numpy as np
 from .config import Config
 from .features.local import MAX_CELLS, voxel_from_spans
 from .io.features import read_features
-from .io.poses import unwritable_name
+from .io.poses import shown_name, unwritable_name
 from .io.scans import COORDINATE_LIMIT, check_memory, finite_points, left_out, list_scans, load_scan
 from .types import InputError, Scan, ScanStats
 
@@ -29,10 +29,9 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     skipped: dict[str, str] = {}
     digests: dict[str, str] = {}
     for path in list_scans(folder):
-        if unwritable_name(path.name):  # the results name scans by their file names
-            skipped[path.name] = (f"its name {path.name!r} cannot be written on its own line in the pose files: "
-                                  f"rename it")
-            log(f"skipped {path.name}: {skipped[path.name]}")
+        if why := unwritable_name(path.name):  # the results name scans by their file names
+            skipped[path.name] = f"its name {path.name!r} {why} in the pose files: rename it"
+            log(f"skipped {shown_name(path.name)}: {skipped[path.name]}")
             continue
         check_memory(path)  # a scan too large for this machine ends the run: it is no bad file to skip
         try:
@@ -71,7 +70,7 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
 def too_few(scans: list[Scan], skipped: dict[str, str], where: str = "") -> InputError:
     """The error of a run left with fewer than two scans, naming the first skipped one and why."""
     first = next(iter(skipped.items()), None)
-    why = f"; skipped {first[0]}: {first[1]}" if first else ""
+    why = f"; skipped {shown_name(first[0])}: {first[1]}" if first else ""
     more = f" (and {len(skipped) - 1} more)" if len(skipped) > 1 else ""
     return InputError(f"{where}need at least 2 usable scans, {len(scans)} left{why}{more}")
 

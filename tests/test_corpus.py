@@ -782,6 +782,27 @@ def test_sync_names_every_method_and_refuses_absurd_translations(tmp_path):
     assert not (tmp_path / "out.g2o").exists()
 
 
+
+def test_scan_files_whose_names_are_not_utf8_are_skipped_and_shown_escaped(tmp_path):
+    """File names of bytes that are not UTF-8 (Python keeps them as surrogates) passed, and the whole run was lost
+    when poses.txt was written ("unexpected UnicodeEncodeError: … surrogates not allowed"). They are skipped like
+    names with a line break, and every message shows such a name escaped, on one line."""
+    scene = tmp_path / "scene"
+    write_scene(make_scene(kind="room", n_scans=4, seed=1), scene)
+    (scene / "scan_00.ply").rename(scene / os.fsdecode(b"caf\xe9.ply"))
+    (scene / "scan_01.ply").rename(scene / "a\nb.ply")
+    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
+                           "--workers", "1", "--no-record"], capture_output=True, text=True, errors="strict")
+    assert done.returncode == 0, done.stderr
+    assert "skipped files    2: 'a\\nb.ply', 'caf\\udce9.ply'" in done.stdout, done.stdout
+    assert (tmp_path / "out" / "poses.txt").read_text().count(".ply") == 2
+    (scene / "scan_02.ply").rename(scene / os.fsdecode(b"scan_\xff.ply"))
+    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
+                           "--workers", "1", "--no-record"], capture_output=True, text=True, errors="strict")
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "need at least 2 usable scans, 1 left; skipped 'a\\nb.ply': its name 'a\\nb.ply' cannot be written on " \
+           "its own line in the pose files: rename it (and 2 more)" in done.stderr, done.stderr
+
 @pytest.mark.parametrize("method", ["history", "lm", "shonan", "gnc_tls"])
 def test_sync_information_beyond_double_precision_is_refused_by_every_method(tmp_path, method):
     """Information of 1e-300 on every edge of a loop: Shonan failed ("TridiagEigen: eigen decomposition failed"),

@@ -90,13 +90,23 @@ def check_rigid(poses: np.ndarray, what: str, labels: Sequence[int] | None = Non
 
 
 def unwritable_name(name: object) -> str | None:
-    """Why ``name`` cannot name a pose in a pose file, or None: a name is a line of its own, read back stripped,
-    and a line starting with '#' is a comment."""
+    """Why ``name`` cannot name a pose in a pose file, or None: a name is a line of its own of UTF-8 text, read
+    back stripped, and a line starting with '#' is a comment."""
     if not isinstance(name, str):
         return "is not a string"
     if not name.strip() or name.strip() != name or name.splitlines() != [name] or name.startswith("#"):
         return "cannot be written on its own line"
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:  # a file name's bytes that are not UTF-8 (Python keeps them as surrogates)
+        return "cannot be written as UTF-8 text"
     return None
+
+
+def shown_name(name: str) -> str:
+    """``name`` as a message shows it: as it is, or quoted with escapes when a pose file could not hold it (a line
+    break, bytes that are not UTF-8), so that the message stays one printable line."""
+    return name if unwritable_name(name) is None else repr(name)
 
 
 def _check_poses(poses: np.ndarray) -> np.ndarray:
