@@ -175,6 +175,9 @@ class NetVLAD(nn.Module):
                         array(self.conv.bias))
 
 
+MAX_CLUSTERS = 1024
+
+
 def init_head(scenes: list[CachedScene], clusters: int = 64, seed: int = 0) -> NetVLAD:
     """NetVLAD initialised from a spherical k-means codebook of (a sample of) the training descriptors."""
     rng = np.random.default_rng([seed, 1])
@@ -346,8 +349,9 @@ def train(
         raise InputError(f"tau must be positive and finite, got {tau}")
     if not (math.isfinite(lr) and lr > 0):  # torch's Adam refused a negative one mid-start, NaN it took
         raise InputError(f"lr must be positive and finite, got {lr}")
-    if clusters < 1:
-        raise InputError(f"clusters must be at least 1, got {clusters}")
+    if not 1 <= clusters <= MAX_CLUSTERS:  # 1e5 grew past the machine's 23 GB before the first epoch
+        raise InputError(f"clusters must be from 1 to {MAX_CLUSTERS:,} (NetVLAD's usual 64; each adds a block of the "
+                         f"global feature and of every batch's memory), got {clusters:,}")
     started = time.perf_counter()
     torch.manual_seed(seed)
     scenes = load_cache(data_dir, limit)

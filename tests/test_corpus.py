@@ -737,6 +737,20 @@ def test_sync_a_vertex_without_edges(tmp_path, method):
     np.testing.assert_allclose((inv_T(poses[0]) @ poses[2])[:3, 3], [1, 1, 0], atol=1e-6)
 
 
+@pytest.mark.parametrize("method, n, words", [
+    ("eigse3", 251, "eigse3 solves a dense eigenproblem of 4N x 4N: at most 250 poses in a connected part, got 251"),
+    ("open3d", 100_000, "open3d's global optimization holds a dense system of 6N x 6N: 100,000 poses need about "
+                        "5364.4 GB")])
+def test_sync_dense_baselines_refuse_graphs_too_large_for_them(tmp_path, method, n, words):
+    """A chain of 2,000 poses kept eigse3 in LAPACK for minutes, deaf to SIGTERM; of 10,000 it asked for 24 GB
+    ("unexpected MemoryError"), and open3d said only "std::bad_alloc"."""
+    (tmp_path / "in.g2o").write_text("".join(_V.format(k) for k in range(n))
+                                     + "".join(_edge(k, k + 1) for k in range(n - 1)))
+    code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
+    assert code == 2 and len(lines) == 1 and words in lines[0], lines
+    assert not (tmp_path / "out.g2o").exists()
+
+
 @pytest.mark.parametrize("method", ["history", "lm", "gnc_tls", "shonan"])
 def test_sync_keeps_the_input_frame_and_does_not_stack_parts(tmp_path, method):
     """Every part used to be written with its first vertex at the identity: two parts 100 m apart were stacked on one

@@ -216,11 +216,12 @@ def test_listwise_loss_is_a_kl_divergence_blind_to_overlap_scale(scene, scale, l
         assert float(listwise_loss(C, positive, log_tau)) > 0
 
 
-@pytest.mark.parametrize("option, value", [("clusters", 0), ("lr", -1.0), ("lr", float("nan")),
+@pytest.mark.parametrize("option, value", [("clusters", 0), ("clusters", 100_000), ("lr", -1.0), ("lr", float("nan")),
                                            ("tau", float("inf"))])
 def test_a_setting_training_cannot_use_is_refused_before_anything_is_written(cache, tmp_path, option, value):
     """``--clusters 0`` and ``--lr -1`` failed deep in training ("argmax of an empty sequence", torch's "Invalid
-    learning rate") and left an empty output folder; ``--lr nan`` trained on NaN."""
+    learning rate") and left an empty output folder; ``--lr nan`` trained on NaN; ``--clusters 100000`` grew to 24 GB
+    until the kernel killed it."""
     with pytest.raises(InputError, match=f"{option} must be"):
         train(cache, tmp_path / "out", epochs=1, progress=False, log=lambda _: None, **{option: value})
     assert not (tmp_path / "out").exists()

@@ -34,6 +34,7 @@ from functools import partial
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import InputError
 from ..se3 import inv_T, make_T, project_to_so3
 from ..types import PoseGraph, SyncResult
 from .irls import solve_poses
@@ -58,6 +59,10 @@ OPEN3D_MAX_CORRESPONDENCE = 0.07
 OPEN3D_PREFERENCE = 5.0
 """open3d's reconstruction system: ``preference_loop_closure_registration`` of the fragment pose graph."""
 OPEN3D_PRUNE = 0.25
+EIGSE3_MAX_NODES = 250
+"""Largest connected part EIGSE3 takes: a dense eigendecomposition of 4N×4N an IRLS iteration, up to ``iters`` of
+them (about 1 s each at 250 poses; a chain of 500 took 256 s, deaf to SIGTERM inside LAPACK, and 10,000 asked
+for 24 GB)."""
 
 # factor_graph (gtsam) and open3d are imported inside the functions that need them: factor_graph imports
 # the sync package, which may import this module, and the numpy baselines need neither library.
@@ -72,6 +77,10 @@ def rotavg(graph: PoseGraph, iters: int = IRLS_ITERS) -> SyncResult:
 
 
 def eigse3(graph: PoseGraph, iters: int = IRLS_ITERS) -> SyncResult:
+    largest = np.bincount(connected_components(graph.n, graph.i, graph.j, graph.weight > 0)).max()
+    if largest > EIGSE3_MAX_NODES:
+        raise InputError(f"eigse3 solves a dense eigenproblem of 4N x 4N: at most {EIGSE3_MAX_NODES:,} poses in a "
+                         f"connected part, got {largest:,} (use another method)")
     w0 = graph.weight
     w = w0.copy()
     for _ in range(iters):
@@ -117,9 +126,14 @@ def open3d_line_process(graph: PoseGraph, iters: int = 100, odometry: bool = Tru
     (``factor_graph.edge_information``), whose translation block sets open3d's line-process scale.
     ``odometry``: edges between consecutive nodes are certain (never pruned); otherwise all are uncertain."""
     import open3d as o3d
+    import psutil
 
     from ..factor_graph import edge_information
 
+    needed, available = 2 * (6 * graph.n) ** 2 * 8, psutil.virtual_memory().available  # its dense 6N x 6N system
+    if needed > available:  # open3d's own std::bad_alloc names no cause
+        raise InputError(f"open3d's global optimization holds a dense system of 6N x 6N: {graph.n:,} poses need about "
+                         f"{needed / 2**30:.1f} GB, {available / 2**30:.1f} GB are available (use another method)")
     reg = o3d.pipelines.registration
     information = edge_information(graph, graph.weight)  # gtsam's order [rotation, translation] is open3d's too
     pose_graph = reg.PoseGraph()
@@ -167,7 +181,7 @@ def _converged(w: np.ndarray, previous: np.ndarray) -> bool:
 def _eig_se3(graph: PoseGraph, w: np.ndarray) -> np.ndarray:
     """EIGSE3: ``M_i = T_i⁻¹`` satisfies ``M_i M_j⁻¹ = T_ij``, so the stacked ``M`` (4N×4) spans the eigenvalue-1
     eigenspace of ``D⁻¹Z`` (Z: blocks ``w T_ij`` at (i, j) and ``w T_ij⁻¹`` at (j, i)). Per connected part;
-    a dense eigendecomposition, O((4N)³): meant for graphs of up to a few hundred nodes."""
+    a dense eigendecomposition, O((4N)³): parts of up to ``EIGSE3_MAX_NODES``."""
     poses = np.tile(np.eye(4), (graph.n, 1, 1))
     keep = w > 0
     labels = connected_components(graph.n, graph.i, graph.j, keep)
