@@ -200,7 +200,8 @@ def voxel_doubt(voxel: float, scans: list[Scan], given: bool) -> str:
         ratio = voxel / default
         if 1 / VOXEL_DOUBT <= ratio <= VOXEL_DOUBT:
             return ""
-        return (f" is the voxel {voxel:.3g} right? it is {ratio:.3g}x the default {default:.3g}, 1/100 of the median "
+        times = f"{ratio:.3g}x" if np.isfinite(ratio) else "beyond any multiple of"  # 1e308 / 0.07 overflows
+        return (f" is the voxel {voxel:.3g} right? it is {times} the default {default:.3g}, 1/100 of the median "
                 f"scan's extent")
     ratios = spans / (100 * voxel)
     far = [f"{s.name} ({ratio:.2g}x)" for s, ratio in zip(scans, ratios) if not 1 / SPREAD <= ratio <= SPREAD]

@@ -249,14 +249,14 @@ def test_scans_that_do_not_overlap_leave_the_earlier_result(tmp_path):
     assert _untouched(out)
 
 
-@pytest.mark.parametrize("voxel", [1e6, 1e-4])
-def test_a_voxel_far_from_the_default_is_named_when_nothing_registers(small_room, tmp_path, voxel):
+@pytest.mark.parametrize("voxel, times", [(1e6, "1.36e+07x"), (1e-4, "0.00136x"), (1e308, "beyond any multiple of")])
+def test_a_voxel_far_from_the_default_is_named_when_nothing_registers(small_room, tmp_path, voxel, times):
     """A voxel 10⁷× too coarse or 10³× too fine registers nothing; the error asked only whether the scans
-    overlap, which they do."""
+    overlap, which they do. (1e308 read "infx the default".)"""
     code, lines = _cli("run", small_room, "--out", tmp_path / "out", "--voxel", voxel, "--workers", "1",
                        "--no-record")
     assert code == 2 and lines[-1].startswith("error: no pair of scans could be registered (do the scans overlap? "
-                                              f"is the voxel {voxel:.3g} right? it is "), lines
+                                              f"is the voxel {voxel:.3g} right? it is {times} the default "), lines
 
 
 def test_scan_too_large_for_the_memory_stops_before_reading_it(tmp_path):
@@ -510,6 +510,40 @@ def test_swap_keeps_the_resume_cache(tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["cache", "poses.txt"]
     assert (out / "cache" / "scan.npz").read_text() == "cached"
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
+
+
+@pytest.mark.parametrize("failing", [1, 2, 3], ids=["the cache", "the old results", "the new results"])
+def test_a_swap_the_file_system_refuses_leaves_the_earlier_results_and_their_cache(tmp_path, monkeypatch, failing):
+    """An OUT or OUT/cache that cannot be renamed (immutable, a read-only bind mount) ended the run as "unexpected
+    PermissionError" after all its work; the ``failing``-th rename of the swap (no one-step exchange) now gives one
+    line, and every rename that went before it is undone: the earlier results in place, with their cache."""
+    out = _old_result(tmp_path / "out")
+    (out / "cache").mkdir()
+    (out / "cache" / "scan.npz").write_text("cached")
+    renames, rename = [], os.rename
+
+    def refusing(a, b):
+        renames.append(a)
+        if len(renames) == failing:
+            raise PermissionError(1, "Operation not permitted", str(a))
+        rename(a, b)
+
+    monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
+    monkeypatch.setattr(atomic.os, "rename", refusing)
+    with pytest.raises(InputError, match=f"cannot swap the results into {out}: Operation not permitted .*; the "
+                                         "earlier results are left as they were"):
+        with staged_folder(out, carry=CACHE) as stage:
+            (stage / "poses.txt").write_text("new\n")
+    monkeypatch.undo()
+    assert _untouched(out) and (out / "cache" / "scan.npz").read_text() == "cached"
+
+
+def test_an_output_name_that_leaves_no_room_for_its_staging_folder_is_named(small_room, tmp_path):
+    """An OUT name of 240 bytes is legal, its staging sibling is not: "File name too long" blamed the name given."""
+    code, lines = _cli("run", small_room, "--out", tmp_path / ("L" * 240))
+    assert code == 2 and lines[-1] == ("error: output folder name LLLLLLLLLLLLLLLLLLLL... is 240 bytes: the results "
+                                       "are staged beside it as .LLLLLLLL...tmp-PID-XXXXXXXX, a name up to 22 bytes "
+                                       "longer, which the file system refuses; choose a shorter name"), lines
 
 
 def test_a_failed_first_run_leaves_no_empty_cache_folder(tmp_path):

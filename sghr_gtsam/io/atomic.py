@@ -107,7 +107,8 @@ def _alive(pid: int) -> bool:
 
 def _remove_stale(out: Path, carry: str | None) -> None:
     """Remove what stopped runs left beside ``out``: staging folders (their ``carry`` subfolder, if ``out`` has none,
-    goes back into ``out``) and, when the swap's fallback was stopped between its two renames, restore the previous results."""
+    goes back into ``out``) and, when the swap's fallback was stopped between its two renames, restore the previous
+    results."""
     pattern = re.compile(rf"^\.{re.escape(out.name)}\.(tmp|old)-(\d+)-")
     if not out.parent.is_dir():
         return
@@ -153,23 +154,31 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
     removed. ``InputError`` when one of them is a mount point (``mounted``; a bind mount on the same filesystem
     is seen only here), ``out`` left as it was."""
     fsync_dir(stage)
+    old = stage.with_name(stage.name.replace(".tmp-", ".old-", 1))
+    carried = False
     try:
         if not out.exists():
             os.rename(stage, out)
         else:
             if carry and (out / carry).is_dir() and not (stage / carry).exists():
                 os.rename(out / carry, stage / carry)
+                carried = True
             if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
-                old = stage.with_name(stage.name.replace(".tmp-", ".old-", 1))
                 os.rename(out, old)
                 os.rename(stage, out)
                 stage = old
             shutil.rmtree(stage, ignore_errors=True)  # the old folder, now at the staging name
     except OSError as e:
-        if e.errno not in (errno.EBUSY, errno.EXDEV):
-            raise
-        raise InputError(mounted(out, carry) or f"cannot swap the results into {out}: {e.filename} is a mount "
-                         "point (a bind mount?), which cannot be renamed") from None
+        with contextlib.suppress(OSError):  # put back what moved: the old results, then their cache
+            if not out.exists() and old.exists():
+                os.rename(old, out)
+            if carried and not (out / carry).exists():
+                os.rename(stage / carry, out / carry)
+        if e.errno in (errno.EBUSY, errno.EXDEV):
+            raise InputError(mounted(out, carry) or f"cannot swap the results into {out}: {e.filename} is a mount "
+                             "point (a bind mount?), which cannot be renamed") from None
+        raise InputError(f"cannot swap the results into {out}: {e.strerror or e} ({e.filename}); the earlier "
+                         "results are left as they were") from None
     fsync_dir(out.parent)
 
 
@@ -201,6 +210,10 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
         stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-{os.getpid()}-"))
         os.chmod(stage, 0o777 & ~_UMASK)  # mkdtemp makes it 0700: the results are for others to read as well
     except OSError as e:
+        if e.errno == errno.ENAMETOOLONG and len(os.fsencode(out.name)) <= 255:  # the staging name is longer
+            raise InputError(f"output folder name {out.name[:20]}... is {len(os.fsencode(out.name))} bytes: the "
+                             f"results are staged beside it as .{out.name[:8]}...tmp-PID-XXXXXXXX, a name up to 22 "
+                             f"bytes longer, which the file system refuses; choose a shorter name") from None
         raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
     try:
         yield stage
