@@ -63,7 +63,7 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     if len(scans) < 2:
         raise too_few(scans, skipped, f"{folder}: ")
     for name in left_out(folder):  # said once the scene is read: an error stays the one line printed
-        log(f"not a scan, by its name: {name} (poses, a trajectory, overlaps or a readme)")
+        log(f"not a scan, by its name: {shown_name(name)} (poses, a trajectory, overlaps or a readme)")
     return scans, skipped
 
 

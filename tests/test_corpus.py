@@ -839,10 +839,12 @@ def test_scan_files_whose_names_are_not_utf8_are_skipped_and_shown_escaped(tmp_p
     write_scene(make_scene(kind="room", n_scans=4, seed=1), scene)
     (scene / "scan_00.ply").rename(scene / os.fsdecode(b"caf\xe9.ply"))
     (scene / "scan_01.ply").rename(scene / "a\nb.ply")
+    (scene / os.fsdecode(b"gt_pose\xe9s.txt")).write_text("not a scan")
     done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
                            "--workers", "1", "--no-record"], capture_output=True, text=True, errors="strict")
     assert done.returncode == 0, done.stderr
     assert "skipped files    2: 'a\\nb.ply', 'caf\\udce9.ply'" in done.stdout, done.stdout
+    assert "not a scan, by its name: 'gt_pose\\udce9s.txt'" in done.stdout + done.stderr
     assert (tmp_path / "out" / "poses.txt").read_text().count(".ply") == 2
     (scene / "scan_02.ply").rename(scene / os.fsdecode(b"scan_\xff.ply"))
     done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
