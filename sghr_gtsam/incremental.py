@@ -48,6 +48,7 @@ from .config import Config
 from .features.local import ScanFeatures, compute_features
 from .features.netvlad import global_features, load_default_head
 from .gtsam_api import noise_model, pose_covariances
+from .io.g2o import check_information
 from .io.poses import unwritable_name
 from .io.scans import finite_points
 from .registration.pairwise import PairResult, register_pair
@@ -67,8 +68,6 @@ default (0.1 every 10th update) stops short of the batch optimum by more than a 
 RIGID_TOL = 1e-6
 """An edge's ``T`` is rigid when ``RᵀR`` is the identity and its last row ``0 0 0 1`` to within this (a
 registration's rotation is orthonormal to ~1e-15; a scaled or sheared one is off by far more)."""
-SYMMETRY_TOL = 1e-8
-"""An information is symmetric to within this fraction of its largest entry."""
 
 EdgeInput = tuple[int, np.ndarray, float, np.ndarray]
 
@@ -217,7 +216,7 @@ class Session:
             T = _rigid(T, f"{what}: T")
             if not (_real(w) and np.isfinite(w) and w >= 0):
                 raise InputError(f"{what}: weight must be a finite number >= 0; got {w!r}")
-            info = _information(info, f"{what}: information")
+            info = _information(info, what)
             T = translation(-self._centres[i]) @ T  # the new node has no scan: its centred frame is its input frame
             pair = PairResult(T=T, inliers=0, fitness=float("nan"), rmse=float("nan"), information=info, seconds=0.0)
             checked.append(Edge(int(i), node, T, float(w), info, pair))
@@ -485,14 +484,16 @@ def _rigid(value: object, what: str) -> np.ndarray:
 
 
 def _information(value: object, what: str) -> np.ndarray:
-    """``value`` as a symmetric (``SYMMETRY_TOL``, then exactly) positive definite 6×6 information: a direction
-    it leaves free would stop every later robust stage (``sync.checked_graph`` refuses the graph)."""
-    info = _array(value, (6, 6), what)
-    if np.abs(info - info.T).max() > SYMMETRY_TOL * float(np.abs(info).max()):
-        raise InputError(f"{what} is not symmetric")
+    """``value`` as a 6×6 information as the g2o files hold it (``io.g2o.check_information``), made exactly
+    symmetric, and positive definite: a direction it leaves free would stop every later robust stage
+    (``sync.checked_graph`` refuses the graph)."""
+    try:
+        info = check_information(value)
+    except InputError as e:
+        raise InputError(f"{what}: {e}") from None
     info = (info + info.T) / 2.0
     if np.linalg.eigvalsh(info)[0] <= 0:
-        raise InputError(f"{what} is not positive definite")
+        raise InputError(f"{what}: information is not positive definite")
     return info
 
 
