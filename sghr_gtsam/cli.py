@@ -452,12 +452,12 @@ def _in_file(message: str, path: Path) -> str:
     """A graph check's ``message`` about g2o file ``path``: "edge K: …" named by the line of its K-th edge."""
     import re
 
+    from .io.g2o import edge_line
+
     found = re.match(r"edge (\d+): ", message)
     if not found:
         return f"{path}: {message}"
-    edges = (n for n, line in enumerate(path.read_text(errors="replace").split("\n"), 1)
-             if line.split()[:1] == ["EDGE_SE3:QUAT"])
-    line = next((n for k, n in enumerate(edges) if k == int(found[1])), None)
+    line = edge_line(path, int(found[1]))
     return f"{path}: line {line}: {message[found.end():]}" if line else f"{path}: {message}"
 
 

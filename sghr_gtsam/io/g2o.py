@@ -191,6 +191,12 @@ def fixed_ids(path: str | Path) -> list[int]:
     return ids
 
 
+def edge_line(path: str | Path, k: int) -> int | None:
+    """The line number of the ``k``-th edge of a g2o file, counted as ``read_g2o`` counts lines; None past the last."""
+    edges = (n for n, line in enumerate(_text(Path(path)).split("\n"), 1) if line.split()[:1] == ["EDGE_SE3:QUAT"])
+    return next((n for e, n in enumerate(edges) if e == k), None)
+
+
 def _pose_fields(T: np.ndarray) -> list[str]:
     """``x y z qx qy qz qw`` of each transform (E, 4, 4), formatted with ``repr`` (lossless)."""
     values = np.hstack([T[:, :3, 3], Rotation.from_matrix(T[:, :3, :3]).as_quat()])
