@@ -115,6 +115,12 @@ class PolishResult:
     history: list[IterationRecord] = field(default_factory=list)
 
 
+def anchor_prior(peak: float) -> gtsam.noiseModel.Isotropic:
+    """The noise model of a part's anchor prior, for edges whose largest information entry is ``peak`` (0: no
+    edge): ``_PRIOR_SCALE`` times it, at least 1."""
+    return gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(peak, 1.0))
+
+
 def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, component: np.ndarray, *,
            weights: np.ndarray | None = None, max_iters: int = 100, relative_tol: float = 1e-6,
            on_iteration: Callable[[IterationRecord], None] | None = None) -> PolishResult:
@@ -132,8 +138,7 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
     scale = 2.0 ** -np.floor(np.log2(peak)) if 0.0 < peak < 1.0 else 1.0
     factors = _between_factors(graph, information if scale == 1.0 else scale * information)
     anchors = np.unique(component, return_index=True)[1]
-    stiff = _PRIOR_SCALE * max(scale * peak, 1.0)
-    prior = gtsam.noiseModel.Isotropic.Precision(6, stiff)
+    prior = anchor_prior(scale * peak)
     for a in anchors:
         factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(poses[a]), prior))
     params = gtsam.LevenbergMarquardtParams()

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.special import chdtri  # chi2.ppf(q, df) is chdtri(df, 1 - q); scipy.stats costs ~1 s to import
 
 from .config import KERNELS, NOISE_MODELS
-from .factor_graph import _ABSOLUTE_TOL, _METIS_NODES, _PRIOR_SCALE, edge_information
+from .factor_graph import _ABSOLUTE_TOL, _METIS_NODES, anchor_prior, edge_information
 from .io.g2o import check_information, isotropic_information
 from .io.poses import check_rigid
 from .se3 import project_to_so3
@@ -300,10 +300,8 @@ def _reported_information(pair: "PairResult", information: np.ndarray, stiffen: 
 
 
 def _anchor_prior(information: np.ndarray) -> gtsam.noiseModel.Isotropic:
-    """The noise model of a part's anchor prior: ``_PRIOR_SCALE`` times the edges' largest information entry, at
-    least 1 (and with no edge, a run of one scan)."""
-    peak = float(np.abs(information).max(initial=0.0))
-    return gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(peak, 1.0))
+    """``factor_graph.anchor_prior`` of the edges' ``information`` (none: a run of one scan)."""
+    return anchor_prior(float(np.abs(information).max(initial=0.0)))
 
 
 def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
