@@ -111,12 +111,15 @@ class Config:
     retry: bool = True
     """Give scans left unregistered, unverified or on fewer than 2 kept edges global registration against
     their next k candidates by overlap score."""
+    groups: bool = True
+    """Register each group of unverified scans (held together by its own kept edges), merged, onto the merged
+    verified rest, and the pairs that placement makes overlap by ICP from it (``registration.groups``)."""
     free_space: bool = True
     """Give weight 0 to registrations that put one scan's surfaces in the space the other saw empty
     (``registration.visibility``; only scans seen from their frame's origin can be checked), and to those that hold
     a group of scans where the scans' free space rules it out (``registration.overrule``), then synchronize again."""
     rounds: int = 2
-    """At most this many rounds of refine / loops / retry, each followed by synchronization; a round that
+    """At most this many rounds of refine / loops / retry / groups, each followed by synchronization; a round that
     changes nothing ends them."""
 
     # --- synchronization -----------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """The SGHR pipeline, stage by stage (``_register``): scans -> local features -> global features and top-k graph ->
 pairwise registration on graph edges -> synchronization (history-reweighted IRLS, gtsam polish) -> free space
-overrules look-alike placements -> refinement, loop closure and retries, synchronized again (``_densify``) -> poses
+overrules look-alike placements -> refinement, loop closure, retries and weak groups, synchronized again (``_densify``) -> poses
 and the scans the run doubts (``_run_result``)."""
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from .progress import QUIET, Progress
 from .recording import Recorder
 from .registration import WORKER_MODULES
 from .registration.batch import register_edges
-from .registration.densify import DensifyReport, close_loops, refine_edges, retry_weak
-from .registration.edges import EdgeSet
+from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
+from .registration.edges import GUESSED, EdgeSet
 from .registration.information import STIFFEN, underdetermined
 from .registration.overrule import MIN_AGREEING, Viewpoints, look_alikes, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
@@ -284,7 +284,7 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
     pyramids = None
     for _ in range(config.rounds):
         changed = 0
-        if (config.refine or config.loops) and pyramids is None:
+        if (config.refine or config.loops or config.groups) and pyramids is None:
             grid_keys = [pyramid_key(key) for key in features.keys]
             with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
                 stages.store.map(PYRAMIDS, scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
@@ -300,12 +300,16 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
             with timer.stage("retry"):
                 changed += retry_weak(features, stages.scores, edges, result, unverified(graph, result, one_scan=False),
                                       voxel, config, densify, progress, cache)
+        if config.groups:
+            with timer.stage("groups"):
+                changed += register_weak_groups(features, pyramids, edges, graph, result, unverified(graph, result),
+                                                voxel, config, densify, progress, cache)
         if not changed:
             break
         densify.rounds += 1
         graph = stages.pose_graph(edges)
         stages.log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
-                   f"{densify.retry_registered} retry pairs registered; {graph.num_edges} edges")
+                   f"{densify.retry_registered} retry pairs registered, {densify.group_edges} group edges; {graph.num_edges} edges")
         result = stages.synchronize(graph, f"synchronization (round {densify.rounds})")
         graph, result = stages.overrule(edges, graph, result)
     return graph, result, densify, first_weak
@@ -323,9 +327,11 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     for name in unregistered:
         log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
     # Loop closures start from the synchronized poses, so they confirm a weak scan where it is, right or wrong (a
-    # 50-scan room: one scan 114° off lost its flag that way). A scan weak after the first synchronization is
-    # verified only by the global registrations (top-k and retries) it now rests on, without the loop edges.
-    global_only = replace(result, weights=np.where(np.array(edges.origin) != "loop", result.weights, 0.0))
+    # 50-scan room: one scan 114° off lost its flag that way); group edges start from one registration's guess. A scan
+    # weak after the first synchronization is verified only by the global registrations (top-k and retries) it now
+    # rests on, without the edges ICP found from a guess.
+    guessed = np.isin(np.array(edges.origin), GUESSED)
+    global_only = replace(result, weights=np.where(guessed, 0.0, result.weights))
     flagged = unverified(graph, result) | (first_weak & (result.component == 0) & unverified(graph, global_only))
     weak = [names[k] for k in np.flatnonzero(flagged)]
     for name in weak:

@@ -185,13 +185,7 @@ def compute_features(
     grid = np.asarray(pcd.points)
 
     if given is None:
-        fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-            pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
-        )
-        fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
-        normals = np.asarray(pcd.normals)
-        matched = fpfh if descriptor == "fpfh" else learned_descriptors(grid, normals, voxel, workers=query_threads())
-        return ScanFeatures(grid, normals, fpfh, float(voxel), grid, matched)
+        return _described(pcd, voxel, fpfh_radius, descriptor)
     features = ScanFeatures(grid, np.asarray(pcd.normals), None, float(voxel), given.points, given.descriptors)
     _, sq_dist = features.cloud_tree.batch_nearest_neighbor_search(given.points, GICP_THREADS)
     off = float(np.sqrt(np.median(sq_dist))) / voxel
@@ -199,6 +193,34 @@ def compute_features(
         raise InputError(f"keypoints lie {off:.3g} voxels from the scan's points (median; at most "
                          f"{KEYPOINT_MAX_DISTANCE:g}): are they in the scan's own frame and units?")
     return features
+
+
+def _described(pcd: o3d.geometry.PointCloud, voxel: float, fpfh_radius: float, descriptor: str) -> ScanFeatures:
+    """The ``ScanFeatures`` of a voxel grid with oriented normals: FPFH, and the ``descriptor`` matched on."""
+    fpfh = o3d.pipelines.registration.compute_fpfh_feature(
+        pcd, o3d.geometry.KDTreeSearchParamHybrid(fpfh_radius * voxel, FPFH_MAX_NN)
+    )
+    fpfh = np.ascontiguousarray(np.asarray(fpfh.data).T, dtype=np.float32)
+    grid, normals = np.asarray(pcd.points), np.asarray(pcd.normals)
+    matched = fpfh if descriptor == "fpfh" else learned_descriptors(grid, normals, voxel, workers=query_threads())
+    return ScanFeatures(grid, normals, fpfh, float(voxel), grid, matched)
+
+
+def merged_features(points: np.ndarray, normals: np.ndarray, voxel: float, fpfh_radius: float = 5.0,
+                    descriptor: str = "fpfh") -> ScanFeatures:
+    """Features, as ``compute_features`` gives them, of several scans' grid ``points`` (m, 3) with their oriented
+    ``normals`` (m, 3), all moved into one frame: one voxel grid of them, each cell's normal the mean of its points'.
+    The normals are not estimated again: each scan's were oriented towards its own sensor, which no one viewpoint of
+    the merged points could do."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    pcd = pcd.voxel_down_sample(voxel)
+    mean = np.asarray(pcd.normals)
+    length = np.linalg.norm(mean, axis=1, keepdims=True)
+    keep = length[:, 0] > 1e-6  # opposite normals in one cell (two sides of a thin wall) leave no direction
+    pcd = pcd.select_by_index(np.flatnonzero(keep))
+    pcd.normals = o3d.utility.Vector3dVector(mean[keep] / length[keep])
+    return _described(pcd, voxel, fpfh_radius, descriptor)
 
 
 def scan_features(shared: tuple[float, float, float, str], scan: Scan) -> ScanFeatures | str:

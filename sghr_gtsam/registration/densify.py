@@ -13,11 +13,12 @@ from ..config import Config
 from ..progress import QUIET, Progress
 from ..se3 import inv_T
 from ..store import Attribute, Stored
-from ..types import SyncResult
+from ..types import PoseGraph, SyncResult
 from .batch import register_edges
 from .edges import EdgeSet
+from .groups import merged, register_group, weak_groups
 from .loops import predicted_overlap, propose_loops
-from .refine import confirms, register_from_guesses
+from .refine import stays_near, confirms, register_from_guesses
 from .retry import retry_pairs, weak_scans
 
 
@@ -33,9 +34,13 @@ class DensifyReport:
     loops_tried: int = 0
     retry_registered: int = 0
     retry_tried: int = 0
+    groups_tried: int = 0
+    groups_moved: int = 0
+    group_edges: int = 0
     rounds: int = 0
     rescued: list[str] = field(default_factory=list)
     _tried: set = field(default_factory=set, repr=False)  # pairs any stage already re-registered
+    _groups: set = field(default_factory=set, repr=False)  # weak groups already registered whole
 
     def as_dict(self) -> dict:
         return {k: v for k, v in vars(self).items() if not k.startswith("_")}
@@ -84,36 +89,91 @@ def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncRe
     synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
     as loop edges (a rejected edge's registration is replaced). Each pair is tried once a run."""
     n = len(features)
-    overlap = predicted_overlap(Attribute(features, "points"), sync.poses, sync.component == 0, voxel)
+    skip = _kept_pairs(edges, sync, n)
+    for a, b in report._tried:
+        skip[a, b] = skip[b, a] = True
+    tried, closed = _register_guessed(features, pyramids, edges, sync.poses, sync.component == 0, skip, voxel,
+                                      config, report, progress, cache, "loop", "loop closure")
+    report.loops_tried += tried
+    report.loops_closed += closed
+    return closed
+
+
+def register_weak_groups(features: Stored, pyramids: Stored, edges: EdgeSet, graph: PoseGraph, sync: SyncResult,
+                         flagged: np.ndarray, voxel: float, config: Config, report: DensifyReport,
+                         progress: Progress = QUIET, cache: Cache | None = None) -> int:
+    """Each weak group (``groups.weak_groups`` of the ``flagged`` scans), merged, registered globally onto the
+    merged verified rest of the largest part (``groups.register_group``); where that moves it, the pairs across its
+    border that overlap at the new place are registered by ICP from it and those that ``confirm`` it enter as group
+    edges (a rejected edge's registration is replaced). Each group is tried once a run. Returns the edges added."""
+    n = len(features)
+    rest = (sync.component == 0) & ~flagged
+    kept = _kept_pairs(edges, sync, n)
+    todo = [g for g in weak_groups(graph, sync, flagged) if frozenset(g.tolist()) not in report._groups]
+    if not todo or not rest.any():
+        return 0
+    report._groups.update(frozenset(g.tolist()) for g in todo)
+    report.groups_tried += len(todo)
+    added = 0
+    with progress.stage("group registration", len(todo)) as tick:
+        target = merged(features, sync.poses, np.flatnonzero(rest), voxel, config)
+        moves = []
+        for k, group in enumerate(todo):
+            moves.append(register_group(target, features, sync.poses, group, voxel, config))
+            tick(k, moves[-1])
+    for group, move in zip(todo, moves):
+        if move is None or move.inliers < config.inlier_bar or stays_near(move.T, np.eye(4), voxel):
+            continue  # no placement, or the one it has: nothing to add that loop closure would not
+        report.groups_moved += 1
+        poses = sync.poses.copy()
+        poses[group] = move.T @ poses[group]
+        member = np.zeros(n, dtype=bool)
+        member[group] = True
+        skip = kept | ~(member[:, None] & rest[None, :] | rest[:, None] & member[None, :])  # across its border only
+        _, closed = _register_guessed(features, pyramids, edges, poses, rest | member, skip, voxel, config, report,
+                                      progress, cache, "group", "group closure")
+        report.group_edges += closed
+        added += closed
+    return added
+
+
+def _kept_pairs(edges: EdgeSet, sync: SyncResult, n: int) -> np.ndarray:
+    """(n, n) bool: the pairs with an edge the last synchronization kept, either way round."""
     kept = np.zeros((n, n), dtype=bool)
     ij_kept = edges.ij[_kept(edges, sync)]
     kept[ij_kept[:, 0], ij_kept[:, 1]] = kept[ij_kept[:, 1], ij_kept[:, 0]] = True
-    for a, b in report._tried:
-        kept[a, b] = kept[b, a] = True
-    ij = propose_loops(overlap, kept, config.k)
+    return kept
+
+
+def _register_guessed(features: Stored, pyramids: Stored, edges: EdgeSet, poses: np.ndarray, placed: np.ndarray,
+                      skip: np.ndarray, voxel: float, config: Config, report: DensifyReport, progress: Progress,
+                      cache: Cache | None, origin: str, label: str) -> tuple[int, int]:
+    """Multi-scale ICP from ``poses`` of the ``placed`` pairs that overlap under them (``loops.propose_loops``; not
+    those in ``skip``, (n, n) bool); those that ``confirm`` their guess enter with ``origin``, replacing the pair's
+    earlier registration if it has one. Returns the pairs tried and those that entered."""
+    overlap = predicted_overlap(Attribute(features, "points"), poses, placed, voxel)
+    ij = propose_loops(overlap, skip, config.k)
     if not len(ij):
-        return 0
+        return 0, 0
     report._tried.update(map(tuple, ij.tolist()))
     index = {(int(a), int(b)): e for e, (a, b) in enumerate(edges.ij)}
     ij = np.array([(b, a) if (b, a) in index else (a, b) for a, b in ij.tolist()], dtype=np.int64)  # as registered
-    guesses = _guesses(sync.poses, ij)
+    guesses = _guesses(poses, ij)
     known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
-    with progress.stage("loop closure", len(ij)) as tick:
+    with progress.stage(label, len(ij)) as tick:
         results, near = register_from_guesses(features, pyramids, ij, guesses, voxel, config, known, tick, cache)
-    closed = 0
+    entered = 0
     for (a, b), result, ok in zip(ij, results, near):
         if not confirms(result, ok, config.inlier_bar):
             continue
-        closed += 1
+        entered += 1
         e = index.get((int(a), int(b)))
         if e is None:
-            edges.add(np.array([[a, b]]), [result], "loop")
+            edges.add(np.array([[a, b]]), [result], origin)
             edges.refined[-1] = True
         else:
-            edges.replace(e, result, "loop")
-    report.loops_tried += len(ij)
-    report.loops_closed += closed
-    return closed
+            edges.replace(e, result, origin)
+    return len(ij), entered
 
 
 def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncResult,

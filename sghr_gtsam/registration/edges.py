@@ -17,8 +17,11 @@ from .visibility import conflicts, contradicted
 if TYPE_CHECKING:
     from ..result import RunResult
 
-ORIGINS = ("top-k", "loop", "retry")
-"""How an edge entered: the sparse graph (with its bridges), a loop closure, or a retry of a weak scan."""
+ORIGINS = ("top-k", "loop", "retry", "group")
+"""How an edge entered: the sparse graph (with its bridges), a loop closure, a retry of a weak scan, or an ICP
+from where a weak group's registration as a whole puts it (``groups``)."""
+GUESSED = ("loop", "group")
+"""The origins of edges registered by ICP from a guess of the poses rather than globally."""
 
 EDGE_STATUS = {
     "kept": "in graph.g2o: synchronization kept it and both scans are registered",

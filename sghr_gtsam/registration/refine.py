@@ -163,7 +163,8 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
     return T, converged, coarser
 
 
-def _stays_near(T: np.ndarray, guess: np.ndarray, voxel: float) -> bool:
+def stays_near(T: np.ndarray, guess: np.ndarray, voxel: float) -> bool:
+    """Whether ``T`` lies within ``MAX_MOVE_DEG`` and ``MAX_MOVE_VOXELS`` voxels of ``guess``."""
     move = inv_T(guess) @ T
     return bool(rotation_angle(move[:3, :3]) <= np.radians(MAX_MOVE_DEG)
                 and np.linalg.norm(move[:3, 3]) <= MAX_MOVE_VOXELS * voxel)
@@ -178,7 +179,7 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
     when that level has too few close pairs); otherwise the result has no inliers and no information."""
     start = time.perf_counter()
     T, converged, coarser = multiscale_icp(pyramid_i, pyramid_j, T_init)
-    if not (converged and _stays_near(T, T_init, voxel)):
+    if not (converged and stays_near(T, T_init, voxel)):
         # A move away from the guess is no evidence for the poses the guess came from, whatever its score:
         # skipping the scoring saves the descriptor matching and the information (40 % of a pair on kitchen60).
         return PairResult(T, 0, 0.0, 0.0, None, time.perf_counter() - start, matches=matches), False

@@ -1,0 +1,63 @@
+"""Weak groups registered whole (issue 10, step 4): a group of scans that hangs on the rest of the model by
+registrations no loop checks (``sync.unverified``), or apart from it, is held together by its own kept edges but
+may be placed wrong as a block, e.g. turned 90° in a square room behind one look-alike registration. Loop
+closures cannot move it (they start from its place) and retries register its scans one at a time, each as
+ambiguous as before. Merged, the group and the rest are far larger than any scan, and one global registration
+of the one onto the other (``pairwise.register_pair`` on ``features.local.merged_features``) says where the
+group belongs. That placement is only a guess: the pairs of scans it makes overlap are registered by ICP from
+it (as loop closures are, ``densify``) and enter the graph when they confirm it; synchronization decides."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..config import Config
+from ..features.local import ScanFeatures, merged_features
+from ..sync.rotation import connected_components
+from ..types import PoseGraph, SyncResult
+from .pairwise import PairResult, register_pair
+
+MIN_SCANS = 2
+"""A single weak scan is the retries' business (``retry``); a group has geometry of its own to register."""
+MAX_POINTS = 2_000_000
+"""Grid points of a merged side above which the group is not tried: FPFH and the descriptor search on the merged
+points grow with them (a 500-scan building's whole model), and a group is a refinement, not a stage to wait on."""
+
+
+def weak_groups(graph: PoseGraph, result: SyncResult, flagged: np.ndarray) -> list[np.ndarray]:
+    """The groups to try, largest first: scans of the largest part that are ``flagged`` ((N,) bool, unverified)
+    or outside it, joined by the edges ``result`` kept, at least ``MIN_SCANS`` a group."""
+    weak = flagged | (result.component != 0)
+    kept = (result.weights > 0) & weak[graph.i] & weak[graph.j]
+    label = connected_components(graph.n, graph.i, graph.j, kept)
+    groups = [np.flatnonzero(weak & (label == g)) for g in np.unique(label[weak])]
+    return sorted((g for g in groups if len(g) >= MIN_SCANS), key=lambda g: (-len(g), g[0]))
+
+
+def merged(features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndarray, voxel: float,
+           config: Config) -> ScanFeatures | None:
+    """``merged_features`` of the ``members``' grids under ``poses`` (their centred frames into the world); None when
+    they hold more than ``MAX_POINTS`` grid points."""
+    points, normals, total = [], [], 0
+    for k in members:
+        f = features[k]
+        total += len(f.points)
+        if total > MAX_POINTS:
+            return None
+        R, t = poses[k][:3, :3], poses[k][:3, 3]
+        points.append(f.points @ R.T + t)
+        normals.append(f.normals @ R.T)
+    return merged_features(np.vstack(points), np.vstack(normals), voxel, config.fpfh_radius, config.descriptor)
+
+
+def register_group(target: ScanFeatures | None, features: Sequence[ScanFeatures], poses: np.ndarray,
+                   group: np.ndarray, voxel: float, config: Config) -> PairResult | None:
+    """The global registration of the merged ``group`` (under ``poses``) onto ``target``, the rest's ``merged``
+    features: its ``T`` maps the group's world frame into the rest's, so the group's scans belong at
+    ``T @ poses[group]``. None when a side is too large (``MAX_POINTS``)."""
+    source = merged(features, poses, group, voxel, config)
+    if target is None or source is None:
+        return None
+    return register_pair(target, source, voxel, config.matcher, config.icp_distance, config.seed)
