@@ -38,10 +38,10 @@ rooms of ``--sim-scans`` scans (``data_tools.simulate``, a dataset seed no head 
 scored as the kitchen (``sim_scene``), with one exhaustive row (the learned-weights one would register the same pairs).
 
 ``--steps`` (issue 10, with ``--sim-rooms``): three rows a room instead, default ``Config`` (VLAD codebook)
-with ``workers=2``: top-k (the first of ``--ks``) with the front end's steps 2-4 (refine, loops, retry: the
+with ``workers=2``: top-k (the first of ``--ks``) with the front end's steps 2-4 (refine, loops, retry, groups: the
 default), the same graph with them off, and the exhaustive graph with them off. Besides recall, it counts the
-pairs that got *global* registration (FPFH matching + estimator: the top-k graph with its bridges, plus every
-pair the retries tried) and, separately, the pairs loop closure tried and closed by ICP from the synchronized
+pairs that got *global* registration (FPFH matching + estimator: the top-k graph with its bridges, every
+pair the retries tried, and each weak group registered whole) and, separately, the pairs loop closure tried and closed by ICP from the synchronized
 poses, which are not global registrations. ``--set KEY=VALUE`` overrides a ``Config`` field in all three rows
 (e.g. ``descriptor=learned``).
 """
@@ -286,11 +286,12 @@ STEPS_PLAN = {"on": ("top-k + steps 2-4 (default)", False, True), "off": ("top-k
 
 def global_pairs(res: pipeline.RunResult, k: int, connect: bool = True) -> int:
     """Pairs the run registered globally: its top-k graph (recomputed from ``res.scores`` exactly as
-    ``pipeline.register`` builds it, bridges included) plus the pairs the retries tried."""
+    ``pipeline.register`` builds it, bridges included), the pairs the retries tried, and one for each weak group
+    registered whole (a merged group onto the merged rest)."""
     top_k = top_k_edges(res.scores, k)
     if connect:
         top_k = bridge_components(top_k, res.scores)
-    return len(top_k) + res.densify.get("retry_tried", 0)
+    return len(top_k) + res.densify.get("retry_tried", 0) + res.densify.get("groups_tried", 0)
 
 
 def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = None) -> None:
@@ -307,16 +308,16 @@ def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = 
     print(f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
           f"load average {os.getloadavg()[0]:.1f} at start ({os.cpu_count()} cores)"
           + "".join(f"; {key}={value}" for key, value in (overrides or {}).items()) + "\n")
-    print("| graph | k | global registrations (% of all pairs) | retry registered / tried | loops closed / tried "
-          "(ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
+    print("| graph | k | global registrations (% of all pairs) | retry registered / tried | groups moved / tried "
+          "(edges) | loops closed / tried (ICP) | refined / tried | kept edges | registered / within tol. | registration recall "
           "| rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
           "| flagged (of the misplaced) | unregistered |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
     for row in rows:
         label, exhaustive, on = STEPS_PLAN[row]
         kk = n - 1 if exhaustive else k
         config = Config(**{**(overrides or {}), "k": kk, "record": False, "workers": 2, "refine": on, "loops": on,
-                           "retry": on})
+                           "retry": on, "groups": on})
         w0, cpu0 = time.perf_counter(), time.process_time()
         res = run_row(scene.scans, config, None)
         wall, cpu = time.perf_counter() - w0, time.process_time() - cpu0
@@ -326,7 +327,8 @@ def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = 
         kept = int(np.sum(res.sync.weights > 0))
         unreg = ", ".join(u.rsplit(".", 1)[0] for u in r["unregistered"]) or "-"
         print(f"| {label} | {kk} | {g} ({100 * g / n_all:.0f} %) | {d.get('retry_registered', 0)}/"
-              f"{d.get('retry_tried', 0)} | {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} "
+              f"{d.get('retry_tried', 0)} | {d.get('groups_moved', 0)}/{d.get('groups_tried', 0)} "
+              f"({d.get('group_edges', 0)}) | {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} "
               f"| {d.get('refined', 0)}/{d.get('refine_tried', 0)} | {kept} | {r['registered']} / {r['within']} "
               f"| {r['recalled']}/{r['recall_total']} = {r['recalled'] / r['recall_total']:.3f} "
               f"| {r['rot_mean']:.3f} / {r['rot_max']:.3f} | {r['t_mean']:.3f} / {r['t_max']:.3f} | {wall:.0f} "
