@@ -272,8 +272,9 @@ def _global_graph(stages: _Stages, counts: list[int],
 
 def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
              result: SyncResult) -> tuple[PoseGraph, SyncResult, DensifyReport, np.ndarray]:
-    """Steps 2-4 of the front end (refine, close loops, retry weak scans), then synchronize again, while they
-    change the graph (at most ``config.rounds`` times); also the (N,) scans weak after the first synchronization."""
+    """Steps 2-4 of the front end (refine, close loops, retry weak scans, register weak groups whole), then
+    synchronize again, while they change the graph (at most ``config.rounds`` times); also the (N,) scans weak after
+    the first synchronization, and those of the groups the group stage moved."""
     config, timer, progress = stages.config, stages.timer, stages.progress
     scans, features, voxel, cache = stages.scans, stages.features, stages.voxel, stages.cache
     densify = DensifyReport()
@@ -312,6 +313,7 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
                    f"{densify.retry_registered} retry pairs registered, {densify.group_edges} group edges; {graph.num_edges} edges")
         result = stages.synchronize(graph, f"synchronization (round {densify.rounds})")
         graph, result = stages.overrule(edges, graph, result)
+    first_weak[list(densify._moved)] = True  # a group that one registration moved is as weak as a weak scan
     return graph, result, densify, first_weak
 
 

@@ -41,6 +41,7 @@ class DensifyReport:
     rescued: list[str] = field(default_factory=list)
     _tried: set = field(default_factory=set, repr=False)  # pairs any stage already re-registered
     _groups: set = field(default_factory=set, repr=False)  # weak groups already registered whole
+    _moved: set = field(default_factory=set, repr=False)  # scans of the groups that registration moved
 
     def as_dict(self) -> dict:
         return {k: v for k, v in vars(self).items() if not k.startswith("_")}
@@ -125,6 +126,7 @@ def register_weak_groups(features: Stored, pyramids: Stored, edges: EdgeSet, gra
         if move is None or move.inliers < config.inlier_bar or stays_near(move.T, np.eye(4), voxel):
             continue  # no placement, or the one it has: nothing to add that loop closure would not
         report.groups_moved += 1
+        report._moved.update(group.tolist())
         poses = sync.poses.copy()
         poses[group] = move.T @ poses[group]
         member = np.zeros(n, dtype=bool)
