@@ -1,7 +1,7 @@
 """The SGHR pipeline, stage by stage (``_register``): scans -> local features -> global features and top-k graph ->
 pairwise registration on graph edges -> synchronization (history-reweighted IRLS, gtsam polish) -> free space
-overrules look-alike placements -> refinement, loop closure, retries and weak groups, synchronized again (``_densify``) -> poses
-and the scans the run doubts (``_run_result``)."""
+overrules look-alike placements -> refinement, loop closure, retries and weak groups, synchronized again
+(``_densify``) -> poses and the scans the run doubts (``_run_result``)."""
 
 from __future__ import annotations
 
@@ -310,7 +310,8 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
         densify.rounds += 1
         graph = stages.pose_graph(edges)
         stages.log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
-                   f"{densify.retry_registered} retry pairs registered, {densify.group_edges} group edges; {graph.num_edges} edges")
+                   f"{densify.retry_registered} retry pairs registered, {densify.group_edges} group edges; "
+                   f"{graph.num_edges} edges")
         result = stages.synchronize(graph, f"synchronization (round {densify.rounds})")
         graph, result = stages.overrule(edges, graph, result)
     first_weak[list(densify._moved)] = True  # a group that one registration moved is as weak as a weak scan
