@@ -14,7 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..config import Config
-from ..features.local import ScanFeatures, merged_features
+from ..features.local import ScanFeatures, merged_features, thinned
 from ..sync.rotation import connected_components
 from ..types import PoseGraph, SyncResult
 from .pairwise import PairResult, register_pair
@@ -52,8 +52,11 @@ def merged(features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndar
         if total > MAX_POINTS:
             return None
         R, t = poses[k][:3, :3], poses[k][:3, 3]
-        points.append(f.points @ R.T + t)
-        normals.append(f.normals @ R.T)
+        # Each scan thinned first: the stack then holds ~1/GRID³ of the grids (a 100-scan building's rest: 1 million
+        # grid points, which cost the run's largest process 0.17 GB merged whole).
+        grid, unit = thinned(f.points @ R.T + t, f.normals @ R.T, GRID * voxel)
+        points.append(grid)
+        normals.append(unit)
     return merged_features(np.vstack(points), np.vstack(normals), GRID * voxel, config.fpfh_radius, config.descriptor)
 
 
