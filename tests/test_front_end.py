@@ -9,7 +9,7 @@ from scipy.stats import chi2
 
 from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
-from sghr_gtsam.features.local import compute_features, merged_features
+from sghr_gtsam.features.local import compute_features, merged_features, thinned
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.registration import batch
 from sghr_gtsam.registration.visibility import CONFLICT
@@ -181,6 +181,25 @@ def test_weak_groups_are_the_flagged_scans_joined_by_kept_edges():
     flagged = np.zeros(9, dtype=bool)
     flagged[[2, 3, 4, 6]] = True
     assert [g.tolist() for g in weak_groups(graph, result, flagged)] == [[2, 3, 4], [7, 8]]
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 400), st.floats(0.05, 2.0))
+def test_thinned_keeps_one_point_a_cell_with_its_unit_mean_normal(seed, m, cell):
+    """Random points with unit normals on a grid of ``cell``: at most one point a cell, each inside the box of the
+    points it replaces, every normal a unit vector, and a cell whose points share one normal keeps it."""
+    rng = np.random.default_rng(seed)
+    points = rng.uniform(-1.0, 1.0, size=(m, 3))
+    normals = rng.normal(size=(m, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[: m // 2] = normals[0]  # half of them alike
+    grid, unit = thinned(points, normals, cell)
+    cells = np.unique(np.floor((points - points.min(axis=0) + cell / 2) / cell), axis=0)  # open3d's grid origin
+    assert 0 < len(grid) <= len(cells) and len(grid) == len(unit)
+    assert np.allclose(np.linalg.norm(unit, axis=1), 1.0)
+    assert (grid >= points.min(axis=0) - 1e-9).all() and (grid <= points.max(axis=0) + 1e-9).all()
+    single = thinned(points[:1], normals[:1], cell)
+    assert np.allclose(single[0], points[:1]) and np.allclose(single[1], normals[:1])
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
