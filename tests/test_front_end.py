@@ -1,7 +1,12 @@
-"""The front end's parallel executor and its steps after the first synchronization (refine, loops, retries)."""
+"""The front end's parallel executor and its steps after the first synchronization (refine, loops, retries, weak
+groups registered whole)."""
+
+from types import SimpleNamespace
+from unittest.mock import patch
 
 import gtsam
 import numpy as np
+import open3d as o3d
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -9,11 +14,12 @@ from scipy.stats import chi2
 
 from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
-from sghr_gtsam.features.local import compute_features, merged_features, thinned
+from sghr_gtsam.features.local import compute_features
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.registration import batch
 from sghr_gtsam.registration.visibility import CONFLICT
-from sghr_gtsam.registration.groups import weak_groups
+from sghr_gtsam.registration import groups
+from sghr_gtsam.registration.groups import GRID, weak_groups
 from sghr_gtsam.registration.loops import predicted_overlap, propose_loops
 from sghr_gtsam.registration.pairwise import register_pair, score_pair
 from sghr_gtsam.registration.refine import build_pyramid, refine_pair
@@ -155,12 +161,12 @@ def test_a_group_turned_behind_one_wrong_registration_is_registered_whole_and_pu
         return result
 
     monkeypatch.setattr(batch, "_register", planted)
-    for groups in (False, True):
-        cfg = Config(record=False, workers=1, k=3, retry=False, free_space=False, groups=groups)
+    for on in (False, True):
+        cfg = Config(record=False, workers=1, k=3, retry=False, free_space=False, groups=on)
         result = register(scans, cfg, log=lambda m: None, scores=scores)
         err = scan_errors(result.names, result.poses, scene.poses[[scene.names.index(nm) for nm in result.names]])
         far = [result.names[k] for k in range(4, 8)]
-        if not groups:  # the plant works, and the run says so
+        if not on:  # the plant works, and the run says so
             assert (err.rotation_deg[4:] > 80).all() and set(far) <= set(result.unverified)
             continue
         assert err.rotation_deg.max() < 0.5 and err.translation.max() < scene.voxel, (err.rotation_deg, err.translation)
@@ -183,39 +189,57 @@ def test_weak_groups_are_the_flagged_scans_joined_by_kept_edges():
     assert [g.tolist() for g in weak_groups(graph, result, flagged)] == [[2, 3, 4], [7, 8]]
 
 
-@settings(max_examples=50, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.integers(1, 400), st.floats(0.05, 2.0))
-def test_thinned_keeps_one_point_a_cell_with_its_unit_mean_normal(seed, m, cell):
-    """Random points with unit normals on a grid of ``cell``: at most one point a cell, each inside the box of the
-    points it replaces, every normal a unit vector, and a cell whose points share one normal keeps it."""
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 4), st.floats(0.05, 1.0))
+def test_merged_grids_are_one_voxel_grid_of_all_the_moved_points(seed, n, voxel):
+    """``groups.merged`` of ``n`` random point sets with unit normals, each moved by a random pose, summed one set at
+    a time: the same grid points and normals as open3d's ``voxel_down_sample`` of all the moved points at once
+    (``groups.GRID`` voxels), normals made unit vectors again."""
     rng = np.random.default_rng(seed)
-    points = rng.uniform(-1.0, 1.0, size=(m, 3))
-    normals = rng.normal(size=(m, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    normals[: m // 2] = normals[0]  # half of them alike
-    grid, unit = thinned(points, normals, cell)
-    cells = np.unique(np.floor((points - points.min(axis=0) + cell / 2) / cell), axis=0)  # open3d's grid origin
-    assert 0 < len(grid) <= len(cells) and len(grid) == len(unit)
-    assert np.allclose(np.linalg.norm(unit, axis=1), 1.0)
-    assert (grid >= points.min(axis=0) - 1e-9).all() and (grid <= points.max(axis=0) + 1e-9).all()
-    single = thinned(points[:1], normals[:1], cell)
-    assert np.allclose(single[0], points[:1]) and np.allclose(single[1], normals[:1])
+    clouds, poses, moved = [], [], []
+    for _ in range(n):
+        points = rng.uniform(-2.0, 2.0, size=(int(rng.integers(1, 300)), 3))
+        normals = rng.normal(size=points.shape)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        pose = make_T(gtsam.Rot3.Expmap(rng.normal(size=3)).matrix(), rng.normal(size=3))
+        clouds.append(SimpleNamespace(points=points, normals=normals))
+        poses.append(pose)
+        moved.append((points @ pose[:3, :3].T + pose[:3, 3], normals @ pose[:3, :3].T))
+    cell = GRID * voxel
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.vstack([p for p, _ in moved])))
+    pcd.normals = o3d.utility.Vector3dVector(np.vstack([q for _, q in moved]))
+    pcd = pcd.voxel_down_sample(cell)
+    expected, normal = np.asarray(pcd.points), np.asarray(pcd.normals)
+    length = np.linalg.norm(normal, axis=1)
+    expected, normal = expected[length > 1e-6], normal[length > 1e-6] / length[length > 1e-6, None]
+    with patch.object(groups, "grid_features", lambda grid, unit, *args: SimpleNamespace(points=grid, normals=unit)):
+        out = groups.merged(clouds, np.stack(poses), np.arange(n), voxel, Config())
+    order_out, order_expected = np.lexsort(out.points.T), np.lexsort(expected.T)
+    assert np.allclose(out.points[order_out], expected[order_expected], atol=1e-9)
+    assert np.allclose(out.normals[order_out], normal[order_expected], atol=1e-9)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_merged_features_of_a_scan_cut_in_two_register_onto_the_whole_scan(seed):
-    """A scan's grid cut into two halves that share a strip 6 voxels wide, merged with their normals: the strip's
-    cells are counted once, every normal stays a unit vector, and the merged features register onto the whole scan's
-    at the identity (no normal flipped or lost)."""
+def test_a_scan_cut_in_two_and_merged_registers_onto_the_whole_scan(seed):
+    """A scan's grid cut into two halves that share a strip 6 voxels wide, each half moved away and given back its
+    pose, merged (``groups.merged``): registered onto the whole scan's merged grid, at the identity."""
     scene = make_scene(kind="room", n_scans=2, seed=seed)
     whole = compute_features(scene.scans[0], scene.voxel)
     x = whole.points[:, 0]
     halves = [x <= np.median(x) + 3 * scene.voxel, x >= np.median(x) - 3 * scene.voxel]
-    merged = merged_features(np.vstack([whole.points[h] for h in halves]),
-                             np.vstack([whole.normals[h] for h in halves]), scene.voxel)
-    assert len(merged.points) == len(merged_features(whole.points, whole.normals, scene.voxel).points)
-    assert np.allclose(np.linalg.norm(merged.normals, axis=1), 1.0)
-    result = register_pair(whole, merged, scene.voxel)
+    rng = np.random.default_rng(seed)
+    parts, poses = [], []
+    for half in halves:
+        away = make_T(gtsam.Rot3.Expmap(rng.normal(size=3)).matrix(), rng.normal(size=3))
+        back = inv_T(away)  # the half in a frame of its own, ``back`` its pose in the scan's frame
+        parts.append(SimpleNamespace(points=whole.points[half] @ away[:3, :3].T + away[:3, 3],
+                                     normals=whole.normals[half] @ away[:3, :3].T))
+        poses.append(back)
+    config = Config()
+    target = groups.merged([whole], np.eye(4)[None], np.arange(1), scene.voxel, config)
+    source = groups.merged(parts, np.stack(poses), np.arange(2), scene.voxel, config)
+    assert np.allclose(np.linalg.norm(source.normals, axis=1), 1.0)
+    result = register_pair(target, source, groups.GRID * scene.voxel)
     assert np.degrees(rotation_angle(result.T[:3, :3])) < 0.5 and np.linalg.norm(result.T[:3, 3]) < scene.voxel
 
 

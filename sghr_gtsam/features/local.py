@@ -206,27 +206,12 @@ def _described(pcd: o3d.geometry.PointCloud, voxel: float, fpfh_radius: float, d
     return ScanFeatures(grid, normals, fpfh, float(voxel), grid, matched)
 
 
-def thinned(points: np.ndarray, normals: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
-    """``points`` (m, 3) with their unit ``normals`` on a voxel grid of ``cell``: each cell's centroid and its points'
-    mean normal, made a unit vector again; cells whose normals cancel (two sides of a thin wall) are left out."""
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+def grid_features(grid: np.ndarray, normals: np.ndarray, voxel: float, fpfh_radius: float = 5.0,
+                  descriptor: str = "fpfh") -> ScanFeatures:
+    """Features, as ``compute_features`` gives them, of points already on a voxel grid (``grid`` (m, 3), one a
+    cell) with their unit oriented ``normals``."""
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(grid, dtype=np.float64)))
     pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
-    pcd = pcd.voxel_down_sample(cell)
-    mean = np.asarray(pcd.normals)
-    length = np.linalg.norm(mean, axis=1)
-    keep = length > 1e-6
-    return np.asarray(pcd.points)[keep], mean[keep] / length[keep, None]
-
-
-def merged_features(points: np.ndarray, normals: np.ndarray, voxel: float, fpfh_radius: float = 5.0,
-                    descriptor: str = "fpfh") -> ScanFeatures:
-    """Features, as ``compute_features`` gives them, of several scans' grid ``points`` (m, 3) with their oriented
-    ``normals`` (m, 3), all moved into one frame: one voxel grid of them (``thinned``). The normals are not
-    estimated again: each scan's were oriented towards its own sensor, which no one viewpoint of the merged points
-    could do."""
-    grid, unit = thinned(points, normals, voxel)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(grid))
-    pcd.normals = o3d.utility.Vector3dVector(unit)
     return _described(pcd, voxel, fpfh_radius, descriptor)
 
 
