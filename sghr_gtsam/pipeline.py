@@ -314,7 +314,7 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
                    f"{graph.num_edges} edges")
         result = stages.synchronize(graph, f"synchronization (round {densify.rounds})")
         graph, result = stages.overrule(edges, graph, result)
-    first_weak[list(densify._moved)] = True  # a group that one registration moved is as weak as a weak scan
+    first_weak[densify.moved_scans()] = True  # a group that one registration moved is as weak as a weak scan
     return graph, result, densify, first_weak
 
 

@@ -18,7 +18,7 @@ from .batch import register_edges
 from .edges import EdgeSet
 from .groups import merged, register_group, weak_groups
 from .loops import predicted_overlap, propose_loops
-from .refine import stays_near, confirms, register_from_guesses
+from .refine import confirms, register_from_guesses, stays_near
 from .retry import retry_pairs, weak_scans
 
 
@@ -45,6 +45,10 @@ class DensifyReport:
 
     def as_dict(self) -> dict:
         return {k: v for k, v in vars(self).items() if not k.startswith("_")}
+
+    def moved_scans(self) -> list[int]:
+        """The scans of the weak groups that their registration as a whole moved (``register_weak_groups``)."""
+        return sorted(self._moved)
 
 
 def _kept(edges: EdgeSet, sync: SyncResult) -> np.ndarray:

@@ -25,7 +25,7 @@ GRID = 2.0
 """The merged sides' grid, in voxels: on the run's own grid a merged side of 20-70 thousand points left the right
 correspondences few and rarely mutual among the look-alike parts of a whole room (studyroom's groups: 1-9 inliers,
 all wrong, 11-89 s a group); at twice the voxel, with FPFH's radius twice as wide in metres, two of its groups
-came out within 4.3° / 0.19 m of the truth, in 0.5-3 s."""
+came out within 4.3° / 0.19 m of the truth, in 0.2-3 s."""
 MAX_POINTS = 2_000_000
 """Grid points of a merged side above which the group is not tried: FPFH and the descriptor search on the merged
 points grow with them (a 500-scan building's whole model), and a group is a refinement, not a stage to wait on."""
@@ -46,8 +46,7 @@ def merged(features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndar
     """The features (``features.local.grid_features``) of the ``members``' grids under ``poses`` (their centred
     frames into the world), merged on one grid of ``GRID`` voxels: each cell's centroid and mean normal, as open3d's
     ``voxel_down_sample`` of all their points would give, but summed one scan at a time, so that only the cells are
-    held (a 100-scan building's rest: a million grid points, which cost the run's largest process 0.17 GB stacked).
-    None when they hold more than ``MAX_POINTS`` grid points."""
+    held, not every member's grid points at once. None when they hold more than ``MAX_POINTS`` grid points."""
     if sum(len(features[k].points) for k in members) > MAX_POINTS:
         return None
     cell = GRID * voxel
