@@ -113,10 +113,10 @@ def register_weak_groups(features: Stored, pyramids: Stored, edges: EdgeSet, gra
     edges (a rejected edge's registration is replaced). Each group is tried once a run. Returns the edges added."""
     n = len(features)
     rest = (sync.component == 0) & ~flagged
-    kept = _kept_pairs(edges, sync, n)
     todo = [g for g in weak_groups(graph, sync, flagged) if frozenset(g.tolist()) not in report._groups]
     if not todo or not rest.any():
         return 0
+    kept = _kept_pairs(edges, sync, n)
     report._groups.update(frozenset(g.tolist()) for g in todo)
     report.groups_tried += len(todo)
     added = 0

@@ -47,18 +47,19 @@ def merged(features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndar
     frames into the world), merged on one grid of ``GRID`` voxels: each cell's centroid and mean normal, as open3d's
     ``voxel_down_sample`` of all their points would give, but summed one scan at a time, so that only the cells are
     held, not every member's grid points at once. None when they hold more than ``MAX_POINTS`` grid points."""
-    if sum(len(features[k].points) for k in members) > MAX_POINTS:
-        return None
     cell = GRID * voxel
-
-    def moved(k: int) -> tuple[np.ndarray, np.ndarray]:
-        R, t = poses[k][:3, :3], poses[k][:3, 3]
-        return features[k].points @ R.T + t, features[k].normals @ R.T
-
-    origin = np.min([moved(k)[0].min(axis=0) for k in members], axis=0) - cell / 2  # open3d's grid
+    total, low = 0, np.full(3, np.inf)
+    for k in members:  # open3d's grid starts half a cell below the lowest moved point: a first pass finds it
+        points = features[k].points
+        total += len(points)
+        if total > MAX_POINTS:
+            return None
+        low = np.minimum(low, (points @ poses[k][:3, :3].T + poses[k][:3, 3]).min(axis=0))
+    origin = low - cell / 2
     keys, sums = [], []
     for k in members:
-        points, normals = moved(k)
+        R, t = poses[k][:3, :3], poses[k][:3, 3]
+        points, normals = features[k].points @ R.T + t, features[k].normals @ R.T
         key, inverse = np.unique(np.floor((points - origin) / cell).astype(np.int64), axis=0, return_inverse=True)
         keys.append(key)
         sums.append(_summed(inverse.ravel(), len(key), np.hstack([points, normals, np.ones((len(points), 1))])))
