@@ -39,7 +39,7 @@ from .registration.information import STIFFEN, underdetermined
 from .registration.overrule import MIN_AGREEING, Viewpoints, look_alikes, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
-from .registration.visibility import contradicted_placements
+from .registration.visibility import contradicted_placements, contradicted_rescues
 from .result import RunResult
 from .scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
 from .se3 import inv_T
@@ -335,20 +335,26 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     # rests on, without the edges ICP found from a guess.
     guessed = np.isin(np.array(edges.origin), GUESSED)
     global_only = replace(result, weights=np.where(guessed, 0.0, result.weights))
-    flagged = unverified(graph, result) | (first_weak & (result.component == 0) & unverified(graph, global_only))
+    first_weak = first_weak & main_part
+    alike, clash = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+    if stages.views is not None:  # config.free_space
+        with stages.timer.stage("free_space"):
+            alike = look_alikes(stages.views, graph, result)
+            clash = contradicted_placements(stages.features, poses, main_part, stages.voxel, stages.centres)
+    flagged = unverified(graph, result) | (first_weak & unverified(graph, global_only))
+    for k in np.flatnonzero(flagged):
+        log(f"UNVERIFIED {names[k]}: placed through one registration, or one scan, that no loop of the graph checks")
+    rejected = contradicted_rescues(graph, result, first_weak, clash) & ~flagged
+    for k in np.flatnonzero(rejected):
+        log(f"UNVERIFIED {names[k]}: weak after the first synchronization, and held by kept edges mostly to scans "
+            f"the free space contradicts")
+    flagged |= rejected
     weak = [names[k] for k in np.flatnonzero(flagged)]
-    for name in weak:
-        log(f"UNVERIFIED {name}: placed through one registration, or one scan, that no loop of the graph checks")
-    densify.rescued = [names[k] for k in np.flatnonzero(first_weak & (result.component == 0) & ~flagged)]
+    densify.rescued = [names[k] for k in np.flatnonzero(first_weak & ~flagged)]
     disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
-    alike, clashing = [], []
-    if stages.views is not None:  # config.free_space
-        with stages.timer.stage("free_space"):
-            alike = [names[k] for k in np.flatnonzero(look_alikes(stages.views, graph, result))]
-            clashing = [names[k] for k in np.flatnonzero(contradicted_placements(stages.features, poses, main_part,
-                                                                                 stages.voxel, stages.centres))]
+    alike, clashing = [names[k] for k in np.flatnonzero(alike)], [names[k] for k in np.flatnonzero(clash)]
     for name in alike:
         log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
             f"the scans placed with it, that their free space does not rule out (a look-alike)")
