@@ -329,6 +329,37 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     for name in unregistered:
         log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
+    doubts = _doubts(stages, edges, graph, result, first_weak, poses, densify)
+    free_space = stages.config.free_space
+    out = RunResult(names=names, poses=poses, voxel=float(stages.voxel), scores=stages.scores, graph=graph,
+                    pairs=edges.pairs, edge_origin=edges.origin, edge_conflict=edges.conflict if free_space else None,
+                    edge_overruled=edges.overruled if free_space else None,
+                    densify=densify.as_dict(), sync=result, unregistered=unregistered,
+                    skipped=skipped, features=stages.features, timings=stages.timer.seconds,
+                    global_feature=feature_kind, **doubts, cache=stages.cache.report() if stages.cache else None)
+    with stages.timer.stage("covariances"):
+        try:
+            out.covariances = pose_covariances(out)
+        except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
+            out.covariances = np.full((n, 6, 6), np.nan)
+            log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
+    out.underdetermined = _underdetermined(out, main[0])
+    for name in out.underdetermined:
+        log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
+    if stages.recorder:
+        stages.recorder.log_final(poses, out.flags)
+        stages.recorder.log_covariances(poses, out.covariances)
+    local_frame.to_input_frame(out, stages.centres)
+    return out
+
+
+
+def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, first_weak: np.ndarray,
+            poses: np.ndarray, densify: DensifyReport) -> dict[str, list[str]]:
+    """The placed scans the run doubts, by flag (``unverified``, ``contested``, ``ambiguous``, ``contradicted``), each
+    said in the log; the scans weak after the first synchronization and no longer doubted go to ``densify.rescued``."""
+    log, names, n = stages.log, [s.name for s in stages.scans], len(stages.scans)
+    main_part = result.component == 0
     # Loop closures start from the synchronized poses, so they confirm a weak scan where it is, right or wrong (a
     # 50-scan room: one scan 114° off lost its flag that way); group edges start from one registration's guess. A scan
     # weak after the first synchronization is verified only by the global registrations (top-k and retries) it now
@@ -360,29 +391,7 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
             f"the scans placed with it, that their free space does not rule out (a look-alike)")
     for name in clashing:
         log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
-    free_space = stages.config.free_space
-    out = RunResult(names=names, poses=poses, voxel=float(stages.voxel), scores=stages.scores, graph=graph,
-                    pairs=edges.pairs, edge_origin=edges.origin, edge_conflict=edges.conflict if free_space else None,
-                    edge_overruled=edges.overruled if free_space else None,
-                    densify=densify.as_dict(), sync=result, unregistered=unregistered,
-                    skipped=skipped, features=stages.features, timings=stages.timer.seconds,
-                    global_feature=feature_kind, unverified=weak, contested=disputed, ambiguous=alike,
-                    contradicted=clashing, cache=stages.cache.report() if stages.cache else None)
-    with stages.timer.stage("covariances"):
-        try:
-            out.covariances = pose_covariances(out)
-        except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
-            out.covariances = np.full((n, 6, 6), np.nan)
-            log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
-    out.underdetermined = _underdetermined(out, main[0])
-    for name in out.underdetermined:
-        log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
-    if stages.recorder:
-        stages.recorder.log_final(poses, out.flags)
-        stages.recorder.log_covariances(poses, out.covariances)
-    local_frame.to_input_frame(out, stages.centres)
-    return out
-
+    return {"unverified": weak, "contested": disputed, "ambiguous": alike, "contradicted": clashing}
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:
     """``k -> fn(shared, tasks[k])``: how the store makes a stage's item k again (``store.Store.sequence``)."""
