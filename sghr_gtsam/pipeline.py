@@ -375,7 +375,8 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     flagged = unverified(graph, result) | (first_weak & unverified(graph, global_only))
     for k in np.flatnonzero(flagged):
         log(f"UNVERIFIED {names[k]}: placed through one registration, or one scan, that no loop of the graph checks")
-    rejected = contradicted_rescues(graph, result, first_weak, clash) & ~flagged
+    # A contradicted scan's own flag says as much (a generated building: five right scans, contradicted, in a block).
+    rejected = contradicted_rescues(graph, result, first_weak & ~clash, clash) & ~flagged
     for k in np.flatnonzero(rejected):
         log(f"UNVERIFIED {names[k]}: weak after the first synchronization, and held by kept edges mostly to scans "
             f"the free space contradicts")
