@@ -353,7 +353,6 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     return out
 
 
-
 def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, first_weak: np.ndarray,
             poses: np.ndarray, densify: DensifyReport) -> dict[str, list[str]]:
     """The placed scans the run doubts, by flag (``unverified``, ``contested``, ``ambiguous``, ``contradicted``), each
@@ -393,6 +392,7 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     for name in clashing:
         log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
     return {"unverified": weak, "contested": disputed, "ambiguous": alike, "contradicted": clashing}
+
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:
     """``k -> fn(shared, tasks[k])``: how the store makes a stage's item k again (``store.Store.sequence``)."""
