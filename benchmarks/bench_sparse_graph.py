@@ -42,8 +42,8 @@ with ``workers=2``: top-k (the first of ``--ks``) with the front end's steps 2-4
 default), the same graph with them off, and the exhaustive graph with them off. Besides recall, it counts the
 pairs that got *global* registration (FPFH matching + estimator: the top-k graph with its bridges, every
 pair the retries tried, and each weak group registered whole) and, separately, the pairs loop closure tried and
-closed by ICP from the synchronized poses, which are not global registrations. ``--set KEY=VALUE`` overrides a ``Config`` field in all three rows
-(e.g. ``descriptor=learned``).
+closed by ICP from the synchronized poses, which are not global registrations. ``--set KEY=VALUE`` overrides a
+``Config`` field in all three rows (e.g. ``descriptor=learned``).
 """
 
 from __future__ import annotations
@@ -310,8 +310,8 @@ def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = 
           + "".join(f"; {key}={value}" for key, value in (overrides or {}).items()) + "\n")
     print("| graph | k | global registrations (% of all pairs) | retry registered / tried | groups moved / tried "
           "(edges) | loops closed / tried (ICP) | refined / tried | kept edges | registered / within tol. "
-          "| registration recall | rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s | CPU s (this process) "
-          "| flagged (of the misplaced) | unregistered |")
+          "| registration recall | rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s "
+          "| CPU s (this process) | flagged (of the misplaced) | unregistered |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
     for row in rows:
         label, exhaustive, on = STEPS_PLAN[row]

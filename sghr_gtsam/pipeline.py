@@ -366,10 +366,10 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     guessed = np.isin(np.array(edges.origin), GUESSED)
     global_only = replace(result, weights=np.where(guessed, 0.0, result.weights))
     first_weak = first_weak & main_part
-    alike, clash = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+    look_alike, clash = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     if stages.views is not None:  # config.free_space
         with stages.timer.stage("free_space"):
-            alike = look_alikes(stages.views, graph, result)
+            look_alike = look_alikes(stages.views, graph, result)
             clash = contradicted_placements(stages.features, poses, main_part, stages.voxel, stages.centres)
     flagged = unverified(graph, result) | (first_weak & unverified(graph, global_only))
     for k in np.flatnonzero(flagged):
@@ -385,7 +385,7 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
-    alike, clashing = [names[k] for k in np.flatnonzero(alike)], [names[k] for k in np.flatnonzero(clash)]
+    alike, clashing = [names[k] for k in np.flatnonzero(look_alike)], [names[k] for k in np.flatnonzero(clash)]
     for name in alike:
         log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
             f"the scans placed with it, that their free space does not rule out (a look-alike)")

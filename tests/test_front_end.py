@@ -16,14 +16,13 @@ from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.features.local import compute_features
 from sghr_gtsam.pipeline import Scan, register
-from sghr_gtsam.registration import batch
-from sghr_gtsam.registration.visibility import CONFLICT
-from sghr_gtsam.registration import groups
+from sghr_gtsam.registration import batch, groups
 from sghr_gtsam.registration.groups import GRID, weak_groups
 from sghr_gtsam.registration.loops import predicted_overlap, propose_loops
 from sghr_gtsam.registration.pairwise import register_pair, score_pair
 from sghr_gtsam.registration.refine import build_pyramid, refine_pair
 from sghr_gtsam.registration.retry import retry_pairs, weak_scans
+from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T, make_T, rotation_angle
 from sghr_gtsam.synthetic import make_scene
 from sghr_gtsam.types import PoseGraph, SyncResult

@@ -46,6 +46,12 @@ class DensifyReport:
     def as_dict(self) -> dict:
         return {k: v for k, v in vars(self).items() if not k.startswith("_")}
 
+    def or_tried(self, pairs: np.ndarray) -> np.ndarray:
+        """(n, n) bool ``pairs`` with the pairs some stage already re-registered marked too, either way round."""
+        for a, b in self._tried:
+            pairs[a, b] = pairs[b, a] = True
+        return pairs
+
     def moved_scans(self) -> list[int]:
         """The scans of the weak groups that their registration as a whole moved (``register_weak_groups``)."""
         return sorted(self._moved)
@@ -94,9 +100,7 @@ def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncRe
     synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
     as loop edges (a rejected edge's registration is replaced). Each pair is tried once a run."""
     n = len(features)
-    skip = _kept_pairs(edges, sync, n)
-    for a, b in report._tried:
-        skip[a, b] = skip[b, a] = True
+    skip = report.or_tried(_kept_pairs(edges, sync, n))
     tried, closed = _register_guessed(features, pyramids, edges, sync.poses, sync.component == 0, skip, voxel,
                                       config, report, progress, cache, "loop", "loop closure")
     report.loops_tried += tried
@@ -189,9 +193,7 @@ def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncR
     by overlap score; the pairs that register enter as retry edges. Returns how many registered."""
     n = len(features)
     weak = weak_scans(n, edges.ij[:, 0], edges.ij[:, 1], _kept(edges, sync), sync.component, unverified)
-    tried = edges.contains(n)
-    for a, b in report._tried:
-        tried[a, b] = tried[b, a] = True
+    tried = report.or_tried(edges.contains(n))
     ij = retry_pairs(weak, scores, tried, config.k)
     if not len(ij):
         return 0
