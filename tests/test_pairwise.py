@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.features.local import compute_features, default_voxel
 from sghr_gtsam.registration.estimators import _first_stage, sc2_estimate
 from sghr_gtsam.registration.information import registration_information
-from sghr_gtsam.registration.pairwise import register_pair
+from sghr_gtsam.registration.pairwise import mutual_matches, register_pair, score_pair
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors, transform_points
 from sghr_gtsam.types import InputError
 
@@ -88,6 +88,22 @@ def test_bad_arguments_are_input_errors(boxes):
         compute_features(np.zeros((10, 2)), voxel)
     with pytest.raises(InputError):
         default_voxel([])
+
+
+@settings(max_examples=25, deadline=None)
+@given(angle=st.floats(0.0, 3.0), shift=st.floats(0.0, 4.0), axis=st.integers(0, 2), sign=st.sampled_from([-1, 1]))
+def test_a_score_without_matches_is_the_score_on_every_mutual_match(boxes, angle, shift, axis, sign):
+    """A loop closure is scored without the pair's matches (``agreeing_matches`` looks up only the points that
+    can agree): the same inliers, cells and everything else as on all mutual matches, at the right transform and
+    at transforms a few voxels to half a turn off it."""
+    T_ij, voxel, fi, fj = boxes
+    off = make_T(Rotation.from_rotvec(sign * angle * np.eye(3)[axis]).as_matrix(), shift * voxel * np.eye(3)[axis - 1])
+    T = T_ij @ off
+    alone, full = score_pair(fi, fj, T, voxel, 1.5), score_pair(fi, fj, T, voxel, 1.5, mutual_matches(fi, fj))
+    assert (alone.inliers, alone.coverage, alone.fitness, alone.rmse) == (full.inliers, full.coverage, full.fitness,
+                                                                          full.rmse)
+    np.testing.assert_array_equal(alone.information, full.information)
+    assert alone.matches is None
 
 
 @settings(max_examples=15, deadline=None)
