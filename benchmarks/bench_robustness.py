@@ -309,15 +309,15 @@ def main() -> None:
         runs = [Run(**json.loads(line)) for path in args.tables_from for line in open(path)]
         print(tables([r for r in runs if r.ratio in ratios], names, args.kinds, ratios))
         return
+    graphs = (f"{len(args.scenes)} scenes × {seeds} seeds from {args.first_seed}, top-k by "
+              f"{'noisy' if args.noisy_overlap else 'GT'} overlap")
     if args.identifiability:
-        print(f"outvoted scans / gt.log recall left / all pairs left, votes {args.vote}, {len(args.scenes)} scenes × "
-              f"{seeds} seeds from {args.first_seed}, top-k by {'noisy' if args.noisy_overlap else 'GT'} overlap")
+        print(f"outvoted scans / gt.log recall left / all pairs left, votes {args.vote}, {graphs}")
         print(identifiability(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
                               args.vote, args.first_seed))
         return
     if args.consensus:
-        print(f"{len(args.scenes)} scenes × {seeds} seeds from {args.first_seed}, top-k by "
-              f"{'noisy' if args.noisy_overlap else 'GT'} overlap")
+        print(graphs)
         print(consensus(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
                         args.first_seed, args.jobs))
         return
@@ -337,8 +337,7 @@ def main() -> None:
     if args.records:
         with atomic_write(args.records) as f:
             f.writelines(json.dumps(asdict(r)) + "\n" for r in runs)
-    print(f"{len(args.scenes)} scenes × {seeds} seeds from {args.first_seed}, top-k by {'noisy' if args.noisy_overlap else 'GT'} overlap, "
-          f"{args.jobs} processes, {time.perf_counter() - start:.0f} s")
+    print(f"{graphs}, {args.jobs} processes, {time.perf_counter() - start:.0f} s")
     print(tables(runs, names, args.kinds, ratios))
 
 
