@@ -39,7 +39,7 @@ from .registration.information import STIFFEN, underdetermined
 from .registration.overrule import MIN_AGREEING, Viewpoints, look_alikes, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
-from .registration.visibility import contradicted_placements, contradicted_rescues
+from .registration.visibility import contradicted_placements, held_by_contradicted
 from .result import RunResult
 from .scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
 from .se3 import inv_T
@@ -375,11 +375,10 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     for k in np.flatnonzero(flagged):
         log(f"UNVERIFIED {names[k]}: placed through one registration, or one scan, that no loop of the graph checks")
     # A contradicted scan's own flag says as much (a generated building: five right scans, contradicted, in a block).
-    rejected = contradicted_rescues(graph, result, first_weak & ~clash, clash) & ~flagged
-    for k in np.flatnonzero(rejected):
-        log(f"UNVERIFIED {names[k]}: weak after the first synchronization, and held by kept edges mostly to scans "
-            f"the free space contradicts")
-    flagged |= rejected
+    held = held_by_contradicted(graph, result, main_part & ~clash, clash) & ~flagged
+    for k in np.flatnonzero(held):
+        log(f"UNVERIFIED {names[k]}: held by kept edges mostly to scans the free space contradicts")
+    flagged |= held
     weak = [names[k] for k in np.flatnonzero(flagged)]
     densify.rescued = [names[k] for k in np.flatnonzero(first_weak & ~flagged)]
     disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]

@@ -30,8 +30,8 @@ class RunResult:
     """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
     first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
     ``unverified`` have one that rests on a single registration, or a single scan's registrations, that no loop
-    checks (``sync.unverified``), or, weak after the first synchronization, are held mostly to scans the free space
-    contradicts (``registration.visibility.contradicted_rescues``); scans in
+    checks (``sync.unverified``), or that are held mostly to scans the free space contradicts
+    (``registration.visibility.held_by_contradicted``); scans in
     ``contested`` have one against which the graph holds more registration evidence than for it
     (``sync.contested``); scans in ``ambiguous`` have another placement that dropped registrations agree on and the
     scans' free space cannot rule out (``registration.overrule.look_alikes``); scans in ``contradicted`` have one

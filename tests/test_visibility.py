@@ -13,7 +13,7 @@ from sghr_gtsam.registration.edges import EdgeSet
 from sghr_gtsam.registration.pairwise import PairResult
 from sghr_gtsam.registration.visibility import (
     CONFLICT,
-    contradicted_rescues,
+    held_by_contradicted,
     contradicted_scans,
     free_space_conflict,
     placement_conflicts,
@@ -138,20 +138,20 @@ def _kept_graph(n: int, ij: list[tuple[int, int]], kept: list[bool]) -> tuple[Po
                              np.zeros(n, dtype=int))
 
 
-def test_a_rescue_held_mostly_by_contradicted_scans_is_none():
-    """Simulated room 0 (docs/BENCHMARKS.md, session 35): scans 0-7 placed 113° off as one block; 0 3 4 5 7 are
+def test_scans_held_mostly_by_contradicted_ones_are_doubted():
+    """Simulated room 0 (docs/BENCHMARKS.md, sessions 35-36): scans 0-7 placed 113° off as one block; 0 3 4 5 7 are
     contradicted, 1 and 2 were weak after the first synchronization and now rest on retried look-alike
-    registrations to 47 and 48. 2 is held mostly by contradicted scans; 1 is, once 2 is doubted too. A weak scan
-    held by right ones (32, 33) stays rescued, and so does one whose dropped edges are all contradicted."""
+    registrations to 47 and 48, and 16 hangs on the block. 2 and 16 are held mostly by contradicted scans; 1 is, once
+    2 is doubted too. Scans held by right ones (32, 33, and 47 and 48 whose other edges are right) are not, and
+    neither is one whose dropped edges are all contradicted."""
     ij = [(1, 2), (1, 47), (1, 48), (1, 7), (1, 4), (1, 5), (2, 4), (2, 5), (2, 7), (0, 4), (3, 4), (4, 5), (5, 7),
-          (32, 33), (32, 20), (33, 21), (33, 0), (32, 3), (32, 4)]
-    kept = [True] * 16 + [False] * 3
+          (32, 33), (32, 20), (33, 21), (47, 40), (47, 41), (48, 40), (48, 42), (16, 5), (16, 0), (16, 40),
+          (33, 0), (32, 3), (32, 4)]
+    kept = [True] * 23 + [False] * 3
     graph, result = _kept_graph(50, ij, kept)
     clash = np.zeros(50, dtype=bool)
     clash[[0, 3, 4, 5, 7]] = True
-    weak = np.zeros(50, dtype=bool)
-    weak[[1, 2, 32, 33]] = True
-    assert np.flatnonzero(contradicted_rescues(graph, result, weak, clash)).tolist() == [1, 2]
+    assert np.flatnonzero(held_by_contradicted(graph, result, ~clash, clash)).tolist() == [1, 2, 16]
 
 
 @settings(max_examples=200, deadline=None)
@@ -160,23 +160,23 @@ def test_a_rescue_held_mostly_by_contradicted_scans_is_none():
     st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1), st.booleans()), max_size=40),
     st.lists(st.booleans(), min_size=n, max_size=n), st.lists(st.booleans(), min_size=n, max_size=n),
     st.integers(0, n - 1))))
-def test_rescues_rejected_are_weak_held_mostly_by_doubted_scans_and_grow_with_the_contradicted(case):
-    """Only weak scans; each one flagged has more than half its kept edges to contradicted or flagged scans, each
-    weak one left has at most half (the rule's fixed point); contradicting one more scan never clears a flag."""
-    n, edges, weak, clash, extra = case
+def test_doubted_scans_are_candidates_held_mostly_by_doubted_ones_and_grow_with_the_contradicted(case):
+    """Only candidates; each one flagged has more than half its kept edges to contradicted or flagged scans, each
+    candidate left has at most half (the rule's fixed point); contradicting one more scan never clears a flag."""
+    n, edges, candidates, clash, extra = case
     edges = [(a, b, k) for a, b, k in edges if a != b]
     graph, result = _kept_graph(n, [(a, b) for a, b, _ in edges], [k for *_, k in edges])
-    weak, clash = np.array(weak), np.array(clash)
-    out = contradicted_rescues(graph, result, weak, clash)
-    assert not (out & ~weak).any()
+    candidates, clash = np.array(candidates), np.array(clash)
+    out = held_by_contradicted(graph, result, candidates, clash)
+    assert not (out & ~candidates).any()
     doubted = clash | out
     for k in range(n):
         ends = [b if a == k else a for a, b, kept in edges if kept and k in (a, b)]
         held = sum(doubted[e] for e in ends)
         if out[k]:
             assert 2 * held > len(ends)
-        elif weak[k]:
+        elif candidates[k]:
             assert 2 * held <= len(ends)
     more = clash.copy()
     more[extra] = True
-    assert not (out & ~contradicted_rescues(graph, result, weak, more)).any()
+    assert not (out & ~held_by_contradicted(graph, result, candidates, more)).any()

@@ -205,13 +205,14 @@ def contradicted_placements(features: Stored, poses: np.ndarray, placed: np.ndar
     return contradicted_scans(placement_conflicts(points, poses, checked, voxel))
 
 
-def contradicted_rescues(graph: PoseGraph, result: SyncResult, weak: np.ndarray, clash: np.ndarray) -> np.ndarray:
-    """(N,) bool: the ``weak`` scans (weak after the first synchronization) that the edges ``result`` kept join
-    mostly to ``clash`` scans (``contradicted_placements``) or to weak scans found so, until none is added. Such a
-    scan is placed as one block with scans that the free space says are misplaced, so the registrations that now
-    hold it verify nothing. A simulated room (docs/BENCHMARKS.md, session 35): seven scans with next to no true
-    overlap with the others, held 113° off by retried registrations onto one look-alike; five of them contradicted,
-    the other two called rescued."""
+def held_by_contradicted(graph: PoseGraph, result: SyncResult, candidates: np.ndarray,
+                         clash: np.ndarray) -> np.ndarray:
+    """(N,) bool: the ``candidates`` that the edges ``result`` kept join mostly (more than half) to ``clash`` scans
+    (``contradicted_placements``) or to candidates found so, until none is added. Such a scan is placed as one block
+    with scans that the free space says are misplaced, so the registrations that hold it verify nothing. A
+    simulated room (docs/BENCHMARKS.md, session 35): seven scans with next to no true overlap with the others, held
+    113° off by look-alike registrations; five of them contradicted, the other two called rescued, and a scan held
+    by the block unflagged."""
     kept = result.weights > 0
     i, j = graph.i[kept], graph.j[kept]
     partners = np.bincount(i, minlength=graph.n) + np.bincount(j, minlength=graph.n)
@@ -220,7 +221,7 @@ def contradicted_rescues(graph: PoseGraph, result: SyncResult, weak: np.ndarray,
         doubted = (clash | out).astype(float)
         clashing = np.bincount(i, weights=doubted[j], minlength=graph.n) + np.bincount(j, weights=doubted[i],
                                                                                          minlength=graph.n)
-        more = weak & ~out & (2 * clashing > partners)
+        more = candidates & ~out & (2 * clashing > partners)
         if not more.any():
             return out
         out |= more
