@@ -13,9 +13,9 @@ from sghr_gtsam.registration.edges import EdgeSet
 from sghr_gtsam.registration.pairwise import PairResult
 from sghr_gtsam.registration.visibility import (
     CONFLICT,
-    held_by_contradicted,
     contradicted_scans,
     free_space_conflict,
+    held_by_contradicted,
     placement_conflicts,
     seen_from_origin,
 )

@@ -204,7 +204,8 @@ def agreeing_matches(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarr
     points (FPFH). Only a point of scan j with a point of scan i that close can be one, so only those are looked up
     in descriptor space, and only their partners looked back (``score_pair`` in 0.55× the time on kitchen pairs).
     A k-d query's answer for one point does not depend on the others queried with it, so the pairs are exactly
-    those of ``mutual_matches`` that agree. ``search``: ``information.nearest_points`` of scan j's points moved by ``T``."""
+    those of ``mutual_matches`` that agree. ``search``: ``information.nearest_points`` of scan j's points moved by
+    ``T``."""
     threads = query_threads()
     # Slack on the bound: a pair whose residual rounds the other way is judged below, as score_pair judges it.
     near = np.flatnonzero(search[1] < (1.0 + 1e-6) * (INLIER_DISTANCE * voxel) ** 2)
