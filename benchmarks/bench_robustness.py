@@ -49,7 +49,8 @@ from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
 from sghr_gtsam.sync import METHODS, POLISHES, synchronize  # noqa: E402
 from sghr_gtsam.sync.baselines import BASELINES, oracle  # noqa: E402
-from sghr_gtsam.sync.consensus import MAX_DEG, consistent_edges, placement_support, translation_tolerance  # noqa: E402
+from sghr_gtsam.sync.consensus import (  # noqa: E402
+    MAX_DEG, consistent_edges, placement_support, translation_tolerance)
 from sghr_gtsam.sync.cycles import credibility  # noqa: E402
 from sghr_gtsam.sync.irls import REWEIGHTS  # noqa: E402
 from sghr_gtsam.types import PoseGraph, SyncResult  # noqa: E402
@@ -247,22 +248,19 @@ def consensus(scenes: list[str], kinds: list[str], ratios: list[float], seeds: i
     out = ["| kind | ρ | all pairs: default / oracle | consistent edges: default / oracle / GT | of them outliers: "
            "default / oracle / GT | graphs where the default's answer leaves more consistent than the oracle's: "
            "count / credibility / w⁰ |", "|---|---:|---|---|---|---|"]
-    for kind in kinds:
-        for ratio in ratios:
-            tasks = [(scene, seed, kind, ratio, noisy_overlap) for scene in scenes
-                     for seed in range(first_seed, first_seed + seeds)]
-            with Pool(jobs) as pool:
-                rows = pool.map(_consensus_graph, tasks)
-
-            def mean(who: str, what: str, fmt: str = ".1f") -> str:
-                return f"{np.mean([r[who][what] for r in rows]):{fmt}}"
-
-            more = [sum(r["default"][v] > r["oracle"][v] for r in rows) for v in ("count", "credibility", "w0")]
-            out.append(f"| {kind} | {ratio:g} | {mean('default', 'all_pairs', '.3f')} / "
-                       f"{mean('oracle', 'all_pairs', '.3f')} | "
-                       + " / ".join(mean(w, "count") for w in ("default", "oracle", "GT")) + " | "
-                       + " / ".join(mean(w, "wrong") for w in ("default", "oracle", "GT")) + " | "
-                       + " / ".join(map(str, more)) + f" of {len(rows)} |")
+    cells = [(kind, ratio) for kind in kinds for ratio in ratios]
+    with Pool(jobs) as pool:
+        results = [pool.map(_consensus_graph, [(scene, seed, kind, ratio, noisy_overlap) for scene in scenes
+                                               for seed in range(first_seed, first_seed + seeds)])
+                   for kind, ratio in cells]
+    for (kind, ratio), rows in zip(cells, results):
+        means = {(who, what): np.mean([r[who][what] for r in rows]) for who in ("default", "oracle", "GT")
+                 for what in ("all_pairs", "count", "wrong")}
+        more = [sum(r["default"][v] > r["oracle"][v] for r in rows) for v in ("count", "credibility", "w0")]
+        out.append(f"| {kind} | {ratio:g} | {means['default', 'all_pairs']:.3f} / {means['oracle', 'all_pairs']:.3f} | "
+                   + " / ".join(f"{means[w, 'count']:.1f}" for w in ("default", "oracle", "GT")) + " | "
+                   + " / ".join(f"{means[w, 'wrong']:.1f}" for w in ("default", "oracle", "GT")) + " | "
+                   + " / ".join(map(str, more)) + f" of {len(rows)} |")
     return "\n".join(out)
 
 

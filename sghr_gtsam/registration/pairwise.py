@@ -201,8 +201,9 @@ def register_pair(
 def agreeing_matches(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float,
                      search: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """The ``mutual_matches`` that ``T`` brings within ``INLIER_DISTANCE`` voxels, for keypoints that are the grid
-    points (FPFH). Only a point of scan j with a point of scan i that close can be one, so only those are looked up
-    in descriptor space, and only their partners looked back (``score_pair`` in 0.55× the time on kitchen pairs).
+    points (FPFH, the learned descriptor; not given keypoints). Only a point of scan j with a point of scan i that
+    close can be one, so only those are looked up in descriptor space, and only their partners looked back
+    (``score_pair`` in 0.55× the time on kitchen pairs).
     A k-d query's answer for one point does not depend on the others queried with it, so the pairs are exactly
     those of ``mutual_matches`` that agree. ``search``: ``information.nearest_points`` of scan j's points moved by
     ``T``."""
@@ -220,16 +221,17 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
                information: Information | None = None) -> PairResult:
     """The ``PairResult`` of ``T`` (however it was found): its mutual descriptor ``matches`` within
     ``INLIER_DISTANCE`` voxels (``r_ij``) and the cells they cover, fitness, rmse, and ``information`` when given
-    (from the grid ``T`` was aligned on), else the matching grid's; ``seconds`` 0. Without ``matches`` only those
-    that agree are found (``agreeing_matches``, for FPFH; else all are), and the result keeps none."""
+    (from the grid ``T`` was aligned on), else the matching grid's; ``seconds`` 0. Without ``matches``, on keypoints
+    that are the grid points only those that agree are found (``agreeing_matches``) and the result keeps none;
+    otherwise all are found and kept."""
     max_distance = icp_distance * voxel
     q = source_j.points
     search = nearest_points(target_i, q @ T[:3, :3].T + T[:3, 3])
-    kept = matches
     if matches is None and source_j.keypoints is q and target_i.keypoints is target_i.points:
         a, b = agreeing_matches(target_i, source_j, T, voxel, search)
     else:
-        a, b = kept = mutual_matches(target_i, source_j) if matches is None else matches
+        matches = mutual_matches(target_i, source_j) if matches is None else matches
+        a, b = matches
     p_i = target_i.keypoints[a]
     residual = np.linalg.norm(source_j.keypoints[b] @ T[:3, :3].T + T[:3, 3] - p_i, axis=1)
     agree = residual < INLIER_DISTANCE * voxel
@@ -247,7 +249,7 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
         information=None if information is None else information.measured,
         seconds=0.0,
         coverage=len(np.unique(cells, axis=0)),
-        matches=kept,
+        matches=matches,
         free=0 if information is None else information.free,
         bounded=information.matrix if information is not None and information.free else None,
         loose=None if information is None else information.loose,
