@@ -366,12 +366,15 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     guessed = np.isin(np.array(edges.origin), GUESSED)
     global_only = replace(result, weights=np.where(guessed, 0.0, result.weights))
     first_weak = first_weak & main_part
+    flagged = unverified(graph, result) | (first_weak & unverified(graph, global_only))
+    disputed_scans = contested(graph, result)
     look_alike, clash = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
     if stages.views is not None:  # config.free_space
         with stages.timer.stage("free_space"):
             look_alike = look_alikes(stages.views, graph, result)
-            clash = contradicted_placements(stages.features, poses, main_part, stages.voxel, stages.centres)
-    flagged = unverified(graph, result) | (first_weak & unverified(graph, global_only))
+            # A free-space conflict is blamed on the scans the graph doubts first (visibility.contradicted_scans).
+            clash = contradicted_placements(stages.features, poses, main_part, stages.voxel, stages.centres,
+                                            flagged | disputed_scans | look_alike)
     for k in np.flatnonzero(flagged):
         log(f"UNVERIFIED {names[k]}: placed through one registration, or one scan, that no loop of the graph checks")
     # A contradicted scan's own flag says as much (a generated building: five right scans, contradicted, in a block).
@@ -381,7 +384,7 @@ def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResul
     flagged |= held
     weak = [names[k] for k in np.flatnonzero(flagged)]
     densify.rescued = [names[k] for k in np.flatnonzero(first_weak & ~flagged)]
-    disputed = [names[k] for k in np.flatnonzero(contested(graph, result))]
+    disputed = [names[k] for k in np.flatnonzero(disputed_scans)]
     for name in disputed:
         log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
     alike, clashing = [names[k] for k in np.flatnonzero(look_alike)], [names[k] for k in np.flatnonzero(clash)]

@@ -99,6 +99,42 @@ def test_blame_falls_on_the_scans_in_conflict_with_many(n, seed):
     assert (clash[np.ix_(~blamed, ~blamed)].sum(axis=1) < 2).all()
 
 
+def test_blame_falls_on_the_group_the_graph_doubts():
+    """hotel_umd1's case (docs/BENCHMARKS.md): 14 scans of a corridor placed 177° off, 6 right scans that look into
+    it, each in conflict with about half of them. The conflicts alone blame the 6 right scans, the fewest that
+    explain them; with the wrong group doubted by the graph, the blame falls on it."""
+    rng = np.random.default_rng(0)
+    n_right, n_wrong = 6, 14
+    n = n_right + n_wrong
+    clash = np.zeros((n, n), dtype=bool)
+    clash[:n_right, n_right:] = rng.random((n_right, n_wrong)) < 0.45
+    clash[:n_right, n_right:][:, clash[:n_right, n_right:].sum(axis=0) < 2] = True  # each wrong scan: 2+ conflicts
+    clash |= clash.T
+    assert set(np.flatnonzero(contradicted_scans(clash))) <= set(range(n_right))
+    doubted = np.arange(n) >= n_right
+    blamed = contradicted_scans(clash, doubted)
+    assert not blamed[:n_right].any() and blamed[n_right:].all()
+
+
+@given(st.integers(3, 12), st.integers(0, 10**6))
+def test_doubts_order_the_blame(n, seed):
+    """Doubting no scan or every scan blames as the conflicts alone do; with some doubted, the scans blamed still
+    leave no scan in conflict with two or more unblamed ones, and an undoubted scan is blamed only for conflicts
+    left after the doubted ones are."""
+    rng = np.random.default_rng(seed)
+    clash = np.triu(rng.random((n, n)) < 0.3, 1)
+    clash |= clash.T
+    alone = contradicted_scans(clash)
+    for everyone in (np.zeros(n, dtype=bool), np.ones(n, dtype=bool)):
+        np.testing.assert_array_equal(contradicted_scans(clash, everyone), alone)
+    doubted = rng.random(n) < 0.5
+    blamed = contradicted_scans(clash, doubted)
+    assert (clash[np.ix_(~blamed, ~blamed)].sum(axis=1) < 2).all()
+    first = blamed & doubted
+    left = clash[np.ix_(~first, ~first)]
+    np.testing.assert_array_equal(blamed[~first], contradicted_scans(left, doubted[~first]))
+
+
 def test_contradicted_edges_weigh_nothing(room):
     """A wrong registration with many inliers enters the pose graph at weight 0 and is named contradicted."""
     grids = [_grid(P, room.voxel) for P in room.scans]

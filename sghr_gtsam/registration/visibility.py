@@ -177,32 +177,37 @@ def placement_conflicts(points: Sequence[np.ndarray], poses: np.ndarray, checked
     return clash | clash.T
 
 
-def contradicted_scans(clash: np.ndarray) -> np.ndarray:
+def contradicted_scans(clash: np.ndarray, doubted: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the scans to blame for the conflicts ``clash`` ((N, N) symmetric, ``placement_conflicts``):
     repeatedly the scan in conflict with the most others not blamed yet, while that is at least
-    ``MIN_CONFLICTS``. A scan placed wrong cuts through the free space of every scan around it (a 50-scan room:
-    six misplaced scans in conflict with 14-31 scans each, the right ones only with those six); a single
-    conflicting pair (a depth edge, a handful of points in view) blames no one."""
+    ``MIN_CONFLICTS``; the ``doubted`` scans ((N,) bool: the run's own doubts from its graph) first, then the rest.
+    A scan placed wrong cuts through the free space of every scan around it (a 50-scan room: six misplaced scans in
+    conflict with 14-31 scans each, the right ones only with those six); a single conflicting pair (a depth edge, a
+    handful of points in view) blames no one. A conflict says that two placements disagree, not which one is wrong:
+    where a group placed wrong is larger than the right scans that see it (3DMatch hotel_umd1: 14 scans of a
+    corridor turned 177° against 6 right ones that look into it), the most conflicts are the right scans', and the
+    graph's doubt about the other group is what tells them apart."""
     left = clash.copy()
     blamed = np.zeros(len(clash), dtype=bool)
-    while len(left):
-        degree = left.sum(axis=1)
-        k = int(np.argmax(degree))
-        if degree[k] < MIN_CONFLICTS:
-            break
-        blamed[k] = True
-        left[k], left[:, k] = False, False
+    for pool in (np.zeros(len(clash), dtype=bool) if doubted is None else doubted, np.ones(len(clash), dtype=bool)):
+        while True:
+            degree = np.where(pool, left.sum(axis=1), -1)
+            k = int(np.argmax(degree))
+            if degree[k] < MIN_CONFLICTS:
+                break
+            blamed[k] = True
+            left[k], left[:, k] = False, False
     return blamed
 
 
 def contradicted_placements(features: Stored, poses: np.ndarray, placed: np.ndarray, voxel: float,
-                            centres: np.ndarray) -> np.ndarray:
+                            centres: np.ndarray, doubted: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the ``placed`` scans blamed for free-space conflicts under ``poses`` (scan k's feature grid in
-    its centred frame to the world; ``placement_conflicts``, ``contradicted_scans``), among the scans that can
-    say where there is nothing (``viewpoints``)."""
+    its centred frame to the world; ``placement_conflicts``, ``contradicted_scans`` with the run's ``doubted``
+    scans first), among the scans that can say where there is nothing (``viewpoints``)."""
     points = Attribute(features, "points")
     checked = placed & viewpoints(points, voxel, centres)
-    return contradicted_scans(placement_conflicts(points, poses, checked, voxel))
+    return contradicted_scans(placement_conflicts(points, poses, checked, voxel), doubted)
 
 
 def held_by_contradicted(graph: PoseGraph, result: SyncResult, candidates: np.ndarray,
