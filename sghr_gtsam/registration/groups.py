@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from ..cells import unique_cells
 from ..config import Config
 from ..features.local import ScanFeatures, grid_features
 from ..sync.rotation import connected_components
@@ -60,12 +61,12 @@ def merged(features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndar
     for k in members:
         R, t = poses[k][:3, :3], poses[k][:3, 3]
         points, normals = features[k].points @ R.T + t, features[k].normals @ R.T
-        key, inverse = np.unique(np.floor((points - origin) / cell).astype(np.int64), axis=0, return_inverse=True)
+        key, inverse = unique_cells(np.floor((points - origin) / cell).astype(np.int64))
         keys.append(key)
-        sums.append(_summed(inverse.ravel(), len(key), np.hstack([points, normals, np.ones((len(points), 1))])))
-    _, inverse = np.unique(np.concatenate(keys), axis=0, return_inverse=True)
+        sums.append(_summed(inverse, len(key), np.hstack([points, normals, np.ones((len(points), 1))])))
+    _, inverse = unique_cells(np.concatenate(keys))
     total = np.concatenate(sums)
-    total = _summed(inverse.ravel(), int(inverse.max()) + 1, total)
+    total = _summed(inverse, int(inverse.max()) + 1, total)
     grid, normal = total[:, :3] / total[:, 6:], total[:, 3:6]
     length = np.linalg.norm(normal, axis=1)
     keep = length > 1e-6  # normals that cancel (two sides of a thin wall) leave no direction

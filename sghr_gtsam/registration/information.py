@@ -40,6 +40,7 @@ import numpy as np
 import small_gicp
 from scipy.linalg import eigh
 
+from ..cells import unique_cells
 from ..features.local import COV_NEIGHBORS, GICP_THREADS
 
 MIN_PAIRS = 7
@@ -87,11 +88,11 @@ def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray,
     H = J.T @ J
     floor = 0.0 if cell is None else (SIGMA_FLOOR * cell) ** 2
     if cell is not None:
-        _, cells = np.unique(np.floor(q / cell).astype(np.int64), axis=0, return_inverse=True)
+        _, cells = unique_cells(np.floor(q / cell).astype(np.int64))
         G = int(cells.max()) + 1
         if G >= MIN_CELLS:
             s = np.zeros((G, 6))
-            np.add.at(s, cells.ravel(), J * residuals[:, None])
+            np.add.at(s, cells, J * residuals[:, None])
             M = s.T @ s * (G / (G - 1) * (len(q) - 1) / (len(q) - 6))
             if np.trace(M) > floor * np.trace(H):  # M ≈ σ² H: residuals above the floor
                 try:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import sparse
 
+from ..cells import unique_cells
 from ..se3 import transform_points
 
 CELL = 2.0
@@ -27,14 +28,14 @@ def predicted_overlap(points: Sequence[np.ndarray], poses: np.ndarray, placed: n
     n = len(points)
     rows, keys = [], []
     for k in np.flatnonzero(placed):
-        cells = np.unique(np.floor(transform_points(poses[k], points[k]) / (CELL * voxel)).astype(np.int64), axis=0)
+        cells = unique_cells(np.floor(transform_points(poses[k], points[k]) / (CELL * voxel)).astype(np.int64))[0]
         rows.append(np.full(len(cells), k))
         keys.append(cells)
     overlap = np.zeros((n, n))
     if not rows:
         return overlap
-    _, col = np.unique(np.concatenate(keys), axis=0, return_inverse=True)
-    A = sparse.csr_matrix((np.ones(len(col)), (np.concatenate(rows), col.ravel())), shape=(n, col.max() + 1))
+    _, col = unique_cells(np.concatenate(keys))
+    A = sparse.csr_matrix((np.ones(len(col)), (np.concatenate(rows), col)), shape=(n, col.max() + 1))
     shared = (A @ A.T).toarray()
     size = np.diag(shared)
     smaller = np.minimum(size[:, None], size[None, :])

@@ -14,6 +14,7 @@ import open3d as o3d
 import small_gicp
 
 from sghr_gtsam.cache import Kind
+from sghr_gtsam.cells import unique_cells
 from sghr_gtsam.config import MATCHERS
 from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
 from sghr_gtsam.types import InputError
@@ -248,7 +249,7 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
         information=None if information is None else information.measured,
         seconds=0.0,
-        coverage=len(np.unique(cells, axis=0)),
+        coverage=len(unique_cells(cells)[0]),
         matches=matches,
         free=0 if information is None else information.free,
         bounded=information.matrix if information is not None and information.free else None,

@@ -1,0 +1,19 @@
+"""Distinct grid cells (sghr_gtsam.cells): the same rows, order and inverse as numpy's row-wise unique."""
+
+import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from sghr_gtsam.cells import unique_cells
+
+_COORDINATES = st.one_of(st.integers(-5, 5), st.integers(-(2**62), 2**62))  # small spans, and spans past one key
+
+
+@given(arrays(np.int64, st.tuples(st.integers(0, 200), st.just(3)), elements=_COORDINATES))
+def test_unique_cells_is_numpys_row_unique(cells):
+    rows, inverse = unique_cells(cells)
+    expected, expected_inverse = np.unique(cells, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(rows, expected)
+    np.testing.assert_array_equal(inverse, expected_inverse.ravel())
+    np.testing.assert_array_equal(rows[inverse], cells)
