@@ -91,9 +91,10 @@ def pair_key(a: str, b: str, config: "Config") -> str | None:
     return _key("pair", a, b, config.matcher, config.icp_distance, config.seed) if a and b else None
 
 
-def refined_key(a: str, b: str, guess: np.ndarray, icp_distance: float) -> str | None:
-    """A pair's re-registration from ``guess``, from its scans' keys (None when one is not known)."""
-    return _key("refined", a, b, np.asarray(guess, dtype=np.float64), icp_distance) if a and b else None
+def refined_key(a: str, b: str, guess: np.ndarray, icp_distance: float, min_inliers: int) -> str | None:
+    """A pair's re-registration from ``guess``, from its scans' keys (None when one is not known); ``min_inliers``
+    decides whether it carries an information (``refine.refine_pair``)."""
+    return _key("refined", a, b, np.asarray(guess, dtype=np.float64), icp_distance, min_inliers) if a and b else None
 
 
 # --- what a file holds -----------------------------------------------------------------------------------------

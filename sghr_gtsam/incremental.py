@@ -181,7 +181,7 @@ class Session:
                 # The batch's refinement, from the registration itself: the session has no synchronized
                 # guess before the scan is placed, and from either start ICP lands in the same basin.
                 refined, near = refine_pair(self.features[i], f, self._pyramids[i], pyramid, pair.T, self.voxel,
-                                            cfg.icp_distance, pair.matches)
+                                            cfg.icp_distance, cfg.inlier_bar, pair.matches)
                 if confirms(refined, near, cfg.inlier_bar):
                     pair = refined
             tried.append(pair)

@@ -50,9 +50,9 @@ def test_keys_change_with_every_parameter_and_the_content():
     guess = np.eye(4)
     moved = guess.copy()
     moved[0, 3] = 1e-15
-    assert len({refined_key(base, changed[0], guess, 1.5), refined_key(base, changed[0], moved, 1.5),
-                refined_key(base, changed[0], guess, 2.0)}) == 3
-    assert pair_key("", base, config) is None and refined_key(base, "", guess, 1.5) is None  # unknown: not cached
+    assert len({refined_key(base, changed[0], guess, 1.5, 15), refined_key(base, changed[0], moved, 1.5, 15),
+                refined_key(base, changed[0], guess, 2.0, 15), refined_key(base, changed[0], guess, 1.5, 16)}) == 4
+    assert pair_key("", base, config) is None and refined_key(base, "", guess, 1.5, 15) is None  # unknown: not cached
 
 
 @pytest.fixture(scope="module")

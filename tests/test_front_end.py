@@ -20,12 +20,14 @@ from sghr_gtsam.registration import batch, groups
 from sghr_gtsam.registration.groups import GRID, weak_groups
 from sghr_gtsam.registration.loops import predicted_overlap, propose_loops
 from sghr_gtsam.registration.pairwise import register_pair, score_pair
-from sghr_gtsam.registration.refine import build_pyramid, refine_pair
+from sghr_gtsam.registration.refine import build_pyramid, confirms, refine_pair
 from sghr_gtsam.registration.retry import retry_pairs, weak_scans
 from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T, make_T, rotation_angle
 from sghr_gtsam.synthetic import make_scene
 from sghr_gtsam.types import PoseGraph, SyncResult
+
+BAR = Config().inlier_bar
 
 
 def _square(shared, x):
@@ -64,7 +66,7 @@ def test_refined_pair_information_matches_its_error_against_ground_truth():
             off = rng.normal(size=6) * np.r_[[np.radians(0.3)] * 3, [0.3 * scene.voxel] * 3]
             guess = truth @ gtsam.Pose3.Expmap(off).matrix()
             result, converged = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel,
-                                            1.5)
+                                            1.5, BAR)
             assert converged
             xi = gtsam.Pose3.Logmap(gtsam.Pose3(result.T).between(gtsam.Pose3(truth)))
             nees.append(xi @ result.information @ xi)
@@ -89,13 +91,32 @@ def test_refined_object_pairs_with_their_grid_term_have_a_calibrated_mean_nees()
             truth = inv_T(scene.poses[a]) @ scene.poses[b]
             off = rng.normal(size=6) * np.r_[[np.radians(0.5)] * 3, [0.5 * scene.voxel] * 3]
             guess = truth @ gtsam.Pose3.Expmap(off).matrix()
-            result, near = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel, 1.5)
+            result, near = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel, 1.5,
+                                       BAR)
             assert near and result.grid is not None
             xi = gtsam.Pose3.Logmap(gtsam.Pose3(result.T).between(gtsam.Pose3(truth)))
             covariance = np.linalg.inv(result.information) + np.outer(result.grid, result.grid)
             nees.append(xi @ np.linalg.solve(covariance, xi))
     m = len(nees)
     assert chi2.ppf(0.025, 6 * m) / m < np.mean(nees) < chi2.ppf(0.975, 6 * m) / m, np.round(nees, 2)
+
+
+def test_a_refined_pair_that_enters_no_graph_gets_no_information():
+    """Refinement measures the information of a result only when it confirms its guess (``refine.confirms`` at the
+    run's inlier bar): the same pair with the bar above its inliers comes back with the same transform and score,
+    and without information."""
+    scene = make_scene(kind="room", n_scans=3, seed=0)
+    features = [compute_features(P, scene.voxel) for P in scene.scans]
+    pyramids = [build_pyramid(P, scene.voxel) for P in scene.scans]
+    guess = inv_T(scene.poses[0]) @ scene.poses[1]
+    kept, near = refine_pair(features[0], features[1], pyramids[0], pyramids[1], guess, scene.voxel, 1.5, BAR)
+    assert near and confirms(kept, near, BAR) and kept.information is not None and kept.grid is not None
+    dropped, near = refine_pair(features[0], features[1], pyramids[0], pyramids[1], guess, scene.voxel, 1.5,
+                                kept.inliers + 1)
+    assert near and not confirms(dropped, near, kept.inliers + 1)
+    np.testing.assert_array_equal(dropped.T, kept.T)
+    assert (dropped.inliers, dropped.fitness, dropped.coverage) == (kept.inliers, kept.fitness, kept.coverage)
+    assert dropped.information is None and dropped.grid is None
 
 
 def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, monkeypatch):

@@ -225,6 +225,16 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     (from the grid ``T`` was aligned on), else the matching grid's; ``seconds`` 0. Without ``matches``, on keypoints
     that are the grid points only those that agree are found (``agreeing_matches``) and the result keeps none;
     otherwise all are found and kept."""
+    result, search = scored(target_i, source_j, T, voxel, icp_distance, matches)
+    if information is None:
+        information = registration_information(target_i, source_j, T, icp_distance * voxel, search)
+    return with_information(result, information)
+
+
+def scored(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
+           matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[PairResult, tuple[np.ndarray, np.ndarray]]:
+    """``score_pair`` without the information (None), and the ``information.nearest_points`` of scan j's points
+    moved by ``T`` that it searched (``registration_information`` takes it)."""
     max_distance = icp_distance * voxel
     q = source_j.points
     search = nearest_points(target_i, q @ T[:3, :3].T + T[:3, 3])
@@ -240,18 +250,21 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     sq_dist = search[1]
     close = sq_dist < max_distance**2
     n = int(np.count_nonzero(close))
-    if information is None:
-        information = registration_information(target_i, source_j, T, max_distance, search)
     return PairResult(
         T=T,
         inliers=int(np.count_nonzero(agree)),
         fitness=n / len(q),
         rmse=float(np.sqrt(sq_dist[close].mean())) if n else 0.0,
-        information=None if information is None else information.measured,
+        information=None,
         seconds=0.0,
         coverage=len(unique_cells(cells)[0]),
         matches=matches,
-        free=0 if information is None else information.free,
-        bounded=information.matrix if information is not None and information.free else None,
-        loose=None if information is None else information.loose,
-    )
+    ), search
+
+
+def with_information(result: PairResult, information: Information | None) -> PairResult:
+    """``result`` carrying ``information`` (``information.registration_information``; None: none measured)."""
+    if information is not None:
+        result.information, result.free, result.loose = information.measured, information.free, information.loose
+        result.bounded = information.matrix if information.free else None
+    return result

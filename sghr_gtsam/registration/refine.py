@@ -32,7 +32,7 @@ from ..se3 import inv_T, rotation_angle
 from ..store import Stored, pair_map
 from ..types import Scan
 from .information import registration_information
-from .pairwise import PAIRS, PairResult, score_pair
+from .pairwise import PAIRS, PairResult, scored, with_information
 
 LEVELS = (1.0, 0.5)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six bunny pairs started a voxel
@@ -171,24 +171,29 @@ def stays_near(T: np.ndarray, guess: np.ndarray, voxel: float) -> bool:
 
 
 def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyramid, pyramid_j: Pyramid,
-                T_init: np.ndarray, voxel: float, icp_distance: float,
+                T_init: np.ndarray, voxel: float, icp_distance: float, min_inliers: int,
                 matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[PairResult, bool]:
     """Multi-scale ICP from ``T_init``, and whether its finest level converged within ``MAX_MOVE_DEG`` /
     ``MAX_MOVE_VOXELS`` of ``T_init``. Only then is the pair scored at the result (``score_pair``, on the pair's
-    earlier ``matches`` when given) with the information of the finest level's alignment (the matching grid's
-    when that level has too few close pairs); otherwise the result has no inliers and no information."""
+    earlier ``matches`` when given), and only a result that ``confirms`` the guess at ``min_inliers`` gets the
+    information of the finest level's alignment (the matching grid's when that level has too few close pairs):
+    one that enters no graph needs none. Otherwise the result has no inliers and no information."""
     start = time.perf_counter()
     T, converged, coarser = multiscale_icp(pyramid_i, pyramid_j, T_init)
     if not (converged and stays_near(T, T_init, voxel)):
         # A move away from the guess is no evidence for the poses the guess came from, whatever its score:
         # skipping the scoring saves the descriptor matching and the information (40 % of a pair on kitchen60).
         return PairResult(T, 0, 0.0, 0.0, None, time.perf_counter() - start, matches=matches), False
-    finest = _levels(pyramid_i, pyramid_j) - 1
-    information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
-                                           _distance(pyramid_i, finest))
-    result = score_pair(target_i, source_j, T, voxel, icp_distance, matches, information)
-    if finest > 0:
-        result.grid = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(coarser)))
+    result, search = scored(target_i, source_j, T, voxel, icp_distance, matches)
+    if confirms(result, True, min_inliers):
+        finest = _levels(pyramid_i, pyramid_j) - 1
+        information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
+                                               _distance(pyramid_i, finest))
+        if information is None:
+            information = registration_information(target_i, source_j, T, icp_distance * voxel, search)
+        result = with_information(result, information)
+        if finest > 0:
+            result.grid = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(coarser)))
     result.seconds = time.perf_counter() - start
     return result, True
 
@@ -200,10 +205,11 @@ def confirms(result: PairResult, near: bool, min_inliers: int) -> bool:
     return bool(near and result.inliers >= min_inliers and result.fitness >= MIN_FITNESS)
 
 
-def _refine_task(shared: tuple[Stored, Stored, float, float], task: tuple) -> tuple[PairResult, bool]:
-    features, pyramids, voxel, icp_distance = shared
+def _refine_task(shared: tuple[Stored, Stored, float, float, int], task: tuple) -> tuple[PairResult, bool]:
+    features, pyramids, voxel, icp_distance, min_inliers = shared
     a, b, T_init, matches = task
-    return refine_pair(features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance, matches)
+    return refine_pair(features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance, min_inliers,
+                       matches)
 
 
 def register_from_guesses(features: Stored, pyramids: Stored, ij: np.ndarray, guesses: np.ndarray, voxel: float,
@@ -217,7 +223,8 @@ def register_from_guesses(features: Stored, pyramids: Stored, ij: np.ndarray, gu
     ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored and reused (``cache.Cache``)."""
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
-    keys = [refined_key(features.keys[a], features.keys[b], T, config.icp_distance) for a, b, T, _ in tasks]
-    out = pair_map(cache, REFINED, _refine_task, (features, pyramids, voxel, config.icp_distance), ij, tasks, keys,
-                   config.workers, on_result, config.ray)
+    keys = [refined_key(features.keys[a], features.keys[b], T, config.icp_distance, config.inlier_bar)
+            for a, b, T, _ in tasks]
+    shared = (features, pyramids, voxel, config.icp_distance, config.inlier_bar)
+    out = pair_map(cache, REFINED, _refine_task, shared, ij, tasks, keys, config.workers, on_result, config.ray)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)
