@@ -36,8 +36,8 @@ class RunResult:
     (``sync.contested``); scans in ``ambiguous`` have another placement that dropped registrations agree on and the
     scans' free space cannot rule out (``registration.overrule.look_alikes``); scans in ``contradicted`` have one
     that puts them where other scans saw empty space, or them seeing empty space where others are, blamed on the
-    scans already doubted first (``registration.visibility.contradicted_placements``); scans in ``underdetermined`` have one their edges leave
-    free in some direction."""
+    scans already doubted first (``registration.visibility.contradicted_placements``); scans in
+    ``underdetermined`` have one their edges leave free in some direction."""
 
     names: list[str]
     poses: np.ndarray

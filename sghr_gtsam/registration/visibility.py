@@ -184,9 +184,9 @@ def contradicted_scans(clash: np.ndarray, doubted: np.ndarray | None = None) -> 
     A scan placed wrong cuts through the free space of every scan around it (a 50-scan room: six misplaced scans in
     conflict with 14-31 scans each, the right ones only with those six); a single conflicting pair (a depth edge, a
     handful of points in view) blames no one. A conflict says that two placements disagree, not which one is wrong:
-    where a group placed wrong is larger than the right scans that see it (3DMatch hotel_umd1: 14 scans of a
-    corridor turned 177° against 6 right ones that look into it), the most conflicts are the right scans', and the
-    graph's doubt about the other group is what tells them apart."""
+    where a group placed wrong is larger than the right scans that see it (3DMatch hotel_umd1: a corridor placed
+    177° off, 14 of its scans in view of 6 right ones), the most conflicts are the right scans', and the graph's
+    doubt about the other group is what tells them apart."""
     left = clash.copy()
     blamed = np.zeros(len(clash), dtype=bool)
     for pool in (np.zeros(len(clash), dtype=bool) if doubted is None else doubted, np.ones(len(clash), dtype=bool)):
