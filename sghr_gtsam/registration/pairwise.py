@@ -226,9 +226,7 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     that are the grid points only those that agree are found (``agreeing_matches``) and the result keeps none;
     otherwise all are found and kept."""
     result, search = scored(target_i, source_j, T, voxel, icp_distance, matches)
-    if information is None:
-        information = registration_information(target_i, source_j, T, icp_distance * voxel, search)
-    return with_information(result, information)
+    return informed(target_i, source_j, result, search, voxel, icp_distance, information)
 
 
 def scored(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
@@ -262,8 +260,12 @@ def scored(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel:
     ), search
 
 
-def with_information(result: PairResult, information: Information | None) -> PairResult:
-    """``result`` carrying ``information`` (``information.registration_information``; None: none measured)."""
+def informed(target_i: ScanFeatures, source_j: ScanFeatures, result: PairResult, search: tuple[np.ndarray, np.ndarray],
+             voxel: float, icp_distance: float, information: Information | None = None) -> PairResult:
+    """``result`` (``scored``, with its ``search``) carrying ``information`` when given and measured, else the
+    matching grid's (``registration_information``; None with too few close pairs)."""
+    if information is None:
+        information = registration_information(target_i, source_j, result.T, icp_distance * voxel, search)
     if information is not None:
         result.information, result.free, result.loose = information.measured, information.free, information.loose
         result.bounded = information.matrix if information.free else None

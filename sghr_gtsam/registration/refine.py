@@ -32,7 +32,7 @@ from ..se3 import inv_T, rotation_angle
 from ..store import Stored, pair_map
 from ..types import Scan
 from .information import registration_information
-from .pairwise import PAIRS, PairResult, scored, with_information
+from .pairwise import PAIRS, PairResult, informed, scored
 
 LEVELS = (1.0, 0.5)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six bunny pairs started a voxel
@@ -189,9 +189,7 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
         finest = _levels(pyramid_i, pyramid_j) - 1
         information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
                                                _distance(pyramid_i, finest))
-        if information is None:
-            information = registration_information(target_i, source_j, T, icp_distance * voxel, search)
-        result = with_information(result, information)
+        result = informed(target_i, source_j, result, search, voxel, icp_distance, information)
         if finest > 0:
             result.grid = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(coarser)))
     result.seconds = time.perf_counter() - start
