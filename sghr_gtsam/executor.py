@@ -5,7 +5,8 @@ Every parallel stage (pairwise registration, refinement, loop closure, retries) 
 scans' features and grids as ``store.Stored`` handles (a folder and keys; the arrays are read from the folder where
 a task needs them); tasks and results cross process boundaries one by one. Results come back in the tasks' order and
 every task is a pure function of its inputs, so a run gives the same result for any number of workers. With
-``ray`` (``Config.ray``) the same call runs on a Ray cluster instead (``executor_ray``).
+``ray`` (``Config.ray``) the same call runs on a Ray cluster instead (``executor_ray``). A run's stages share one
+pool (``kept_workers``), so that what a worker read and built for one stage serves the next.
 
 Workers start from a fork server, not by forking this process: kiss-matcher and open3d run TBB thread pools,
 and a child forked from a process whose pool is running deadlocks in its first parallel call (seen here).
@@ -15,8 +16,10 @@ early, so that its imports (≈ 1.5 s) run on another core while the caller is s
 
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
+import pickle
 import select
 import signal
 import sys
@@ -120,7 +123,8 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
 
     ``fn`` must be a module-level function; ``shared`` and the results must pickle. ``on_result(k, result)``
     is called in this process, in task order, as results arrive (progress, recording, storing). ``keep``: the
-    list holds ``keep(result)`` instead of each result (what a stage keeps of results stored elsewhere).
+    list holds ``keep(result)`` instead of each result (what a stage keeps of results stored elsewhere). Within
+    a ``kept_workers`` block of as many workers, the block's pool runs the tasks.
     """
     if ray is not None:
         from .executor_ray import ray_map
@@ -131,40 +135,109 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
         with closing(ray_map(fn, shared, tasks, workers, ray)) as results:
             return [_arrived(k, result, on_result, keep) for k, result in enumerate(results)]
     workers = default_workers() if workers is None else workers
+    kept = next((k for k in _KEPT if k.workers == workers), None)
     workers = min(workers, len(tasks))
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
         return [_arrived(k, fn(shared, task), on_result, keep) for k, task in enumerate(tasks)]
-    context = multiprocessing.get_context("forkserver")
     _ensure_server([fn.__module__])
-    started = context.Value("i", 0)
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_receive,
-                             initargs=(shared, started, os.getpid())) as pool:
-        try:
-            # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right
-            # one). Futures, not pool.map: map cancels the pending ones when stopped, and the pool's manager thread
-            # of Python < 3.12 then fails on them with a traceback on stderr.
-            with _main_not_rerun(fn), _signals_held():
-                futures = [pool.submit(_call, fn, task) for task in tasks]  # starts the workers
-            results = []
-            for k in range(len(futures)):
-                future, futures[k] = futures[k], None  # a future holds its result: let it go once taken
-                results.append(_arrived(k, future.result(), on_result, keep))
-            return results
-        except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
-            # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
-            # process table is private, but there is no public way to end its workers before Python 3.14.
-            processes = list((getattr(pool, "_processes", None) or {}).values())
-            for process in processes:
-                process.terminate()
-            for process in processes:
-                process.join(5)
-            # A worker ended while sending its result leaves half a message in the result pipe, and the manager
-            # thread then waits for ever for the rest (1 stop in ~20, seen here): with the workers' copies of the
-            # pipe's write end gone, closing ours ends that wait with EOF.
-            results_pipe = getattr(pool, "_result_queue", None)
-            if results_pipe is not None:
-                results_pipe._writer.close()
-            raise
+    state = pickle.dumps(shared) if kept is not None else b""
+    if kept is None or len(state) > KEPT_STATE_BYTES:
+        with _new_pool(workers, shared) as pool:
+            return _pool_map(pool, fn, [(_call, fn, task) for task in tasks], on_result, keep)
+    if kept.pool is None:
+        kept.pool = _new_pool(kept.workers, None)
+    stage = next(_STAGES)
+    try:
+        return _pool_map(kept.pool, fn, [(_call_staged, fn, stage, state, task) for task in tasks], on_result, keep)
+    except BaseException:
+        pool, kept.pool = kept.pool, None  # its workers are ended (_pool_map): the next stage starts new ones
+        pool.shutdown()
+        raise
+
+
+KEPT_STATE_BYTES = 2**20
+"""In a ``kept_workers`` block a stage's ``shared`` travels with each of its tasks (a worker unpickles it once a
+stage): the pipeline's are store handles and parameters, a few KB. A larger one gets a pool of its own."""
+
+
+class _Kept:
+    """A ``kept_workers`` block's pool, started by its first stage."""
+
+    def __init__(self, workers: int) -> None:
+        self.workers = workers
+        self.pool: ProcessPoolExecutor | None = None
+
+
+_KEPT: list[_Kept] = []
+_STAGES = itertools.count()
+_STAGE: int | None = None  # the stage whose shared state a kept worker holds
+
+
+@contextmanager
+def kept_workers(workers: int | None, ray: str | None = None) -> Iterator[None]:
+    """Within the block, the stages that run over ``workers`` processes share one pool of them instead of starting
+    a pool each: a worker's memory of the scans it read, with the search structures and GICP clouds built on them
+    (``store.LRU_BYTES``), then serves every stage, not one. On kitchen60 (60 fragments, two workers) the pyramid
+    levels were built 840 times for 120 (refinement and two rounds of loop closure, each in each worker), 246 times
+    in one pool (docs/BENCHMARKS.md). Nothing is kept under Ray or with one worker; a stage asking for another
+    number of workers gets a pool of its own. Results do not depend on it: tasks are pure functions."""
+    workers = default_workers() if workers is None else workers
+    if workers <= 1 or ray is not None or any(k.workers == workers for k in _KEPT):
+        yield
+        return
+    kept = _Kept(workers)
+    _KEPT.append(kept)
+    try:
+        yield
+    finally:
+        _KEPT.remove(kept)
+        if kept.pool is not None:
+            kept.pool.shutdown()
+
+
+def _new_pool(workers: int, shared: Any) -> ProcessPoolExecutor:
+    context = multiprocessing.get_context("forkserver")
+    return ProcessPoolExecutor(workers, mp_context=context, initializer=_receive,
+                               initargs=(shared, context.Value("i", 0), os.getpid()))
+
+
+def _call_staged(fn: Callable[[Any, T], R], stage: int, state: bytes, task: T) -> R:
+    """A task of a stage run in a kept pool: the stage's shared state unpickled once, on its first task here."""
+    global _SHARED, _STAGE
+    if _STAGE != stage:
+        _SHARED, _STAGE = pickle.loads(state), stage
+    return fn(_SHARED, task)
+
+
+def _pool_map(pool: ProcessPoolExecutor, fn: Callable, calls: list[tuple], on_result: Callable | None,
+              keep: Callable | None) -> list:
+    """``pool.submit(*call)`` of each call, results in order; ends the pool's workers if anything fails."""
+    try:
+        # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right
+        # one). Futures, not pool.map: map cancels the pending ones when stopped, and the pool's manager thread
+        # of Python < 3.12 then fails on them with a traceback on stderr.
+        with _main_not_rerun(fn), _signals_held():
+            futures = [pool.submit(*call) for call in calls]  # starts the workers
+        results = []
+        for k in range(len(futures)):
+            future, futures[k] = futures[k], None  # a future holds its result: let it go once taken
+            results.append(_arrived(k, future.result(), on_result, keep))
+        return results
+    except BaseException:  # Ctrl-C, SIGTERM, a failed task: end the workers instead of finishing the tasks
+        # A graceful shutdown waited for ever on a worker stopped at start-up (seen after SIGINT); the pool's
+        # process table is private, but there is no public way to end its workers before Python 3.14.
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(5)
+        # A worker ended while sending its result leaves half a message in the result pipe, and the manager
+        # thread then waits for ever for the rest (1 stop in ~20, seen here): with the workers' copies of the
+        # pipe's write end gone, closing ours ends that wait with EOF.
+        results_pipe = getattr(pool, "_result_queue", None)
+        if results_pipe is not None:
+            results_pipe._writer.close()
+        raise
 
 
 def _arrived(k: int, result: R, on_result: Callable[[int, R], None] | None, keep: Callable[[R], Any] | None) -> Any:

@@ -16,7 +16,7 @@ import numpy as np
 from . import local_frame
 from .cache import Cache, pyramid_key, scan_key
 from .config import Config
-from .executor import start_server
+from .executor import kept_workers, start_server
 from .features.local import FEATURES, scan_features
 from .features.netvlad import (
     DEFAULT_HEAD,
@@ -190,7 +190,9 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
     owned, store = store is None, store or Store(cache)
     try:
-        return _register(scans, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress, cache)
+        with kept_workers(config.workers, config.ray):
+            return _register(scans, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress,
+                             cache)
     except BaseException:
         if owned:  # a store it made goes with a failed run; the caller's is the caller's
             store.close()

@@ -33,11 +33,12 @@ import numpy as np
 from .cache import MISS, Cache, Kind, cached_map, entry_path, read_entry
 from .types import InputError
 
-LRU_BYTES = 256 * 2**20
+LRU_BYTES = 512 * 2**20
 """What each process keeps of the items it read (``ScanFeatures``, ``Pyramid``, with the search structures its tasks
 built on them). A pair task on 1-million-point room scans holds ~15 MB a scan (features and both pyramid levels),
-so that is ~17 scans; a scan read again costs ~1 ms and the rebuild of its search structures ~15-50 ms, against
-~0.2 s a registration."""
+so that is ~34 scans; a 3DMatch fragment ~8.5 MB, so a 60-fragment scene fits whole, and a run's workers, kept from
+stage to stage (``executor.kept_workers``), build each scan's search structures and GICP clouds once instead of
+once a stage (~10-25 ms a scan and level; 256 MB held half of kitchen60 and gained nothing: docs/BENCHMARKS.md)."""
 
 
 class _Lru:

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from sghr_gtsam import cli
 from sghr_gtsam.cli import _Stopped, app
 from sghr_gtsam.config import Config
-from sghr_gtsam.executor import _signals_held, parallel_map
+from sghr_gtsam.executor import KEPT_STATE_BYTES, _signals_held, kept_workers, parallel_map
 from sghr_gtsam.pipeline import run
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError
@@ -79,6 +79,40 @@ def test_a_failed_task_raises_its_error_and_the_next_stage_runs(workers, ray):
     with pytest.raises(InputError, match="^task 5 failed$"):
         parallel_map(_fails_at_five, None, list(range(12)), workers, ray=ray)
     assert parallel_map(_fails_at_five, None, [1, 2, 3], workers, ray=ray) == [1, 2, 3]
+
+
+def _pid(shared: object, x: int) -> int:
+    time.sleep(0.01)  # long enough that both workers take tasks
+    return os.getpid()
+
+
+def _sized(shared: bytes, x: int) -> tuple[int, int]:
+    return len(shared), x
+
+
+def test_kept_workers_serve_every_stage_of_the_block_each_with_its_own_shared_state():
+    """The stages of a block run in the same worker processes (what a worker built for one stage serves the next),
+    each with its own ``shared``; outside a block every stage starts new workers."""
+    tasks = list(range(12))
+    with kept_workers(2):
+        first = set(parallel_map(_pid, None, tasks, 2))
+        assert parallel_map(_square_late_first, 3, tasks, 2) == [3 * t * t for t in tasks]
+        assert parallel_map(_square_late_first, 5, tasks, 2) == [5 * t * t for t in tasks]
+        assert set(parallel_map(_pid, None, tasks, 2)) == first
+        large = b"x" * (KEPT_STATE_BYTES + 1)  # too large to travel with every task: a pool of its own
+        assert parallel_map(_sized, large, tasks, 2) == [(len(large), t) for t in tasks]
+        assert set(parallel_map(_pid, None, tasks, 2)) == first
+    assert len(first) == 2 and os.getpid() not in first
+    assert not first & set(parallel_map(_pid, None, tasks, 2))
+
+
+def test_a_failed_task_in_a_kept_block_ends_its_workers_and_the_next_stage_starts_new_ones():
+    with kept_workers(2):
+        first = set(parallel_map(_pid, None, list(range(12)), 2))
+        with pytest.raises(InputError, match="^task 5 failed$"):
+            parallel_map(_fails_at_five, None, list(range(12)), 2)
+        assert parallel_map(_fails_at_five, None, [1, 2, 3], 2) == [1, 2, 3]
+        assert not first & set(parallel_map(_pid, None, list(range(12)), 2))
 
 
 def test_ray_option_is_checked_before_any_work(monkeypatch, tmp_path):
