@@ -152,6 +152,19 @@ def test_poses_are_bit_identical_whatever_the_executor(room, in_process, tmp_pat
     assert other.densify["refine_tried"] > 0  # the refinement stage ran on the executor too
 
 
+def test_a_run_starts_one_pool_for_all_its_stages(room, in_process, tmp_path, monkeypatch):
+    """``pipeline.register`` keeps its workers from stage to stage (features, pairs, pyramids, refinement, loops):
+    one pool in all, and the same poses as in one process."""
+    from sghr_gtsam import executor
+
+    started = []
+    new_pool = executor._new_pool
+    monkeypatch.setattr(executor, "_new_pool", lambda *a: started.append(a[0]) or new_pool(*a))
+    other = run(room, tmp_path / "out", Config(record=False, workers=2), log=lambda m: None)
+    np.testing.assert_array_equal(other.poses, in_process.poses)
+    assert other.densify["refine_tried"] > 0 and started == [2]
+
+
 @pytest.mark.parametrize("signum, stopped", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, _Stopped)])
 def test_a_signal_while_workers_start_acts_once_they_have(signum, stopped):
     """A stop between a worker's fork and the pool's note of its pid left a worker nobody ended (a traceback on
