@@ -152,6 +152,34 @@ def test_poses_are_bit_identical_whatever_the_executor(room, in_process, tmp_pat
     assert other.densify["refine_tried"] > 0  # the refinement stage ran on the executor too
 
 
+def test_each_thread_keeps_its_own_workers():
+    """Two registrations in two threads: each block keeps its own pool, which the other block's end leaves alone."""
+    tasks = list(range(12))
+    first_done, second_started = threading.Event(), threading.Event()
+    out = {}
+
+    def first():
+        with kept_workers(2):
+            out["first"] = set(parallel_map(_pid, None, tasks, 2))
+            second_started.wait(60)
+        first_done.set()
+
+    def second():
+        with kept_workers(2):
+            out["second"] = set(parallel_map(_pid, None, tasks, 2))
+            second_started.set()
+            first_done.wait(60)  # the first block has ended
+            out["second, after"] = set(parallel_map(_pid, None, tasks, 2))
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert len(out["first"]) == len(out["second"]) == 2 and not out["first"] & out["second"]
+    assert out["second, after"] == out["second"]
+
+
 def test_a_run_starts_one_pool_for_all_its_stages(room, in_process, tmp_path, monkeypatch):
     """``pipeline.register`` keeps its workers from stage to stage (features, pairs, pyramids, refinement, loops):
     one pool in all, and the same poses as in one process."""
