@@ -17,7 +17,8 @@ def unique_cells(cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if not len(cells):
         return cells.copy(), np.zeros(0, dtype=np.int64)
     low = cells.min(axis=0)
-    span = [int(s) + 1 for s in cells.max(axis=0) - low]  # Python ints: the product below cannot overflow
+    # Python ints: neither a span (2**62 - -2**62 wraps in int64) nor the product of the three can overflow
+    span = [int(hi) - int(lo) + 1 for hi, lo in zip(cells.max(axis=0), low)]
     if span[0] * span[1] * span[2] >= 2**63:
         rows, inverse = np.unique(cells, axis=0, return_inverse=True)
         return rows, inverse.ravel()
