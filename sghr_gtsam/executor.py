@@ -157,7 +157,9 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
 
 KEPT_STATE_BYTES = 2**20
 """In a ``kept_workers`` block a stage's ``shared`` travels with each of its tasks (a worker unpickles it once a
-stage): the pipeline's are store handles and parameters, a few KB. A larger one gets a pool of its own."""
+stage). The pipeline's are store handles and parameters: 8.4 KB on a 60-scan run, ~140 bytes more a scan, so this
+bound is reached near 7,000 scans, where copying it costs ~2 ms (measured) of a task's 0.1-0.3 s. A larger one
+gets a pool of its own."""
 
 
 class _Kept:
