@@ -150,6 +150,7 @@ class Recorder:
         self._step = -1
         self._stage = ""
         self._syncs = 0  # synchronizations finished (log_sync)
+        self._poses: list[tuple[int, np.ndarray]] = []  # (step, (N, 3, 4)) not sent yet (``_send_poses``)
         self.begin_stage("start")
 
     def begin_stage(self, name: str) -> None:
@@ -221,6 +222,7 @@ class Recorder:
         self._syncs += 1
         self._next_step(f"sync {self._syncs} · result")
         self._log_state(result.poses, result.weights, result.residual_deg)
+        self._send_poses()
         if self._graph is not None:
             self._log_graph_edges(result.weights > 0)
 
@@ -230,8 +232,20 @@ class Recorder:
             self._log_edges(poses, weights, residual_deg)
 
     def log_poses(self, poses: np.ndarray) -> None:
-        for path, T in zip(self._paths, poses):
-            self.rec.log(path, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
+        """The scans' poses (N, 4, 4) at the current step; held until ``_send_poses`` sends them."""
+        self._poses.append((self._step, np.array(poses[:, :3, :4], dtype=float)))
+
+    def _send_poses(self) -> None:
+        """The poses held by ``log_poses``, one column of steps a scan: one transform logged per scan and record
+        cost 4.7 s of a 66-scan run's 9 synchronizations (522 records), in the main process while workers wait."""
+        if not self._poses:
+            return
+        steps = rr.TimeColumn(TIMELINE, sequence=[step for step, _ in self._poses])
+        P = np.stack([poses for _, poses in self._poses])  # (steps, N, 3, 4)
+        self._poses = []
+        for k, path in enumerate(self._paths):
+            self.rec.send_columns(path, indexes=[steps],
+                                  columns=rr.Transform3D.columns(translation=P[:, k, :, 3], mat3x3=P[:, k, :, :3]))
 
     def _log_edges(self, poses: np.ndarray, weights: np.ndarray, residual_deg: np.ndarray) -> None:
         g = self._graph
@@ -253,6 +267,7 @@ class Recorder:
         the colour of its first flag (``FLAG_COLOURS``) and labelled with all of them; its graph node too."""
         self._next_step("final")
         self.log_poses(poses)
+        self._send_poses()
         by_scan: dict[str, list[str]] = {}
         for label, names in flags.items():
             for name in names:
@@ -292,6 +307,7 @@ class Recorder:
 
     def close(self) -> None:
         try:
+            self._send_poses()  # those of a synchronization that failed or stopped
             self.rec.flush()
         finally:
             self.rec.disconnect()  # closes rerun's end of the pipe: the pump reaches its end

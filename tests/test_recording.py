@@ -180,6 +180,39 @@ def test_steps_of_a_synchronization_carry_their_stage(flagged):
     assert len(at_step) <= len(flagged[2]) + 6, sorted(at_step)
 
 
+def _pose(rows, entity: str, step: int) -> np.ndarray:
+    """The transform of ``entity`` in force at ``step``, as the viewer reads it."""
+    T = np.eye(4)
+    T[:3, :3] = np.array(_latest(rows, entity, "Transform3D:mat3x3", step)[0]).reshape(3, 3).T  # column-major
+    T[:3, 3] = _latest(rows, entity, "Transform3D:translation", step)[0]
+    return T
+
+
+def test_every_record_s_poses_are_at_its_step_also_when_a_synchronization_stops(flagged, tmp_path):
+    """Poses are held and sent a column a scan (``Recorder._send_poses``): each record's still land on its own step,
+    those of a synchronization that stops mid-way too (sent by ``close``)."""
+    graph, _, names, points, *_ = flagged
+    path = tmp_path / "stopped.rrd"
+    recorder = Recorder(path)
+    recorder.log_scans(names, points)
+    recorder.log_graph(graph, np.eye(graph.n))
+    seen = []
+
+    def observe(record):
+        recorder.on_iteration(record)
+        seen.append(record.poses.copy())
+        if len(seen) == 3:
+            raise KeyboardInterrupt  # a stop in the first synchronization's third record
+
+    with pytest.raises(KeyboardInterrupt):
+        synchronize(graph, on_iteration=observe)
+    recorder.close()
+    rows = _rows(path)
+    for step, poses in enumerate(seen, start=1):  # step 0 is "start"
+        for name, T in zip(names, poses):
+            np.testing.assert_allclose(_pose(rows, f"/world/scans/{name}", step), T, atol=1e-6)
+
+
 @settings(max_examples=50, deadline=None)
 @given(log_w=st.lists(st.floats(-12, 6), min_size=2, max_size=30), min_weight=st.sampled_from([0.0, 1e-6, 1e-3, 0.1]))
 def test_edge_width_grows_with_log_weight_within_bounds(log_w, min_weight):
@@ -228,7 +261,4 @@ def test_a_run_draws_every_scan_with_its_axes_and_colour(object_run):
         entity = f"/world/scans/{name}"
         assert _latest(rows, entity, "TransformAxes3D:axis_length")[0] > 0
         assert _rgb(_latest(rows, entity, "Points3D:colors")[0]) == tuple(colour)
-        T = np.eye(4)
-        T[:3, :3] = np.array(_latest(rows, entity, "Transform3D:mat3x3")[0]).reshape(3, 3).T  # column-major
-        T[:3, 3] = _latest(rows, entity, "Transform3D:translation")[0]
-        np.testing.assert_allclose(T, result.poses[result.names.index(name)], atol=1e-5)
+        np.testing.assert_allclose(_pose(rows, entity, None), result.poses[result.names.index(name)], atol=1e-5)
