@@ -111,10 +111,12 @@ class _Stages:
         """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
         if self.config.free_space:
             with self.timer.stage("free_space"):
-                edges.check_free_space(self.features, self.voxel, self.centres)
-            checked = int(np.isfinite(edges.conflict).sum())
-            self.log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
-                     f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their origins)")
+                new = edges.check_free_space(self.features, self.voxel, self.centres)
+            if new:  # said again only when new registrations were checked (overrule rounds add none)
+                checked = int(np.isfinite(edges.conflict).sum())
+                self.log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
+                         f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their "
+                         f"origins)")
         graph = edges.pose_graph(len(self.features), self.scores, self.config.inlier_bar, self.config.initial_weight)
         if self.recorder:
             self.recorder.log_graph(graph, self.scores)

@@ -90,13 +90,15 @@ class EdgeSet:
         if origin is not None:
             self.origin[e] = origin
 
-    def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray) -> None:
-        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``)."""
+    def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray) -> int:
+        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``); returns
+        how many."""
         todo = np.flatnonzero(~self._checked)
         if len(todo):
             T = np.stack([self.pairs[e].T for e in todo])
             self.conflict[todo] = conflicts(features, self.ij[todo], T, voxel, centres)
             self._checked[todo] = True
+        return len(todo)
 
     def contradicted(self) -> np.ndarray:
         """(E,) bool: edges whose transform puts one scan's surfaces where the other saw nothing
