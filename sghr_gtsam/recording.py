@@ -241,11 +241,11 @@ class Recorder:
         if not self._poses:
             return
         steps = rr.TimeColumn(TIMELINE, sequence=[step for step, _ in self._poses])
-        P = np.stack([poses for _, poses in self._poses])  # (steps, N, 3, 4)
+        by_scan = np.stack([poses for _, poses in self._poses], axis=1)  # (N, steps, 3, 4)
         self._poses = []
-        for k, path in enumerate(self._paths):
+        for path, P in zip(self._paths, by_scan):
             self.rec.send_columns(path, indexes=[steps],
-                                  columns=rr.Transform3D.columns(translation=P[:, k, :, 3], mat3x3=P[:, k, :, :3]))
+                                  columns=rr.Transform3D.columns(translation=P[:, :, 3], mat3x3=P[:, :, :3]))
 
     def _log_edges(self, poses: np.ndarray, weights: np.ndarray, residual_deg: np.ndarray) -> None:
         g = self._graph
