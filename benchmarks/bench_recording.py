@@ -34,7 +34,12 @@ class _Trace:
         self.calls: list[tuple[str, tuple]] = []
 
     def __getattr__(self, name: str):
-        return lambda *args: self.calls.append((name, copy.deepcopy(args)))
+        def call(*args) -> None:
+            if name == "log_scans":  # the points are read from the run's store, removed once the run ends
+                args = (args[0], [P.copy() for P in args[1]])
+            self.calls.append((name, copy.deepcopy(args)))
+
+        return call
 
 
 def _capture(scene: str, path: Path) -> int:
