@@ -180,8 +180,8 @@ def test_steps_of_a_synchronization_carry_their_stage(flagged):
     assert len(at_step) <= len(flagged[2]) + 6, sorted(at_step)
 
 
-def _pose(rows, entity: str, step: int) -> np.ndarray:
-    """The transform of ``entity`` in force at ``step``, as the viewer reads it."""
+def _pose(rows, entity: str, step: int | None) -> np.ndarray:
+    """The transform of ``entity`` in force at ``step`` (None: the last), as the viewer reads it."""
     T = np.eye(4)
     T[:3, :3] = np.array(_latest(rows, entity, "Transform3D:mat3x3", step)[0]).reshape(3, 3).T  # column-major
     T[:3, 3] = _latest(rows, entity, "Transform3D:translation", step)[0]
