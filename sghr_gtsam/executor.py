@@ -135,7 +135,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
         with closing(ray_map(fn, shared, tasks, workers, ray)) as results:
             return [_arrived(k, result, on_result, keep) for k, result in enumerate(results)]
     workers = default_workers() if workers is None else workers
-    kept = next((k for k in _kept() if k.workers == workers), None)
+    kept = next((k for k in _BLOCKS.open if k.workers == workers), None)
     workers = min(workers, len(tasks))
     if workers <= 1 or "forkserver" not in multiprocessing.get_all_start_methods():
         return [_arrived(k, fn(shared, task), on_result, keep) for k, task in enumerate(tasks)]
@@ -170,7 +170,15 @@ class _Kept:
         self.pool: ProcessPoolExecutor | None = None
 
 
-_THREAD = threading.local()  # a block belongs to the thread that opened it: runs in two threads keep a pool each
+class _Blocks(threading.local):
+    """The open ``kept_workers`` blocks of a thread: a block belongs to the thread that opened it (runs in two
+    threads keep a pool each)."""
+
+    def __init__(self) -> None:
+        self.open: list[_Kept] = []
+
+
+_BLOCKS = _Blocks()
 _STAGES = itertools.count()
 _STAGE: int | None = None  # the stage whose shared state a kept worker holds
 
@@ -185,24 +193,17 @@ def kept_workers(workers: int | None, ray: str | None = None) -> Iterator[None]:
     number of workers, or run by another thread, gets a pool of its own. Results do not depend on it: tasks are
     pure functions."""
     workers = default_workers() if workers is None else workers
-    if workers <= 1 or ray is not None or any(k.workers == workers for k in _kept()):
+    if workers <= 1 or ray is not None or any(k.workers == workers for k in _BLOCKS.open):
         yield
         return
     kept = _Kept(workers)
-    _kept().append(kept)
+    _BLOCKS.open.append(kept)
     try:
         yield
     finally:
-        _kept().remove(kept)
+        _BLOCKS.open.remove(kept)
         if kept.pool is not None:
             kept.pool.shutdown()
-
-
-def _kept() -> list[_Kept]:
-    """This thread's open ``kept_workers`` blocks."""
-    if not hasattr(_THREAD, "kept"):
-        _THREAD.kept = []
-    return _THREAD.kept
 
 
 def _new_pool(workers: int, shared: Any) -> ProcessPoolExecutor:
