@@ -111,12 +111,12 @@ class _Stages:
         """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
         if self.config.free_space:
             with self.timer.stage("free_space"):
-                new = edges.check_free_space(self.features, self.voxel, self.centres)
+                new = edges.check_free_space(self.features, self.voxel, self.centres, self.views)
             if new:  # said again only when new registrations were checked (overrule rounds add none)
                 checked = int(np.isfinite(edges.conflict).sum())
                 self.log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
                          f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their "
-                         f"origins)")
+                         f"origins{'' if self.views is None else ' nor vouched for'})")
         graph = edges.pose_graph(len(self.features), self.scores, self.config.inlier_bar, self.config.initial_weight)
         if self.recorder:
             self.recorder.log_graph(graph, self.scores)
@@ -225,6 +225,9 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
     if config.free_space:
         with timer.stage("free_space"):
             stages.views = Viewpoints(features, voxel, centres)
+            vouched = stages.views.vouch(graph, result)
+        log(f"free space: {int(vouched.sum())} of {len(scans)} scans vouched for by the first synchronization's "
+            f"loops (their single registrations judged from now on)")
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)

@@ -12,8 +12,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from sghr_gtsam.registration.edges import EdgeSet
 from sghr_gtsam.registration.overrule import Viewpoints, look_alikes, overruled_edges
-from sghr_gtsam.se3 import inv_T, make_T
+from sghr_gtsam.registration.pairwise import PairResult
+from sghr_gtsam.registration.visibility import CONFLICT
+from sghr_gtsam.se3 import inv_T, make_T, transform_points
 from sghr_gtsam.synthetic import make_scene
 from sghr_gtsam.synthetic.building import building_layout
 from sghr_gtsam.types import PoseGraph, SyncResult
@@ -115,3 +118,74 @@ def test_scans_centred_by_the_pipeline_take_no_part(building):
     assert not views.images
     assert not overruled_edges(views, graph, result).any()
     assert not look_alikes(views, graph, result).any()
+
+
+def _views_at_truth(scene, pairs: list[tuple[int, int]]):
+    """A real scene's (``conftest._scene``) ``Viewpoints`` on its scans' voxel grids, and a graph of ``pairs``
+    registered at GT, every edge kept."""
+    truth, scans, voxel = scene
+    names = list(truth)
+    grids = [np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scans[n])).voxel_down_sample(voxel).points)
+             for n in names]
+    views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.zeros((len(names), 3)))
+    ij = np.array(pairs, dtype=np.int64)
+    T = np.array([inv_T(truth[names[a]]) @ truth[names[b]] for a, b in pairs])
+    graph = PoseGraph(n=len(names), i=ij[:, 0], j=ij[:, 1], T=T, weight=np.ones(len(ij)))
+    result = SyncResult(poses=np.array([truth[n] for n in names]), weights=np.ones(len(ij)),
+                        residual_deg=np.zeros(len(ij)), component=np.zeros(len(names), dtype=int))
+    return views, graph, result, grids
+
+
+def _all_pairs(n: int) -> list[tuple[int, int]]:
+    return [(a, b) for a in range(n) for b in range(a + 1, n)]
+
+
+def test_scans_in_an_object_frame_are_not_vouched_for(bunny):
+    """The Stanford bunny's scans are given in the object's frame, its origin inside the bunny: from there their
+    "free space" is the object's inside, and right registrations put the other scans' surfaces in it. Registered at
+    GT, every pair kept, none of its scans is vouched for: no single registration of theirs is judged by it."""
+    views, graph, result, _ = _views_at_truth(bunny, _all_pairs(len(bunny[0])))
+    assert len(views.images) == len(bunny[0])  # they take part in the overrule: only the vouching tells them apart
+    assert not views.vouch(graph, result).any()
+
+
+def test_a_look_alike_registration_between_vouched_fragments_is_contradicted(kitchen):
+    """The 3DMatch kitchen's fragments are not seen from one origin, so the per-pair check judges none of their
+    registrations. Registered at GT, every pair kept, all nine are vouched for; then each pair's look-alike, scan b
+    1 m nearer scan a's camera along the ray to its centre (where a saw nothing), is contradicted wherever the
+    coarse check judges it, and no right registration is."""
+    n = len(kitchen[0])
+    views, graph, result, grids = _views_at_truth(kitchen, _all_pairs(n))
+    edges = EdgeSet()
+    look_alike = []
+    for (a, b), T in zip(zip(graph.i, graph.j), graph.T):
+        ray = transform_points(T, grids[b]).mean(axis=0)
+        look_alike.append(make_T(np.eye(3), -ray / np.linalg.norm(ray)) @ T)
+    edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in graph.T], "top-k")
+    edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in look_alike], "retry")
+    edges.check_free_space(views=views, **_check(kitchen, n))
+    assert np.isnan(edges.conflict).all()  # not vouched for yet: nothing judged
+    assert views.vouch(graph, result).all()
+    assert edges.check_free_space(views=views, **_check(kitchen, n)) == 2 * len(graph.i)
+    right, wrong = edges.conflict[:len(graph.i)], edges.conflict[len(graph.i):]
+    assert not np.any(right > CONFLICT), np.round(right, 2)
+    judged = np.isfinite(wrong)
+    assert judged.sum() >= 30 and np.all(wrong[judged] > CONFLICT), np.round(wrong, 2)
+    assert edges.check_free_space(views=views, **_check(kitchen, n)) == 0  # each judged once
+
+
+def test_registrations_no_loop_checks_vouch_for_nothing(kitchen):
+    """A chain of the kitchen's fragments registered at GT: every edge is a bridge, checked by no loop, so nothing
+    is vouched for; close the chain into a ring and all are."""
+    n = len(kitchen[0])
+    chain = [(a, a + 1) for a in range(n - 1)]
+    assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain)[:3]).any()
+    assert Viewpoints.vouch(*_views_at_truth(kitchen, chain + [(0, n - 1)])[:3]).all()
+
+
+def _check(scene, n: int) -> dict:
+    """``EdgeSet.check_free_space``'s other arguments for a real scene's grids (``_views_at_truth``)."""
+    truth, scans, voxel = scene
+    grids = [SimpleNamespace(points=np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scans[m]))
+                                               .voxel_down_sample(voxel).points)) for m in truth]
+    return {"features": grids, "voxel": voxel, "centres": np.zeros((n, 3))}

@@ -16,6 +16,7 @@ from .visibility import conflicts, contradicted
 
 if TYPE_CHECKING:
     from ..result import RunResult
+    from .overrule import Viewpoints
 
 ORIGINS = ("top-k", "loop", "retry", "group")
 """How an edge entered: the sparse graph (with its bridges), a loop closure, a retry of a weak scan, or an ICP
@@ -28,7 +29,7 @@ EDGE_STATUS = {
     "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
     "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
     "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
-                    "(registration.visibility; graph_rejected.g2o)",
+                    "(registration.visibility, or overrule.Viewpoints between vouched scans; graph_rejected.g2o)",
     "overruled": "registered, but it held a group of scans where their free space rules them out, against a place "
                  "other registrations agree on: no measurement (registration.overrule; graph_rejected.g2o)",
     "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
@@ -64,7 +65,8 @@ def edge_status(result: "RunResult") -> list[str]:
 class EdgeSet:
     """``ij`` (E, 2) scan pairs, ``pairs[e]`` the registration of ``ij[e]`` (``T_ij``), ``origin[e]`` one of
     ``ORIGINS``, ``refined[e]`` whether ``pairs[e]`` comes from multi-scale refinement, ``conflict[e]`` its
-    ``visibility.free_space_conflict`` (NaN: not checked, or a scan not seen from its origin), ``overruled[e]``
+    ``visibility.free_space_conflict`` or, between vouched scans it cannot judge, ``overrule.Viewpoints.fraction``
+    (NaN: not checked, or not checkable), ``overruled[e]``
     whether it held a group where the scans' free space rules it out (``overrule``)."""
 
     ij: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
@@ -74,6 +76,7 @@ class EdgeSet:
     conflict: np.ndarray = field(default_factory=lambda: np.zeros(0))
     overruled: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     _checked: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), repr=False)
+    _coarse: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool), repr=False)  # judged by ``views``
 
     def add(self, ij: np.ndarray, pairs: list[PairResult], origin: str) -> None:
         self.ij = np.concatenate([self.ij, np.asarray(ij, dtype=np.int64).reshape(-1, 2)])
@@ -83,6 +86,7 @@ class EdgeSet:
         self.conflict = np.concatenate([self.conflict, np.full(len(pairs), np.nan)])
         self.overruled = np.concatenate([self.overruled, np.zeros(len(pairs), dtype=bool)])
         self._checked = np.concatenate([self._checked, np.zeros(len(pairs), dtype=bool)])
+        self._coarse = np.concatenate([self._coarse, np.zeros(len(pairs), dtype=bool)])
 
     def replace(self, e: int, pair: PairResult, origin: str | None = None) -> None:
         """Edge ``e`` takes the refined registration ``pair`` (and ``origin``), to be checked again."""
@@ -90,15 +94,27 @@ class EdgeSet:
         if origin is not None:
             self.origin[e] = origin
 
-    def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray) -> int:
-        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``); returns
-        how many."""
+    def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray,
+                         views: Viewpoints | None = None) -> int:
+        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and of
+        those it leaves unjudged between scans that ``views`` vouches for (``overrule.Viewpoints.vouch``) their
+        coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
+        not seen from one origin (``visibility``), so only the coarse check judges them: studyroom's look-alike
+        registrations, 57 of its 127 wrong ones, none of its 256 right ones (docs/BENCHMARKS.md, session 39)."""
         todo = np.flatnonzero(~self._checked)
         if len(todo):
             T = np.stack([self.pairs[e].T for e in todo])
             self.conflict[todo] = conflicts(features, self.ij[todo], T, voxel, centres)
-            self._checked[todo] = True
-        return len(todo)
+            self._checked[todo], self._coarse[todo] = True, False
+        vouched = None if views is None else views.vouched
+        if vouched is None:
+            return len(todo)
+        coarse = np.flatnonzero(~self._coarse & np.isnan(self.conflict) & vouched[self.ij[:, 0]]
+                                & vouched[self.ij[:, 1]])
+        for e in coarse:
+            self.conflict[e] = views.fraction(int(self.ij[e, 0]), int(self.ij[e, 1]), self.pairs[e].T)
+        self._coarse[coarse] = True
+        return len(np.union1d(todo, coarse))
 
     def contradicted(self) -> np.ndarray:
         """(E,) bool: edges whose transform puts one scan's surfaces where the other saw nothing

@@ -20,12 +20,14 @@ since nothing in the scans says which placement is right (a generated 16-scan ho
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..se3 import transform_points
 from ..store import Attribute, Stored
+from ..sync.bridges import bridge_edges
 from ..sync.consensus import translation_tolerance
 from ..sync.disputes import agreeing_edges, linkage_groups
 from ..types import PoseGraph, SyncResult
@@ -71,6 +73,7 @@ class Viewpoints:
         self.corners: dict[int, np.ndarray] = {}
         self._judged: dict[tuple[int, int, bytes], float] = {}
         self._under: np.ndarray | None = None
+        self.vouched: np.ndarray | None = None  # (N,) bool once ``vouch`` has run
         points = Attribute(features, "points")
         for k in range(len(points)):
             if np.any(centres[k]):
@@ -100,15 +103,51 @@ class Viewpoints:
         """1 when either scan puts more than ``CONFLICT`` of its points (``SAMPLE`` of them) in the other's free
         space, judged on at least ``MIN_IN_VIEW`` points in view; 0 when neither does; NaN when neither is judged."""
         out = float("nan")
-        for x, y, T_x, T_y in ((a, b, T_a, T_b), (b, a, T_b, T_a)):
-            seen, fraction = seen_in_front_of(self.images[x], transform_points(np.linalg.solve(T_x, T_y),
-                                                                               self.samples[y]),
+        for fraction in self._fractions(a, b, lambda: np.linalg.solve(T_a, T_b), lambda: np.linalg.solve(T_b, T_a)):
+            if fraction > CONFLICT:  # the second direction is not needed
+                return 1.0
+            out = 0.0
+        return out
+
+    def fraction(self, a: int, b: int, T_ab: np.ndarray) -> float:
+        """The larger fraction of either scan's points (``SAMPLE``) that the registration ``T_ab`` (scan b's frame
+        to scan a's) puts in the other's free space, of the directions judged on at least ``MIN_IN_VIEW`` points in
+        view; NaN when neither is, or a scan does not take part."""
+        if a not in self.images or b not in self.images:
+            return float("nan")
+        return max(self._fractions(a, b, lambda: T_ab, lambda: np.linalg.inv(T_ab)), default=float("nan"))
+
+    def _fractions(self, a: int, b: int, T_ab: Callable[[], np.ndarray],
+                   T_ba: Callable[[], np.ndarray]) -> Iterator[float]:
+        """The fraction of scan b's points in scan a's free space, then of a's in b's, each when judged on at least
+        ``MIN_IN_VIEW`` points in view; the moves are made only when asked for."""
+        for x, y, T_xy in ((a, b, T_ab), (b, a, T_ba)):
+            seen, fraction = seen_in_front_of(self.images[x], transform_points(T_xy(), self.samples[y]),
                                               self.voxel, MARGIN_VOXELS, BIN_DEG)
             if seen >= MIN_IN_VIEW:
-                if fraction > CONFLICT:
-                    return 1.0
-                out = 0.0
-        return out
+                yield fraction
+
+    def vouch(self, graph: PoseGraph, result: SyncResult) -> np.ndarray:
+        """(N,) bool, also kept as ``vouched``: the scans whose free space the graph vouches for, so that single
+        registrations between them can be judged by it (``EdgeSet.check_free_space``). A scan is vouched for when
+        it takes part, at least one of its edges that ``result`` kept and that are no bridges of the kept graph
+        (each checked by a loop) is judged at its registration (``fraction``), and none of them reads above
+        ``CONFLICT``. Where a frame's origin is no viewpoint, right registrations read as conflicts: the Stanford
+        bunny's scans, in the object's frame (origin inside it), 7 of 25; fused 3DMatch fragments, seen from their
+        first camera, none of 256 on studyroom (docs/BENCHMARKS.md, session 39)."""
+        kept = result.weights > 0
+        looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
+        judged = np.zeros(graph.n, dtype=bool)
+        clash = np.zeros(graph.n, dtype=bool)
+        for e in looped:
+            a, b = int(graph.i[e]), int(graph.j[e])
+            f = self.fraction(a, b, graph.T[e])
+            if np.isfinite(f):
+                judged[[a, b]] = True
+                if f > CONFLICT:
+                    clash[[a, b]] = True
+        self.vouched = judged & ~clash
+        return self.vouched
 
 
 def _takes_part(P: np.ndarray, voxel: float) -> bool:
