@@ -55,6 +55,12 @@ fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONF
 MIN_AGREEING = 3
 """Dropped registrations that must agree on another placement of a group before ``look_alikes`` calls it one:
 structured look-alikes come backed by 2-4 (issue 11), a lone wrong registration by one."""
+MIN_LOOPED = 20
+"""Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
+(``Viewpoints.vouch``): one false alarm is then at most 5 %."""
+MAX_FALSE_ALARMS = 0.05
+"""... and the largest fraction of them in conflict (five 3DMatch scenes after the first synchronization: 0.4-1.7 %,
+only wrong registrations; the Stanford bunny, in its object's frame: 28 %, all right)."""
 CONE_DEG = 80.0
 """A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
 a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.seen_from_origin``)."""
@@ -129,24 +135,34 @@ class Viewpoints:
 
     def vouch(self, graph: PoseGraph, result: SyncResult) -> np.ndarray:
         """(N,) bool, also kept as ``vouched``: the scans whose free space the graph vouches for, so that single
-        registrations between them can be judged by it (``EdgeSet.check_free_space``). A scan is vouched for when
-        it takes part, at least one of its edges that ``result`` kept and that are no bridges of the kept graph
-        (each checked by a loop) is judged at its registration (``fraction``), and none of them reads above
-        ``CONFLICT``. Where a frame's origin is no viewpoint, right registrations read as conflicts: the Stanford
-        bunny's scans, in the object's frame (origin inside it), 7 of 25; fused 3DMatch fragments, seen from their
-        first camera, none of 256 on studyroom (docs/BENCHMARKS.md, session 39)."""
+        registrations between them can be judged by it (``EdgeSet.check_free_space``). The edges that ``result``
+        kept and that are no bridges of the kept graph are each checked by a loop: each is judged at its
+        registration (``fraction``). A scan that takes part is vouched for when none of its judged loop-checked
+        edges reads above ``CONFLICT`` and at least one is judged; or, without one (a weak scan: where retries
+        bring look-alikes), when the scene's judged loop-checked edges number ``MIN_LOOPED`` and at most
+        ``MAX_FALSE_ALARMS`` of them read as conflicts: the scans' frames are then seen from their sensors. Where
+        a frame's origin is no viewpoint, right registrations read as conflicts: the Stanford bunny's scans are
+        in the object's frame (origin inside it), 7 of its 25 loop-checked edges after the first synchronization,
+        all right; on five 3DMatch scenes, whose fused fragments are seen from their first camera, 7 of 764, all
+        wrong (docs/BENCHMARKS.md, session 40)."""
         kept = result.weights > 0
         looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
         judged = np.zeros(graph.n, dtype=bool)
         clash = np.zeros(graph.n, dtype=bool)
+        count, alarms = 0, 0
         for e in looped:
             a, b = int(graph.i[e]), int(graph.j[e])
             f = self.fraction(a, b, graph.T[e])
             if np.isfinite(f):
                 judged[[a, b]] = True
+                count += 1
                 if f > CONFLICT:
                     clash[[a, b]] = True
-        self.vouched = judged & ~clash
+                    alarms += 1
+        part = np.zeros(graph.n, dtype=bool)
+        part[list(self.images)] = True
+        sensors = count >= MIN_LOOPED and alarms <= MAX_FALSE_ALARMS * count
+        self.vouched = part & ~clash & (judged | sensors)
         return self.vouched
 
 
