@@ -16,7 +16,11 @@ range image's, so the range image here is coarser (``BIN_DEG``, ``MARGIN_VOXELS`
 (``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``).
 
 Identical rooms give no conflict at either placement: there the group's scans are only flagged (``look_alikes``),
-since nothing in the scans says which placement is right (a generated 16-scan hotel, docs/BENCHMARKS.md)."""
+since nothing in the scans says which placement is right (a generated 16-scan hotel, docs/BENCHMARKS.md).
+
+The same coarse range images judge single registrations that the per-pair check cannot (fused fragments), between
+scans whose free space the first synchronization's loops vouch for (``Viewpoints.vouch``): a frame whose origin is no
+viewpoint (an object's centre) reads right registrations as conflicts."""
 
 from __future__ import annotations
 
@@ -59,7 +63,7 @@ MIN_LOOPED = 20
 """Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
 (``Viewpoints.vouch``): one false alarm is then at most 5 %."""
 MAX_FALSE_ALARMS = 0.05
-"""... and the largest fraction of them in conflict (five 3DMatch scenes after the first synchronization: 0.4-1.7 %,
+"""... and the largest fraction of them in conflict (six 3DMatch scenes after the first synchronization: 0-2.7 %,
 only wrong registrations; the Stanford bunny, in its object's frame: 28 %, all right)."""
 CONE_DEG = 80.0
 """A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
@@ -143,7 +147,7 @@ class Viewpoints:
         ``MAX_FALSE_ALARMS`` of them read as conflicts: the scans' frames are then seen from their sensors. Where
         a frame's origin is no viewpoint, right registrations read as conflicts: the Stanford bunny's scans are
         in the object's frame (origin inside it), 7 of its 25 loop-checked edges after the first synchronization,
-        all right; on five 3DMatch scenes, whose fused fragments are seen from their first camera, 7 of 764, all
+        all right; on six 3DMatch scenes, whose fused fragments are seen from their first camera, 9 of 802, all
         wrong (docs/BENCHMARKS.md, session 40)."""
         kept = result.weights > 0
         looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
