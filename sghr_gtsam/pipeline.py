@@ -227,7 +227,7 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
             stages.views = Viewpoints(features, voxel, centres)
             vouched = stages.views.vouch(graph, result)
         log(f"free space: {int(vouched.sum())} of {len(scans)} scans vouched for by the first synchronization's "
-            f"loops (their single registrations judged from now on)")
+            f"loop-checked registrations (their single registrations judged from now on)")
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)

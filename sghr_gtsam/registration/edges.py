@@ -97,7 +97,7 @@ class EdgeSet:
     def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray,
                          views: Viewpoints | None = None) -> int:
         """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and of
-        those it leaves unjudged between scans that ``views`` vouches for (``overrule.Viewpoints.vouch``) their
+        those it leaves unjudged between scans that ``views`` vouches for (``overrule.Viewpoints.vouch``) the
         coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
         not seen from one origin (``visibility``), so only the coarse check judges them: studyroom's look-alike
         registrations, 57 of its 127 wrong ones, none of its 256 right ones (docs/BENCHMARKS.md, session 39)."""

@@ -18,9 +18,9 @@ range image's, so the range image here is coarser (``BIN_DEG``, ``MARGIN_VOXELS`
 Identical rooms give no conflict at either placement: there the group's scans are only flagged (``look_alikes``),
 since nothing in the scans says which placement is right (a generated 16-scan hotel, docs/BENCHMARKS.md).
 
-The same coarse range images judge single registrations that the per-pair check cannot (fused fragments), between
-scans whose free space the first synchronization's loops vouch for (``Viewpoints.vouch``): a frame whose origin is no
-viewpoint (an object's centre) reads right registrations as conflicts."""
+The same coarse range images judge single registrations that the per-pair check cannot (fused fragments), once the
+first synchronization's loop-checked registrations vouch for the scans' frames (``Viewpoints.vouch``): a frame whose
+origin is no viewpoint (an object's centre) reads right registrations as conflicts."""
 
 from __future__ import annotations
 
@@ -61,7 +61,7 @@ MIN_AGREEING = 3
 structured look-alikes come backed by 2-4 (issue 11), a lone wrong registration by one."""
 MIN_LOOPED = 20
 """Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
-(``Viewpoints.vouch``): one false alarm is then at most 5 %."""
+(``Viewpoints.vouch``): one conflict among them is then at most 5 %."""
 MAX_FALSE_ALARMS = 0.05
 """... and the largest fraction of them in conflict (six 3DMatch scenes after the first synchronization: 0-2.7 %,
 only wrong registrations; the Stanford bunny, in its object's frame: 28 %, all right)."""
@@ -138,35 +138,22 @@ class Viewpoints:
                 yield fraction
 
     def vouch(self, graph: PoseGraph, result: SyncResult) -> np.ndarray:
-        """(N,) bool, also kept as ``vouched``: the scans whose free space the graph vouches for, so that single
-        registrations between them can be judged by it (``EdgeSet.check_free_space``). The edges that ``result``
-        kept and that are no bridges of the kept graph are each checked by a loop: each is judged at its
-        registration (``fraction``). A scan that takes part is vouched for when none of its judged loop-checked
-        edges reads above ``CONFLICT`` and at least one is judged; or, without one (a weak scan: where retries
-        bring look-alikes), when the scene's judged loop-checked edges number ``MIN_LOOPED`` and at most
-        ``MAX_FALSE_ALARMS`` of them read as conflicts: the scans' frames are then seen from their sensors. Where
-        a frame's origin is no viewpoint, right registrations read as conflicts: the Stanford bunny's scans are
-        in the object's frame (origin inside it), 7 of its 25 loop-checked edges after the first synchronization,
-        all right; on six 3DMatch scenes, whose fused fragments are seen from their first camera, 9 of 802, all
-        wrong (docs/BENCHMARKS.md, session 40)."""
+        """(N,) bool, also kept as ``vouched``: the scans whose single registrations the free space here may judge
+        (``EdgeSet.check_free_space``): every scan that takes part when the scene's frames show themselves seen from
+        their sensors, else none. The edges that ``result`` kept and that are no bridges of the kept graph are each
+        checked by a loop; judged at their registrations (``fraction``), at least ``MIN_LOOPED`` of them, at most
+        ``MAX_FALSE_ALARMS`` of them may read as conflicts. Where a frame's origin is no viewpoint, right
+        registrations read as conflicts: the Stanford bunny's scans are in the object's frame (origin inside it),
+        7 of its 25 loop-checked edges after the first synchronization, all right; on six 3DMatch scenes, whose
+        fused fragments are seen from their first camera, 9 of 802, all wrong (docs/BENCHMARKS.md, session 40)."""
         kept = result.weights > 0
         looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
-        judged = np.zeros(graph.n, dtype=bool)
-        clash = np.zeros(graph.n, dtype=bool)
-        count, alarms = 0, 0
-        for e in looped:
-            a, b = int(graph.i[e]), int(graph.j[e])
-            f = self.fraction(a, b, graph.T[e])
-            if np.isfinite(f):
-                judged[[a, b]] = True
-                count += 1
-                if f > CONFLICT:
-                    clash[[a, b]] = True
-                    alarms += 1
-        part = np.zeros(graph.n, dtype=bool)
-        part[list(self.images)] = True
-        sensors = count >= MIN_LOOPED and alarms <= MAX_FALSE_ALARMS * count
-        self.vouched = part & ~clash & (judged | sensors)
+        fractions = np.array([self.fraction(int(graph.i[e]), int(graph.j[e]), graph.T[e]) for e in looped])
+        judged = fractions[np.isfinite(fractions)]
+        sensors = len(judged) >= MIN_LOOPED and np.sum(judged > CONFLICT) <= MAX_FALSE_ALARMS * len(judged)
+        self.vouched = np.zeros(graph.n, dtype=bool)
+        if sensors:
+            self.vouched[list(self.images)] = True
         return self.vouched
 
 
