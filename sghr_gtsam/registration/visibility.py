@@ -7,8 +7,8 @@ whatever the descriptors agreed on: look-alike rooms and corridors register with
 Only scans whose frame origin is their viewpoint can say it. A scan seen from its origin hides almost none of
 its own points behind others (``SELF_HIDDEN``); a fused RGB-D fragment, an object scan in its object's frame or a
 georeferenced scan hides a sixth or more of them (3DMatch fragments 16-18 %, the Stanford bunny 18 %), and its
-pairs are not checked here; fused fragments' are by the overrule's coarser range images, between scans the graph's
-loops vouch for (``overrule.Viewpoints.vouch``)."""
+pairs are not checked here; fused fragments' are by the overrule's coarser range images, once the graph's loops
+vouch for the scene's frames (``overrule.Viewpoints.vouch``)."""
 
 from __future__ import annotations
 
