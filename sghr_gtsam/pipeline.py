@@ -226,8 +226,9 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
         with timer.stage("free_space"):
             stages.views = Viewpoints(features, voxel, centres)
             vouched = stages.views.vouch(graph, result)
-        log(f"free space: {int(vouched.sum())} of {len(scans)} scans vouched for by the first synchronization's "
-            f"loop-checked registrations (their single registrations judged from now on)")
+        judged = len(stages.views.images) if vouched else 0
+        log(f"free space: the scans' frames {'are' if vouched else 'are not'} vouched for by the first "
+            f"synchronization's loop-checked registrations (single registrations of {judged} scans judged from now on)")
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)

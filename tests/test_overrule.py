@@ -149,7 +149,7 @@ def test_scans_in_an_object_frame_are_not_vouched_for(bunny):
     assert len(views.images) == len(bunny[0])  # they take part in the overrule: only the vouching tells them apart
     fractions = np.array([views.fraction(a, b, T) for a, b, T in zip(graph.i, graph.j, graph.T)])
     assert np.mean(fractions[np.isfinite(fractions)] > CONFLICT) > MAX_FALSE_ALARMS
-    assert not views.vouch(graph, result).any()
+    assert not views.vouch(graph, result)
 
 
 def test_a_look_alike_registration_between_vouched_fragments_is_contradicted(kitchen):
@@ -166,15 +166,16 @@ def test_a_look_alike_registration_between_vouched_fragments_is_contradicted(kit
         look_alike.append(make_T(np.eye(3), -ray / np.linalg.norm(ray)) @ T)
     edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in graph.T], "top-k")
     edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in look_alike], "retry")
-    edges.check_free_space(views=views, **_check(kitchen, n))
+    features = [SimpleNamespace(points=P) for P in grids]
+    edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views)
     assert np.isnan(edges.conflict).all()  # not vouched for yet: nothing judged
-    assert views.vouch(graph, result).all()
-    assert edges.check_free_space(views=views, **_check(kitchen, n)) == 2 * len(graph.i)
+    assert views.vouch(graph, result) and len(views.images) == n
+    assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views) == 2 * len(graph.i)
     right, wrong = edges.conflict[:len(graph.i)], edges.conflict[len(graph.i):]
     assert not np.any(right > CONFLICT), np.round(right, 2)
     judged = np.isfinite(wrong)
     assert judged.sum() >= 30 and np.all(wrong[judged] > CONFLICT), np.round(wrong, 2)
-    assert edges.check_free_space(views=views, **_check(kitchen, n)) == 0  # each judged once
+    assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views) == 0  # each judged once
 
 
 def test_scans_are_vouched_for_only_where_enough_loops_check_their_frames(kitchen):
@@ -184,14 +185,8 @@ def test_scans_are_vouched_for_only_where_enough_loops_check_their_frames(kitche
     nine are, 8 too."""
     n = len(kitchen[0])
     chain = [(a, a + 1) for a in range(n - 1)]
-    assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain)[:3]).any()
-    assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain + [(0, n - 1)])[:3]).any()
-    assert Viewpoints.vouch(*_views_at_truth(kitchen, _all_pairs(n - 1) + [(n - 2, n - 1)])[:3]).all()
+    assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain)[:3])
+    assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain + [(0, n - 1)])[:3])
+    views, graph, result, _ = _views_at_truth(kitchen, _all_pairs(n - 1) + [(n - 2, n - 1)])
+    assert views.vouch(graph, result) and len(views.images) == n
 
-
-def _check(scene, n: int) -> dict:
-    """``EdgeSet.check_free_space``'s other arguments for a real scene's grids (``_views_at_truth``)."""
-    truth, scans, voxel = scene
-    grids = [SimpleNamespace(points=np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scans[m]))
-                                               .voxel_down_sample(voxel).points)) for m in truth]
-    return {"features": grids, "voxel": voxel, "centres": np.zeros((n, 3))}

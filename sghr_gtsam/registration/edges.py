@@ -29,7 +29,7 @@ EDGE_STATUS = {
     "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
     "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
     "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
-                    "(registration.visibility, or overrule.Viewpoints between vouched scans; graph_rejected.g2o)",
+                    "(registration.visibility, or overrule.Viewpoints once vouched for; graph_rejected.g2o)",
     "overruled": "registered, but it held a group of scans where their free space rules them out, against a place "
                  "other registrations agree on: no measurement (registration.overrule; graph_rejected.g2o)",
     "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
@@ -65,8 +65,8 @@ def edge_status(result: "RunResult") -> list[str]:
 class EdgeSet:
     """``ij`` (E, 2) scan pairs, ``pairs[e]`` the registration of ``ij[e]`` (``T_ij``), ``origin[e]`` one of
     ``ORIGINS``, ``refined[e]`` whether ``pairs[e]`` comes from multi-scale refinement, ``conflict[e]`` its
-    ``visibility.free_space_conflict`` or, between vouched scans it cannot judge, ``overrule.Viewpoints.fraction``
-    (NaN: not checked, or not checkable), ``overruled[e]``
+    ``visibility.free_space_conflict`` or, in a scene whose frames are vouched for where it cannot judge,
+    ``overrule.Viewpoints.fraction`` (NaN: not checked, or not checkable), ``overruled[e]``
     whether it held a group where the scans' free space rules it out (``overrule``)."""
 
     ij: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
@@ -96,8 +96,8 @@ class EdgeSet:
 
     def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray,
                          views: Viewpoints | None = None) -> int:
-        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and of
-        those it leaves unjudged between scans that ``views`` vouches for (``overrule.Viewpoints.vouch``) the
+        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and, once
+        ``views`` vouches for the scene's frames (``overrule.Viewpoints.vouch``), of those it leaves unjudged the
         coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
         not seen from one origin (``visibility``), so only the coarse check judges them: studyroom's look-alike
         registrations, 57 of its 127 wrong ones, none of its 256 right ones (docs/BENCHMARKS.md, session 39)."""
@@ -106,11 +106,9 @@ class EdgeSet:
             T = np.stack([self.pairs[e].T for e in todo])
             self.conflict[todo] = conflicts(features, self.ij[todo], T, voxel, centres)
             self._checked[todo], self._coarse[todo] = True, False
-        vouched = None if views is None else views.vouched
-        if vouched is None:
+        if views is None or not views.vouched:
             return len(todo)
-        coarse = np.flatnonzero(~self._coarse & np.isnan(self.conflict) & vouched[self.ij[:, 0]]
-                                & vouched[self.ij[:, 1]])
+        coarse = np.flatnonzero(~self._coarse & np.isnan(self.conflict))
         for e in coarse:
             self.conflict[e] = views.fraction(int(self.ij[e, 0]), int(self.ij[e, 1]), self.pairs[e].T)
         self._coarse[coarse] = True

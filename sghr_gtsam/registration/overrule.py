@@ -83,7 +83,7 @@ class Viewpoints:
         self.corners: dict[int, np.ndarray] = {}
         self._judged: dict[tuple[int, int, bytes], float] = {}
         self._under: np.ndarray | None = None
-        self.vouched: np.ndarray | None = None  # (N,) bool once ``vouch`` has run
+        self.vouched = False  # ``vouch``'s answer, once it has run
         points = Attribute(features, "points")
         for k in range(len(points)):
             if np.any(centres[k]):
@@ -137,23 +137,20 @@ class Viewpoints:
             if seen >= MIN_IN_VIEW:
                 yield fraction
 
-    def vouch(self, graph: PoseGraph, result: SyncResult) -> np.ndarray:
-        """(N,) bool, also kept as ``vouched``: the scans whose single registrations the free space here may judge
-        (``EdgeSet.check_free_space``): every scan that takes part when the scene's frames show themselves seen from
-        their sensors, else none. The edges that ``result`` kept and that are no bridges of the kept graph are each
-        checked by a loop; judged at their registrations (``fraction``), at least ``MIN_LOOPED`` of them, at most
-        ``MAX_FALSE_ALARMS`` of them may read as conflicts. Where a frame's origin is no viewpoint, right
-        registrations read as conflicts: the Stanford bunny's scans are in the object's frame (origin inside it),
-        7 of its 25 loop-checked edges after the first synchronization, all right; on six 3DMatch scenes, whose
-        fused fragments are seen from their first camera, 9 of 802, all wrong (docs/BENCHMARKS.md, session 40)."""
+    def vouch(self, graph: PoseGraph, result: SyncResult) -> bool:
+        """Whether the scene's frames show themselves seen from their sensors, also kept as ``vouched``: then the
+        single registrations between scans that take part may be judged here (``EdgeSet.check_free_space``). The
+        edges that ``result`` kept and that are no bridges of the kept graph are each checked by a loop; judged at
+        their registrations (``fraction``), at least ``MIN_LOOPED`` of them, at most ``MAX_FALSE_ALARMS`` of them
+        may read as conflicts. Where a frame's origin is no viewpoint, right registrations read as conflicts: the
+        Stanford bunny's scans are in the object's frame (origin inside it), 7 of its 25 loop-checked edges after
+        the first synchronization, all right; on six 3DMatch scenes, whose fused fragments are seen from their first
+        camera, 9 of 802, all wrong (docs/BENCHMARKS.md, session 40)."""
         kept = result.weights > 0
         looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
         fractions = np.array([self.fraction(int(graph.i[e]), int(graph.j[e]), graph.T[e]) for e in looped])
         judged = fractions[np.isfinite(fractions)]
-        sensors = len(judged) >= MIN_LOOPED and np.sum(judged > CONFLICT) <= MAX_FALSE_ALARMS * len(judged)
-        self.vouched = np.zeros(graph.n, dtype=bool)
-        if sensors:
-            self.vouched[list(self.images)] = True
+        self.vouched = bool(len(judged) >= MIN_LOOPED and np.sum(judged > CONFLICT) <= MAX_FALSE_ALARMS * len(judged))
         return self.vouched
 
 
