@@ -215,11 +215,27 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
             widest = kept_edges_at(usable_graph, trial)
             if widest.sum() > refit.sum():
                 poses, refit = trial, widest
+        refit |= _holding(usable_graph, poses, kept, refit)
         if np.array_equal(refit, kept):
             break
         kept = refit
         poses = solve(poses, kept)
     return poses, kept
+
+
+def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.ndarray) -> np.ndarray:
+    """(E,) bool: edges of ``kept`` that ``refit`` drops although they join two of its parts, and that ``poses``
+    fit within ``FAR`` times the consistency tolerances.
+
+    Such edges are all that place one part against the other, and least squares has already placed the parts by
+    them: their residuals are the share of a loop's error they took (a lone edge takes none), not a vote
+    against a placement that other edges support. Dropping them loses the part instead (hotel_umd3: five right
+    scans held by two loop-checked registrations 2.7° / 0.10 m off after least squares spread a corridor's
+    error, against a tolerance of 0.08 m: docs/BENCHMARKS.md)."""
+    part = connected_components(graph.n, graph.i, graph.j, refit)
+    _, rot, trans = edge_residuals(graph, poses)
+    near = (rot <= FAR * MAX_DEG) & (trans <= FAR * translation_tolerance(graph))
+    return kept & ~refit & (part[graph.i] != part[graph.j]) & near
 
 
 def _loop_placement(graph: PoseGraph, poses: np.ndarray,
