@@ -161,3 +161,6 @@ class SyncResult:
     component: np.ndarray  # (N,)
     history: list[IterationRecord] = field(default_factory=list)
     loop_support: np.ndarray | None = None  # (E,) consistent triangles per edge (polish "loops"), else None
+    held: np.ndarray | None = None
+    """(E,) bool (polish "loops"), else None: kept edges past the consistency tolerances, kept because they alone
+    join two parts (``sync._holding``); no loop checks the placement they give (``sync.unverified``)."""

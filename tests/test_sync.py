@@ -1,6 +1,8 @@
 """Synchronization maths: exact recovery, gauge and labelling invariance, components, the IRLS formula, and
 outlier rejection. Synthetic graphs only (no data needed)."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
@@ -280,6 +282,18 @@ def _two_clusters(links: list[tuple[int, int, bool]], seed: int = 3) -> tuple[Po
                       j=np.r_[a.j, b.j + 15, [q for _, q, _ in links]], T=np.concatenate([a.T, b.T, T]),
                       weight=np.r_[a.weight, b.weight, np.full(len(links), 50.0)])
     return graph, truth
+
+
+def test_a_cluster_joined_only_by_held_edges_is_unverified():
+    """Two right links make a loop between the clusters, so every scan is verified; the same links held past the
+    tolerances only to keep the parts joined (``SyncResult.held``) check nothing, and the small cluster is
+    unverified while the rest stays verified."""
+    graph, truth = _two_clusters([(3, 17, True), (8, 19, True)])
+    result = synchronize(graph)
+    assert result.held is not None and not result.held.any() and np.all(result.component == 0)
+    assert not unverified(graph, result).any()
+    held = replace(result, held=np.arange(graph.num_edges) >= graph.num_edges - 2)
+    np.testing.assert_array_equal(unverified(graph, held), np.arange(21) >= 15)
 
 
 def test_a_cluster_hung_on_one_wrong_edge_is_flagged_unverified():

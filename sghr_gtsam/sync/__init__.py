@@ -147,7 +147,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
             poses = solve_poses(graph, used * kappa, w_trans=used * tau)
         else:
             poses = solve_poses(graph, used)
-    support = None
+    support = held = None
     if polish == "robust" and method != "lm":
         poses, kept = _robust_placement(graph, poses, keep_history)
         weights = graph.weight
@@ -169,13 +169,14 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
 
         poses = solve(poses, kept)
         if polish == "loops" and method != "lm":
-            poses, kept = _readmit(graph, poses, kept, solve)
+            poses, kept, held = _readmit(graph, poses, kept, solve)
     weights = np.where(kept, weights, 0.0)
     component = connected_components(graph.n, graph.i, graph.j, kept)
     poses = _anchored(poses, component)  # a part re-judged apart is anchored at its own first node
     residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
     return SyncResult(poses=poses, weights=weights[back], residual_deg=np.degrees(residual)[back], component=component,
-                      history=history, loop_support=None if support is None else support[back])
+                      history=history, loop_support=None if support is None else support[back],
+                      held=None if held is None else held[back])
 
 
 def _canonical(graph: PoseGraph) -> tuple[PoseGraph, np.ndarray]:
@@ -199,15 +200,17 @@ def _anchored(poses: np.ndarray, component: np.ndarray) -> np.ndarray:
 
 
 def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
-             solve: Callable[..., np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+             solve: Callable[..., np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop polish's kept edges re-judged at least-squares optima (``kept_edges_at``), at most
     ``REFIT_ROUNDS`` solves: the placement steps judge edges at poses before least squares and with tolerances
     for registrations good to a few degrees, so on a clean graph with large noise (gtsam's grids: σ ≈ 11°
     on every edge) they leave edges out that the optimum over all of them fits within their noise. With
     the edges' own information (the only noise model an edge can be re-admitted by), every usable edge is
-    tried from the current poses too; the larger consistent set wins, and that set is solved again."""
+    tried from the current poses too; the larger consistent set wins, and that set is solved again. Edges that
+    alone join two parts stay kept (``_holding``); the last mask is returned with the poses and the kept edges."""
     usable_graph = _usable(graph)
     usable = usable_graph.weight > 0
+    held = np.zeros(graph.num_edges, dtype=bool)
     for _ in range(REFIT_ROUNDS - 1):
         refit = kept_edges_at(usable_graph, poses)
         if graph.information is not None and not np.array_equal(refit, usable):
@@ -215,12 +218,13 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
             widest = kept_edges_at(usable_graph, trial)
             if widest.sum() > refit.sum():
                 poses, refit = trial, widest
-        refit |= _holding(usable_graph, poses, kept, refit)
+        held = _holding(usable_graph, poses, kept, refit)
+        refit |= held
         if np.array_equal(refit, kept):
             break
         kept = refit
         poses = solve(poses, kept)
-    return poses, kept
+    return poses, kept, held & kept
 
 
 def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.ndarray) -> np.ndarray:
@@ -355,9 +359,13 @@ def unverified(graph: PoseGraph, result: SyncResult, one_scan: bool = True) -> n
     turned to four of its partners, and the scans that hang on it follow (a simulated 50-scan room, seed 3: 21
     scans turned 89° behind one scan, 17 of them flagged by nothing else). So a node outside the largest
     biconnected component (``bridges.biconnected_core``) is unverified too; ``one_scan=False`` leaves that out.
+    Edges kept past the tolerances only because they alone join two parts (``SyncResult.held``) check nothing: the
+    nodes they join to the rest are unverified.
     """
     main = result.component == 0
     kept = (result.weights > 0) & main[graph.i] & main[graph.j]
+    if result.held is not None:
+        kept &= ~result.held  # past the tolerances, kept only to join two parts: they check nothing
     label = blocks(graph.n, graph.i, graph.j, kept)
     # The largest block of the main part (ties: the one with the smallest node), as labels are ordered.
     core = label[np.flatnonzero(main)].min()
