@@ -224,7 +224,7 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
             break
         kept = refit
         poses = solve(poses, kept)
-    return poses, kept, held & kept
+    return poses, kept, held
 
 
 def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.ndarray) -> np.ndarray:
