@@ -42,6 +42,7 @@ class DensifyReport:
     _tried: set = field(default_factory=set, repr=False)  # pairs any stage already re-registered
     _groups: set = field(default_factory=set, repr=False)  # weak groups already registered whole
     _moved: set = field(default_factory=set, repr=False)  # scans of the groups that registration moved
+    _retried: set = field(default_factory=set, repr=False)  # scans given retries already
 
     def as_dict(self) -> dict:
         return {k: v for k, v in vars(self).items() if not k.startswith("_")}
@@ -190,9 +191,15 @@ def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncR
                unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport,
                progress: Progress = QUIET, cache: Cache | None = None) -> int:
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
-    by overlap score; the pairs that register enter as retry edges. Returns how many registered."""
+    by overlap score; the pairs that register enter as retry edges. A scan placed in the largest part is retried
+    once a run; only one left outside it is retried again (studyroom: a second round of retries for every weak scan
+    cost 15 s for two kept right edges, docs/BENCHMARKS.md). Returns how many registered."""
     n = len(features)
     weak = weak_scans(n, edges.ij[:, 0], edges.ij[:, 1], _kept(edges, sync), sync.component, unverified)
+    again = np.zeros(n, dtype=bool)
+    again[list(report._retried)] = True
+    weak &= ~(again & (sync.component == 0))
+    report._retried.update(np.flatnonzero(weak).tolist())
     tried = report.or_tried(edges.contains(n))
     ij = retry_pairs(weak, scores, tried, config.k)
     if not len(ij):
