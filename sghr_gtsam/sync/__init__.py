@@ -237,9 +237,7 @@ def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.nd
     scans held by two loop-checked registrations 2.7° / 0.10 m off after least squares spread a corridor's
     error, against a tolerance of 0.08 m: docs/BENCHMARKS.md)."""
     part = connected_components(graph.n, graph.i, graph.j, refit)
-    _, rot, trans = edge_residuals(graph, poses)
-    near = (rot <= FAR * MAX_DEG) & (trans <= FAR * translation_tolerance(graph))
-    return kept & ~refit & (part[graph.i] != part[graph.j]) & near
+    return kept & ~refit & (part[graph.i] != part[graph.j]) & ~_far(graph, poses)
 
 
 def _loop_placement(graph: PoseGraph, poses: np.ndarray,
