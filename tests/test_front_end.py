@@ -119,14 +119,10 @@ def test_a_refined_pair_that_enters_no_graph_gets_no_information():
     assert dropped.information is None and dropped.grid is None
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "refinement's ICP stops on small_gicp's step tolerance, 1e-3 in scene units: in millimetres it runs out of "
-    "iterations (4 of these 7 edges refined instead of 7). A tolerance in voxels fixes it, but 0.02 / 0.0205 / "
-    "0.025 voxels (0.88-1.10 mm on 3DMatch, against 1 mm) each turn studyroom's or home_at's path "
-    "(docs/BENCHMARKS.md, ICP's stopping rule, session 42), so it waits for a measured choice"))
 def test_a_scene_in_millimetres_registers_as_in_metres():
     """A simulated scene given in millimetres gives the run in metres × 1000: the same edges refined and kept, the
-    same poses."""
+    same poses. ICP stopping on small_gicp's default step, 1e-3 in scene units, refined 4 of these 7 edges in
+    millimetres."""
     scene = make_scene(kind="object", n_scans=6, seed=1)
     metres, millimetres = [register([Scan(n, P * unit) for n, P in zip(scene.names, scene.scans)],
                                     Config(record=False, workers=1), log=lambda m: None) for unit in (1.0, 1000.0)]

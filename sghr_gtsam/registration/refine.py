@@ -43,6 +43,11 @@ LEVEL_DISTANCE = (2.0, 1.5)
 synchronized guess's drift (a few centimetres on 3DMatch), the fine ones only close neighbours."""
 LEVEL_ITERATIONS = (10, 10)
 """From the synchronized guess GICP converges within these; 20 at v changed no result (same bunny pairs)."""
+STEP_VOXELS = 0.025
+"""GICP has converged when a step moves the scan less than this (voxels v) and turns it less than 0.1°. In voxels,
+as every other length here, so that a scene registers alike in any unit (small_gicp's default, 1e-3 in scene units,
+was 0.0004 v in millimetres: settled ICPs ran out of iterations and their edges were lost). v/40 is that default
+at the 3DMatch scenes' 4 cm voxel; on studyroom a 2 % change of it turns the run's path (docs/BENCHMARKS.md)."""
 MAX_MOVE_DEG = 5.0
 MAX_MOVE_VOXELS = 3.0
 """A re-registration confirms the synchronized poses only if ICP stays near the guess: a larger move means
@@ -158,7 +163,8 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
         target, source = target_i.level(k), source_j.level(k)
         result = small_gicp.align(target.cloud, source.cloud, target.cloud_tree, init_T_target_source=T,
                                   registration_type="GICP", max_correspondence_distance=_distance(target_i, k),
-                                  num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[k])
+                                  num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[k],
+                                  translation_epsilon=STEP_VOXELS * target_i.voxels[0])
         T, converged = result.T_target_source, bool(result.converged)
     return T, converged, coarser
 
