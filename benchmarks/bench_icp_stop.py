@@ -2,15 +2,17 @@
 from the same ICP run to its fixed point (issue 10).
 
     python benchmarks/bench_icp_stop.py [--data ../shared/data] [--scenes studyroom home_at] [--pairs 40]
-        [--steps 0.0205 0.025 0.01 0.005] [--seed 0]
+        [--steps 0.0205 0.025 0.01 0.005] [--budgets 10] [--seed 0]
 
 For a random sample of each scene's gt.log pairs, the GT relative pose ``T_i⁻¹ T_j`` turned by 1° and moved by
 half a voxel in random directions (a synchronized guess's drift) is refined by ``refine.multiscale_icp`` with
 ``refine.STEP_VOXELS`` set to each step, and to small_gicp's own default (1e-3 in scene units, ``1 mm`` in the
 table: on 3DMatch, metres). The fixed point is the same ICP with a step of 1e-6 voxels and 200 iterations a level.
 The voxel is the run's default (``voxel_from_spans``: 1/100 of the median scan's bounding-box diagonal).
-Columns: converged / pairs at the default 10 iterations a level, the pairs whose verdict differs from the 1 mm
-stop's, and the distance of each stop from the fixed point (rotation °, translation in voxels), median and 90 %.
+Each step runs with each budget of iterations a level (``refine.LEVEL_ITERATIONS``; ``--budgets``). Columns: the
+pairs called converged, those also within ``refine.stays_near`` of their guess (what refinement admits, inliers
+aside), the pairs whose verdict differs from the 1 mm stop's at the first budget, and the distance of each stop from
+the fixed point (rotation °, translation in voxels), median and 90 %.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ def _apart(A: np.ndarray, B: np.ndarray, voxel: float) -> tuple[float, float]:
     return float(np.degrees(rotation_angle(M[:3, :3]))), float(np.linalg.norm(M[:3, 3]) / voxel)
 
 
-def scene_rows(data: Path, name: str, pairs: int, steps: list[float], seed: int) -> list[str]:
+def scene_rows(data: Path, name: str, pairs: int, steps: list[float], budgets: list[int], seed: int) -> list[str]:
     scene = SCENES[name]
     paths = list_scans(data / scene.folder)
     points = [load_scan(p) for p in paths]
@@ -59,8 +61,9 @@ def scene_rows(data: Path, name: str, pairs: int, steps: list[float], seed: int)
     sample = [log[k] for k in rng.permutation(len(log))[:pairs]]
     pyramids = {}
     default_iterations = refine.LEVEL_ITERATIONS
-    labelled = [("1 mm", 1e-3 / voxel)] + [(f"{s:g} v", s) for s in steps]
-    stops = {label: [] for label, _ in labelled}
+    labelled = [(f"{label}, {b}", step, b) for b in budgets
+                for label, step in [("1 mm", 1e-3 / voxel)] + [(f"{s:g} v", s) for s in steps]]
+    stops = {label: [] for label, _, _ in labelled}
     for i, j in sample:
         for k in (i, j):
             if k not in pyramids:
@@ -70,18 +73,18 @@ def scene_rows(data: Path, name: str, pairs: int, steps: list[float], seed: int)
         drift[:3, :3], drift[:3, 3] = turn, 0.5 * voxel * _unit(rng)
         T0 = inv_T(poses[i]) @ poses[j] @ drift
         fixed, _ = _stop(pyramids[i], pyramids[j], T0, 1e-6, (200, 200))
-        for label, step in labelled:
-            T, converged = _stop(pyramids[i], pyramids[j], T0, step, default_iterations)
-            stops[label].append((converged, *_apart(fixed, T, voxel)))
+        for label, step, budget in labelled:
+            T, converged = _stop(pyramids[i], pyramids[j], T0, step, (budget, budget))
+            stops[label].append((converged, converged and refine.stays_near(T, T0, voxel), *_apart(fixed, T, voxel)))
     refine.LEVEL_ITERATIONS = default_iterations
-    base = [c for c, _, _ in stops["1 mm"]]
+    base = [c for c, _, _, _ in stops[labelled[0][0]]]
     rows = []
-    for label, step in labelled:
+    for label, step, _ in labelled:
         r = np.array(stops[label], dtype=float)
         flips = sum(bool(c) != b for c, b in zip(r[:, 0], base))
-        rows.append(f"| {name} | {label} | {step:.4f} | {int(r[:, 0].sum())}/{len(r)} | {flips} | "
-                    f"{np.median(r[:, 1]):.3f} / {np.percentile(r[:, 1], 90):.3f} | "
-                    f"{np.median(r[:, 2]):.3f} / {np.percentile(r[:, 2], 90):.3f} |")
+        rows.append(f"| {name} | {label} | {step:.4f} | {int(r[:, 0].sum())}/{len(r)} | {int(r[:, 1].sum())} | {flips} | "
+                    f"{np.median(r[:, 2]):.3f} / {np.percentile(r[:, 2], 90):.3f} | "
+                    f"{np.median(r[:, 3]):.3f} / {np.percentile(r[:, 3], 90):.3f} |")
     print(f"{name}: voxel {voxel:.4f}, {len(sample)} of {len(log)} gt.log pairs", file=sys.stderr)
     return rows
 
@@ -98,16 +101,17 @@ def main() -> None:
                     choices=[n for n, s in SCENES.items() if s.gt_dir])
     ap.add_argument("--pairs", type=int, default=40)
     ap.add_argument("--steps", nargs="+", type=float, default=[0.0205, 0.025, 0.01, 0.005], help="in voxels")
+    ap.add_argument("--budgets", nargs="+", type=int, default=[10], help="iterations a level")
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args()
     missing = [n for n in args.scenes if not (args.data / SCENES[n].folder).is_dir()]
     if missing:
         raise SystemExit(f"no scene folder for {', '.join(missing)} under {args.data}")
-    print("| scene | step | step (voxels) | converged | verdicts unlike 1 mm's | from the fixed point: ° median / 90 % "
-          "| voxels median / 90 % |")
-    print("|---|---|---:|---:|---:|---:|---:|")
+    print("| scene | step, iterations a level | step (voxels) | converged | and near the guess | verdicts unlike the first "
+          "row's | from the fixed point: ° median / 90 % | voxels median / 90 % |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
     for name in args.scenes:
-        for row in scene_rows(args.data, name, args.pairs, args.steps, args.seed):
+        for row in scene_rows(args.data, name, args.pairs, args.steps, args.budgets, args.seed):
             print(row, flush=True)
 
 
