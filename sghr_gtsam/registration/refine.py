@@ -42,7 +42,8 @@ LEVEL_DISTANCE = (2.0, 1.5)
 """GICP correspondence distance of each level, in that level's voxels: the coarse level admits the
 synchronized guess's drift (a few centimetres on 3DMatch), the fine ones only close neighbours."""
 LEVEL_ITERATIONS = (10, 10)
-"""From the synchronized guess GICP converges within these; 20 at v changed no result (same bunny pairs)."""
+"""From a guess 1° / v/2 off GT GICP converges within these on 36-38 of 40 3DMatch pairs; 20, small_gicp's default,
+converges on all and turned studyroom's and kitchen's models both ways, no clear gain (docs/BENCHMARKS.md)."""
 STEP_VOXELS = 0.025
 """GICP has converged when a step moves the scan less than this (voxels v) and turns it less than 0.1°. In voxels,
 as every other length here, so that a scene registers alike in any unit (small_gicp's default, 1e-3 in scene units,
