@@ -8,7 +8,7 @@ For a random sample of each scene's gt.log pairs, the GT relative pose ``T_iâ»Â
 half a voxel in random directions (a synchronized guess's drift) is refined by ``refine.multiscale_icp`` with
 ``refine.STEP_VOXELS`` set to each step, and to small_gicp's own default (1e-3 in scene units, ``1 mm`` in the
 table: on 3DMatch, metres). The fixed point is the same ICP with a step of 1e-6 voxels and 200 iterations a level.
-The voxel is the run's default (``voxel_from_spans``: 1/100 of the median scan's bounding-box diagonal).
+The voxel is the run's default (``scene.scene_voxel``: 1/100 of the median scan's bounding-box diagonal).
 Each step runs with each budget of iterations a level (``refine.LEVEL_ITERATIONS``; ``--budgets``). Columns: the
 pairs called converged, those also within ``refine.stays_near`` of their guess (what refinement admits, inliers
 aside), the pairs whose verdict differs from the 1 mm stop's at the first budget, and the distance of each stop from
@@ -29,11 +29,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_3dmatch, when 
 from bench_3dmatch import SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 from sghr_gtsam.evaluate import fragment_id  # noqa: E402
-from sghr_gtsam.features.local import voxel_from_spans  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_log, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import list_scans, load_scan  # noqa: E402
 from sghr_gtsam.registration import refine  # noqa: E402
-from sghr_gtsam.se3 import inv_T, rotation_angle  # noqa: E402
+from sghr_gtsam.scene import scene_voxel  # noqa: E402
+from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
+from sghr_gtsam.types import ScanStats  # noqa: E402
 
 
 def _stop(pyramid_i, pyramid_j, T0: np.ndarray, step: float, iterations: tuple[int, int]) -> tuple[np.ndarray, bool]:
@@ -42,16 +43,11 @@ def _stop(pyramid_i, pyramid_j, T0: np.ndarray, step: float, iterations: tuple[i
     return T, converged
 
 
-def _apart(A: np.ndarray, B: np.ndarray, voxel: float) -> tuple[float, float]:
-    M = inv_T(A) @ B
-    return float(np.degrees(rotation_angle(M[:3, :3]))), float(np.linalg.norm(M[:3, 3]) / voxel)
-
-
 def scene_rows(data: Path, name: str, pairs: int, steps: list[float], budgets: list[int], seed: int) -> list[str]:
     scene = SCENES[name]
     paths = list_scans(data / scene.folder)
     points = [load_scan(p) for p in paths]
-    voxel = voxel_from_spans([float(np.linalg.norm(np.ptp(P, axis=0))) for P in points])
+    voxel = scene_voxel(None, [ScanStats.of(P) for P in points])
     gt_names, gt = read_poses(data / scene.gt_poses)
     poses = np.array([gt[gt_names.index(p.name)] for p in paths])
     rng = np.random.default_rng(seed)
@@ -60,7 +56,7 @@ def scene_rows(data: Path, name: str, pairs: int, steps: list[float], budgets: l
                  if a in index and b in index)
     sample = [log[k] for k in rng.permutation(len(log))[:pairs]]
     pyramids = {}
-    default_iterations = refine.LEVEL_ITERATIONS
+    defaults = refine.STEP_VOXELS, refine.LEVEL_ITERATIONS
     labelled = [(f"{label}, {b}", step, b) for b in budgets
                 for label, step in [("1 mm", 1e-3 / voxel)] + [(f"{s:g} v", s) for s in steps]]
     stops = {label: [] for label, _, _ in labelled}
@@ -75,8 +71,9 @@ def scene_rows(data: Path, name: str, pairs: int, steps: list[float], budgets: l
         fixed, _ = _stop(pyramids[i], pyramids[j], T0, 1e-6, (200, 200))
         for label, step, budget in labelled:
             T, converged = _stop(pyramids[i], pyramids[j], T0, step, (budget, budget))
-            stops[label].append((converged, converged and refine.stays_near(T, T0, voxel), *_apart(fixed, T, voxel)))
-    refine.LEVEL_ITERATIONS = default_iterations
+            deg, apart = relative_errors(T, fixed)
+            stops[label].append((converged, converged and refine.stays_near(T, T0, voxel), deg, apart / voxel))
+    refine.STEP_VOXELS, refine.LEVEL_ITERATIONS = defaults
     base = [c for c, _, _, _ in stops[labelled[0][0]]]
     rows = []
     for label, step, _ in labelled:
