@@ -188,6 +188,19 @@ VOTES = {"w0": lambda graph: graph.weight, "credibility": credibility}
 (``cycles.credibility``: counts, heavier edges up to twice)."""
 
 
+def _outvoted(graph: PoseGraph, P: np.ndarray, votes: np.ndarray) -> np.ndarray:
+    """(N,) bool: with every other scan at its GT pose ``P``, a placement the scan's edges propose away from its GT
+    pose has more ``votes`` than the GT pose (``consensus.placement_support``: the consensus step's agreement test)."""
+    voted = replace(graph, weight=votes)
+    tol = translation_tolerance(graph)
+    bad = np.zeros(graph.n, dtype=bool)
+    for scan in range(graph.n):
+        edges = np.flatnonzero((graph.i == scan) | (graph.j == scan))
+        _, support, current, right, _ = placement_support(voted, P, scan, edges, MAX_DEG, tol)
+        bad[scan] = support[~right].max(initial=0.0) > current
+    return bad
+
+
 def identifiability(scenes: list[str], kinds: list[str], ratios: list[float], seeds: int,
                     noisy_overlap: bool = False, vote: str = "w0", first_seed: int = 0) -> str:
     """Markdown: what the graphs themselves say, before any method runs. With every other scan at its GT
@@ -209,19 +222,51 @@ def identifiability(scenes: list[str], kinds: list[str], ratios: list[float], se
                     pairs = [(index[a], index[b]) for a, b in gt.gt_log
                              if a in index and b in index and abs(a - b) > 1]
                     graph, P, outlier = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
-                    votes = replace(graph, weight=VOTES[vote](graph))
-                    tol = translation_tolerance(graph)
-                    bad = np.zeros(graph.n, dtype=bool)
-                    for scan in range(graph.n):
-                        edges = np.flatnonzero((graph.i == scan) | (graph.j == scan))
-                        _, support, current, right, _ = placement_support(votes, P, scan, edges, MAX_DEG, tol)
-                        bad[scan] = support[~right].max(initial=0.0) > current
+                    bad = _outvoted(graph, P, VOTES[vote](graph))
                     outvoted.append(bad.mean())
                     log_left.append(np.mean([not (bad[a] or bad[b]) for a, b in pairs]))
                     a, b, ok = right_pairs(oracle(graph, ~outlier).poses, P)
                     all_left.append(np.mean(ok & ~bad[a] & ~bad[b]))
             cells.append(f"{np.mean(outvoted):.3f} / {np.mean(log_left):.3f} / {np.mean(all_left):.3f}")
         out.append(f"| {kind} | " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def _placed_right(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(N,) bool: scans whose relative pose to at least half of the other scans is right (``right_pairs``)."""
+    a, b, ok = right_pairs(poses, truth)
+    right = np.bincount(a, ok, len(truth)) + np.bincount(b, ok, len(truth))
+    return right >= (len(truth) - 1) / 2
+
+
+def _disputed_graph(task: tuple[str, int, str, float, bool]) -> np.ndarray:
+    """On one graph, the scans the default places right and ``polish robust`` wrong, then the reverse; of each,
+    how many are outvoted (``_outvoted``) by counts (``cycles.credibility``), by w⁰, by both: a (2, 4) array."""
+    scene, seed, kind, ratio, noisy_overlap = task
+    graph, P, _ = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
+    loops = _placed_right(synchronize(graph).poses, P)
+    robust = _placed_right(synchronize(graph, polish="robust").poses, P)
+    by_count, by_w0 = _outvoted(graph, P, credibility(graph)), _outvoted(graph, P, graph.weight)
+    return np.array([[m.sum(), (m & by_count).sum(), (m & by_w0).sum(), (m & by_count & by_w0).sum()]
+                     for m in (loops & ~robust, robust & ~loops)])
+
+
+def disputes(scenes: list[str], kinds: list[str], ratios: list[float], seeds: int, noisy_overlap: bool,
+             first_seed: int, jobs: int) -> str:
+    """Markdown: where the default (``loops``) and ``polish robust`` place a scan differently, what its edges say.
+    A scan is placed right when it is right against at least half of the others (``_placed_right``); for the
+    scans only one of the two places right, how many are outvoted by counts, by w⁰ and by both (``_outvoted``):
+    a polish that places an outvoted scan right has kept it where it was, not followed the evidence."""
+    out = ["| kind | ρ | right by the default only: scans / outvoted by counts / by w⁰ / by both | right by "
+           "`robust` only: the same |", "|---|---:|---|---|"]
+    cells = [(kind, ratio) for kind in kinds for ratio in ratios]
+    with Pool(jobs) as pool:
+        results = [pool.map(_disputed_graph, [(scene, seed, kind, ratio, noisy_overlap) for scene in scenes
+                                              for seed in range(first_seed, first_seed + seeds)])
+                   for kind, ratio in cells]
+    for (kind, ratio), rows in zip(cells, results):
+        total = np.sum(rows, axis=0)
+        out.append(f"| {kind} | {ratio:g} | " + " | ".join(" / ".join(map(str, row)) for row in total) + " |")
     return "\n".join(out)
 
 
@@ -287,6 +332,9 @@ def main() -> None:
                         help="only the table of outvoted scans and the recall they leave (only the oracle runs)")
     parser.add_argument("--consensus", action="store_true",
                         help="only the table of the edges consistent with the default's answer, the oracle's and GT")
+    parser.add_argument("--disputes", action="store_true",
+                        help="only the table of scans the default and polish robust place differently, and "
+                             "whether their edges outvote them")
     parser.add_argument("--vote", choices=sorted(VOTES), default="w0",
                         help="with --identifiability: what a placement's support sums (default w0)")
     args = parser.parse_args()
@@ -313,6 +361,11 @@ def main() -> None:
         print(f"outvoted scans / gt.log recall left / all pairs left, votes {args.vote}, {graphs}")
         print(identifiability(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
                               args.vote, args.first_seed))
+        return
+    if args.disputes:
+        print(graphs)
+        print(disputes(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
+                       args.first_seed, args.jobs))
         return
     if args.consensus:
         print(graphs)
