@@ -239,6 +239,17 @@ def _placed_right(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return right >= (len(truth) - 1) / 2
 
 
+def _per_cell(per_graph: Callable[[tuple[str, int, str, float, bool]], object], scenes: list[str], kinds: list[str],
+              ratios: list[float], seeds: int, noisy_overlap: bool, first_seed: int,
+              jobs: int) -> list[tuple[tuple[str, float], list]]:
+    """``per_graph`` of every scene and seed, over ``jobs`` processes, grouped by (kind, ratio)."""
+    cells = [(kind, ratio) for kind in kinds for ratio in ratios]
+    with Pool(jobs) as pool:
+        return [(cell, pool.map(per_graph, [(scene, seed, *cell, noisy_overlap) for scene in scenes
+                                            for seed in range(first_seed, first_seed + seeds)]))
+                for cell in cells]
+
+
 def _disputed_graph(task: tuple[str, int, str, float, bool]) -> np.ndarray:
     """On one graph, the scans the default places right and ``polish robust`` wrong, then the reverse; of each,
     how many are outvoted (``_outvoted``) by counts (``cycles.credibility``), by w⁰, by both: a (2, 4) array."""
@@ -259,12 +270,8 @@ def disputes(scenes: list[str], kinds: list[str], ratios: list[float], seeds: in
     a polish that places an outvoted scan right has kept it where it was, not followed the evidence."""
     out = ["| kind | ρ | right by the default only: scans / outvoted by counts / by w⁰ / by both | right by "
            "`robust` only: the same |", "|---|---:|---|---|"]
-    cells = [(kind, ratio) for kind in kinds for ratio in ratios]
-    with Pool(jobs) as pool:
-        results = [pool.map(_disputed_graph, [(scene, seed, kind, ratio, noisy_overlap) for scene in scenes
-                                              for seed in range(first_seed, first_seed + seeds)])
-                   for kind, ratio in cells]
-    for (kind, ratio), rows in zip(cells, results):
+    for (kind, ratio), rows in _per_cell(_disputed_graph, scenes, kinds, ratios, seeds, noisy_overlap, first_seed,
+                                         jobs):
         total = np.sum(rows, axis=0)
         out.append(f"| {kind} | {ratio:g} | " + " | ".join(" / ".join(map(str, row)) for row in total) + " |")
     return "\n".join(out)
@@ -293,12 +300,8 @@ def consensus(scenes: list[str], kinds: list[str], ratios: list[float], seeds: i
     out = ["| kind | ρ | all pairs: default / oracle | consistent edges: default / oracle / GT | of them outliers: "
            "default / oracle / GT | graphs where the default's answer leaves more consistent than the oracle's: "
            "count / credibility / w⁰ |", "|---|---:|---|---|---|---|"]
-    cells = [(kind, ratio) for kind in kinds for ratio in ratios]
-    with Pool(jobs) as pool:
-        results = [pool.map(_consensus_graph, [(scene, seed, kind, ratio, noisy_overlap) for scene in scenes
-                                               for seed in range(first_seed, first_seed + seeds)])
-                   for kind, ratio in cells]
-    for (kind, ratio), rows in zip(cells, results):
+    for (kind, ratio), rows in _per_cell(_consensus_graph, scenes, kinds, ratios, seeds, noisy_overlap, first_seed,
+                                         jobs):
         means = {(who, what): np.mean([r[who][what] for r in rows]) for who in ("default", "oracle", "GT")
                  for what in ("all_pairs", "count", "wrong")}
         more = [sum(r["default"][v] > r["oracle"][v] for r in rows) for v in ("count", "credibility", "w0")]
