@@ -24,8 +24,9 @@ graphs in parallel processes instead.
 
 Run from the repository root (installed, or with ``PYTHONPATH=.``):
 ``python benchmarks/bench_robustness.py [--quick] [--seeds 5] [--first-seed 0] [--ratios 0 0.1 ...] [--methods ...]
-[--kinds random structured] [--scenes gen200 ...] [--noisy-overlap] [--jobs 2] [--records runs.jsonl]``
-"""
+[--kinds random structured] [--scenes gen200 ...] [--noisy-overlap] [--jobs 2] [--records runs.jsonl]``; instead of the
+methods' tables, ``--identifiability``, ``--consensus`` or ``--disputes`` print what the graphs themselves say (each
+function's doc)."""
 
 from __future__ import annotations
 
