@@ -269,6 +269,18 @@ def test_edges_whose_weights_vanish_leave_the_solve_regular(data_dir):
     assert np.isfinite(result.poses).all() and (result.component == 0).mean() > 0.9
 
 
+def test_a_group_held_by_several_look_alike_edges_is_moved_back(data_dir):
+    """hotel_uc, 30 % structured outliers, seed 7: both starts of the loop polish turned 24 scans 89° (27 of 55
+    right). Seven kept look-alike edges held them there; the ten right edges across, dropped, agree on one move
+    and outvote that cut (``cycles.cut_moves``; docs/BENCHMARKS.md)."""
+    from data_tools.outlier_graphs import make_graph
+
+    graph, truth, _ = make_graph("sun3d-hotel_uc-scan3", 0.3, "structured", 7, root=data_dir)
+    result = synchronize(graph)
+    rot, trans = relative_errors(gauge_free(result.poses), gauge_free(truth))
+    assert np.sum((rot < 5.0) & (trans < 0.2)) >= 52
+
+
 def _two_clusters(links: list[tuple[int, int, bool]], seed: int = 3) -> tuple[PoseGraph, np.ndarray]:
     """A 15-scan cluster (nodes 0-14) and a 6-scan one (15-20), each well connected with 1°/2 cm noise,
     joined by ``links`` (a, b, right?): a right link carries the true ``T_ab``, a wrong one the far cluster

@@ -24,14 +24,14 @@ from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import biconnected_core, blocks
 from .consensus import MAX_DEG, consensus_placement, consistent_edges, edge_residuals, translation_tolerance
 from .disputes import contested
-from .cycles import credibility, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
+from .cycles import credibility, cut_moves, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
 from .irls import REWEIGHTS, irls, solve_poses, usable_edges
 from .rotation import connected_components, rotation_residuals
 
 POLISHES: dict[str, str] = {
     "loops": "loop evidence (sync.cycles): the IRLS poses and scans grown outward from the most consistent "
-             "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups "
-             "and by scans where most edges agree; the one with more consistent edges wins (unless the other fits "
+             "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups, "
+             "by scans and by groups across a minimum cut where most edges agree; the one with more consistent edges wins (unless the other fits "
              "more of the edges they place far apart), and is re-placed once more with the votes its consistent "
              "edges teach each weight class; then LM",
     "robust": "consensus re-placement of scans, gtsam GNC (TLS) over every edge, consensus again, then "
@@ -248,7 +248,8 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     Two starts: ``poses`` (the IRLS warm start) and the scans grown from the most consistent core. Each is
     polished by LM on its consistent edges (growing chains registration errors, which the consistency test
     would read as disagreement), then whole groups and single scans move where most of their edges agree
-    (``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a look-alike from
+    (``replace_groups``, ``consensus_placement`` with the ``credibility`` votes, then ``cut_moves``: groups held
+    by several wrong edges). Growing is what keeps a look-alike from
     dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the core's evidence
     runs thin (docs/BENCHMARKS.md). The grown start replaces the IRLS one if it has more consistent edges,
     and not fewer among those the other answer puts far off (``_overturns``). The kept answer's consistent edges
@@ -275,6 +276,7 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
         component = connected_components(graph.n, graph.i, graph.j, kept)
         P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component).poses
         P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
+        P = cut_moves(usable, P, votes)
         return P, consistent_edges(usable, P)
 
     P, kept = place(poses, cred)

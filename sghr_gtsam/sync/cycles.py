@@ -22,13 +22,17 @@ through the placed scans — and each edge's vote (``credibility``) is 1 plus at
 - **Group moves** (``replace_groups``): after least squares, the blocks of the consistent edges once the
   bridges are cut (groups held by loops but hung on one edge) move as a whole where their other edges
   agree they belong — the failure growing and IRLS share, which no single-scan move repairs.
+- **Moves across a minimum cut** (``cut_moves``): a group held in a wrong place by several wrong edges that
+  agree with each other is no such block. Its dropped right edges agree on one correction of it; where they
+  outvote the minimum cut of the consistent edges between their two ends, the side beyond the cut moves.
 - **Learned votes** (``inlier_odds``): counts ignore what a weight says, and what it says depends on how the
   registrations failed. A first answer's consistent edges give each weight class its odds of being right in
   this graph, and the answer is re-placed once with those votes.
 
 Each connected part of the graph is grown from its own seed (identity). Cost: one pass over the triangles
 (vectorised) and, per placed scan, one vectorised comparison of the proposals of all its unplaced partners
-(scores summed in edge order, so ties between placements do not depend on the BLAS).
+(scores summed in edge order, so ties between placements do not depend on the BLAS); the cut moves, a radius
+search over the dropped edges' corrections and a few maximum flows (scipy's) over the consistent edges.
 """
 
 from __future__ import annotations
@@ -36,11 +40,14 @@ from __future__ import annotations
 import heapq
 
 import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import breadth_first_order, maximum_flow
+from scipy.spatial import cKDTree
 
 from ..se3 import inv_T, rotation_angle
 from ..types import PoseGraph
 from .bridges import blocks as block_labels
-from .consensus import MAX_DEG, edge_residuals, translation_tolerance, within_noise
+from .consensus import MARGIN, MAX_DEG, consistent_edges, edge_residuals, translation_tolerance, within_noise
 
 
 def triangles(graph: PoseGraph) -> np.ndarray:
@@ -225,8 +232,6 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
     correction with the most ``cred`` among the proposals agreeing with it (at least two), if that beats
     the correction it has now (identity). Round after round, all groups at once, until none moves.
     """
-    from .consensus import consistent_edges
-
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     cos_tol = np.cos(np.radians(max_deg))
     poses = poses.copy()
@@ -261,6 +266,130 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
     return poses
 
 
+CUT_FAMILIES = 5
+"""``cut_moves`` tries the moves of this many families of dropped edges a round, the heaviest first."""
+CUT_ROUNDS = 3
+"""``cut_moves``: moves at most."""
+_CAPACITY = 1000
+"""Votes become integer capacities (scipy's maximum flow) at this resolution."""
+
+
+def cut_moves(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, max_deg: float = MAX_DEG,
+              max_trans: float | None = None, max_rounds: int = CUT_ROUNDS,
+              families: int = CUT_FAMILIES) -> np.ndarray:
+    """``poses`` with one side of a minimum cut moved where the dropped edges across it agree it belongs.
+
+    ``replace_groups`` moves blocks hung on one edge; a group held in a wrong place by several consistent
+    wrong edges (a look-alike placement repeated on 2-4 registrations, or a majority of random outliers)
+    is no block, and its scans agree with their neighbours, so no single-scan move frees it either. Its
+    right edges to the rest are dropped, and they agree on one rigid correction of it. So: the dropped edges
+    (``votes > 0``, inconsistent with ``poses``) are read as corrections ``M`` that move one end onto where
+    the other end's edge puts it (both ways); corrections agreeing in rotation (``max_deg``) and in where they
+    put both moving ends (``max_trans``) form a family, and an edge both of whose readings agree counts for
+    none. For the ``families`` heaviest families of two edges or more, the consistent edges (capacities: their
+    votes) are cut at minimum between the family's fixed and moving ends; where the family's votes exceed the
+    cut's by ``consensus.MARGIN`` and the cut leaves two scans or more on either side, the moving side (the
+    smallest one) moves by the family's correction, if the consistent edges of the result carry more votes.
+    At most ``max_rounds`` moves.
+    """
+    max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
+    poses = poses.copy()
+    for _ in range(max_rounds):
+        kept = consistent_edges(graph, poses, max_deg, max_trans)
+        total = votes[kept].sum()
+        for fixed, moving, M, family_votes in _families(graph, poses, votes, kept, max_deg, max_trans, families):
+            side = _cut_side(graph, kept, votes, fixed, moving, family_votes)
+            if side is None:
+                continue
+            trial = poses.copy()
+            trial[side] = M @ poses[side]
+            if votes[consistent_edges(graph, trial, max_deg, max_trans)].sum() > total:
+                poses = trial
+                break
+        else:
+            break
+    return poses
+
+
+def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.ndarray, max_deg: float,
+              max_trans: float, count: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+    """The ``count`` heaviest families of ``cut_moves`` (two edges or more, no shared members): each its fixed
+    ends, its moving ends, its correction (that of its heaviest reading) and its votes."""
+    dropped = np.flatnonzero((votes > 0) & ~kept)
+    if len(dropped) < 2:
+        return []
+    edge = np.r_[dropped, dropped]
+    fixed = np.r_[graph.i[dropped], graph.j[dropped]]
+    moving = np.r_[graph.j[dropped], graph.i[dropped]]
+    # M T_moving = T_fixed T_fixed,moving: the correction that puts the moving end where the edge says.
+    M = poses[fixed] @ _directed(graph, edge, fixed) @ inv_T(poses[moving])
+    R, t = M[:, :3, :3], M[:, :3, 3]
+    p = poses[moving, :3, 3]
+    # ‖R_a − R_b‖_F = 2√2 sin(θ/2): the rotation test is a radius search, exact up to rounding.
+    radius = 2.0 * np.sqrt(2.0) * np.sin(np.radians(max_deg) / 2.0) * (1.0 + 1e-12)
+    a, b = cKDTree(R.reshape(-1, 9)).query_pairs(radius, output_type="ndarray").T.astype(np.int64)
+    ok = ((edge[a] != edge[b])
+          & (np.linalg.norm(np.einsum("kab,kb->ka", R[b] - R[a], p[a]) + t[b] - t[a], axis=1) <= max_trans)
+          & (np.linalg.norm(np.einsum("kab,kb->ka", R[a] - R[b], p[b]) + t[a] - t[b], axis=1) <= max_trans))
+    x, y = np.r_[a[ok], b[ok]], np.r_[b[ok], a[ok]]
+    # An edge whose two readings both agree with x says nothing about which side moves.
+    key = x * graph.num_edges + edge[y]
+    _, inverse, twice = np.unique(key, return_inverse=True, return_counts=True)
+    one_way = twice[inverse] == 1
+    x, y = x[one_way], y[one_way]
+    score = votes[edge] + np.bincount(x, votes[edge[y]], len(edge))
+    by_x = np.argsort(x, kind="stable")
+    x, y = x[by_x], y[by_x]
+    start = np.searchsorted(x, np.arange(len(edge) + 1))
+    taken = np.zeros(len(edge), dtype=bool)
+    out = []
+    heads = np.flatnonzero(start[1:] > start[:-1])  # readings that some other edge agrees with
+    for r in heads[np.argsort(-score[heads], kind="stable")]:
+        if len(out) == count:
+            break
+        if taken[r]:
+            continue
+        members = np.r_[r, y[start[r]:start[r + 1]]]
+        members = members[~taken[members]]
+        taken[members] = True
+        if len(members) < 2:
+            continue
+        out.append((np.unique(fixed[members]), np.unique(moving[members]), M[r], float(votes[edge[members]].sum())))
+    return out
+
+
+def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.ndarray, moving: np.ndarray,
+              family_votes: float) -> np.ndarray | None:
+    """The scans on ``moving``'s side of a minimum cut of the ``kept`` edges (capacities: ``votes``) between
+    ``fixed`` and ``moving``, if ``family_votes`` exceed the cut's by ``consensus.MARGIN`` (as a single scan's
+    move must) and the cut leaves two scans or more on each side; else None."""
+    if np.intersect1d(fixed, moving).size:
+        return None
+    n = graph.n
+    cap = np.rint(votes[kept] * _CAPACITY).astype(np.int64)
+    big = int(cap.sum()) * 2 + 1
+    if big >= np.iinfo(np.int32).max:
+        return None
+    source, sink = n, n + 1
+    rows = np.r_[graph.i[kept], graph.j[kept], np.full(len(fixed), source), moving]
+    cols = np.r_[graph.j[kept], graph.i[kept], fixed, np.full(len(moving), sink)]
+    data = np.r_[cap, cap, np.full(len(fixed) + len(moving), big)].astype(np.int32)
+    C = sp.csr_matrix((data, (rows, cols)), shape=(n + 2, n + 2))
+    flow = maximum_flow(C, source, sink)
+    if (1.0 + MARGIN) * flow.flow_value >= family_votes * _CAPACITY:
+        return None
+    residual = (C - flow.flow).tocsr()
+    residual.data[residual.data < 0] = 0
+    residual.eliminate_zeros()
+    # The smallest sides: the scans the source still reaches, and those from which the sink is still reachable.
+    held = breadth_first_order(residual, source, directed=True, return_predecessors=False)
+    side = breadth_first_order(residual.T.tocsr(), sink, directed=True, return_predecessors=False)
+    side = np.sort(side[side < n])
+    # A cut that isolates one scan is a single scan's move: consensus_placement's, which compares where its
+    # edges put that scan.
+    return side if min(len(side), int(np.sum(held < n))) >= 2 else None
+
+
 SPREAD = 4.0
 """The kept edges' tolerance is at least this many times the median residual of the edges consistent
 at the base tolerances: registration noise larger than those (3DMatch-like: 8 cm at a scan's origin
@@ -284,4 +413,5 @@ def kept_edges_at(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
     return (graph.weight > 0) & close
 
 
-__all__ = ["triangles", "triangle_support", "credibility", "inlier_odds", "grow", "replace_groups", "kept_edges_at"]
+__all__ = ["triangles", "triangle_support", "credibility", "inlier_odds", "grow", "replace_groups", "cut_moves",
+           "kept_edges_at"]
