@@ -288,9 +288,9 @@ def cut_moves(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, max_deg: f
     put both moving ends (``max_trans``) form a family, and an edge both of whose readings agree counts for
     none. For the ``families`` heaviest families of two edges or more, the consistent edges (capacities: their
     votes) are cut at minimum between the family's fixed and moving ends; where the family's votes exceed the
-    cut's by ``consensus.MARGIN`` and the cut leaves two scans or more on either side, the moving side (the
-    smallest one) moves by the family's correction, if the consistent edges of the result carry more votes.
-    At most ``max_rounds`` moves.
+    cut's by ``consensus.MARGIN``, the cut is not empty (no two parts are joined) and leaves two scans or more on
+    either side, the moving side (the smallest one) moves by the family's correction, if the consistent edges of
+    the result carry more votes. At most ``max_rounds`` moves.
     """
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     poses = poses.copy()
@@ -361,8 +361,8 @@ def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.n
 def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.ndarray, moving: np.ndarray,
               family_votes: float) -> np.ndarray | None:
     """The scans on ``moving``'s side of a minimum cut of the ``kept`` edges (capacities: ``votes``) between
-    ``fixed`` and ``moving``, if ``family_votes`` exceed the cut's by ``consensus.MARGIN`` (as a single scan's
-    move must) and the cut leaves two scans or more on each side; else None."""
+    ``fixed`` and ``moving``, if the cut is not empty, ``family_votes`` exceed its votes by ``consensus.MARGIN``
+    (as a single scan's move must) and it leaves two scans or more on each side; else None."""
     if np.intersect1d(fixed, moving).size:
         return None
     n = graph.n
@@ -376,7 +376,9 @@ def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.n
     data = np.r_[cap, cap, np.full(len(fixed) + len(moving), big)].astype(np.int32)
     C = sp.csr_matrix((data, (rows, cols)), shape=(n + 2, n + 2))
     flow = maximum_flow(C, source, sink)
-    if (1.0 + MARGIN) * flow.flow_value >= family_votes * _CAPACITY:
+    # No consistent edge between the ends: the move would join two parts on dropped edges alone, which is the
+    # front end's to verify (a building whose halves only wrong registrations joined: docs/BENCHMARKS.md).
+    if flow.flow_value == 0 or (1.0 + MARGIN) * flow.flow_value >= family_votes * _CAPACITY:
         return None
     residual = (C - flow.flow).tocsr()
     residual.data[residual.data < 0] = 0
