@@ -352,6 +352,11 @@ def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.n
         members = np.r_[r, y[start[r]:start[r + 1]]]
         members = members[~taken[members]]
         taken[members] = True
+        # A scan both fixed and moved by the family: the role with fewer votes loses its edges.
+        for c in np.intersect1d(fixed[members], moving[members]):
+            as_fixed, as_moving = fixed[members] == c, moving[members] == c
+            w = votes[edge[members]]
+            members = members[~as_moving] if w[as_fixed].sum() >= w[as_moving].sum() else members[~as_fixed]
         if len(members) < 2:
             continue
         out.append((np.unique(fixed[members]), np.unique(moving[members]), M[r], float(votes[edge[members]].sum())))
@@ -361,10 +366,8 @@ def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.n
 def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.ndarray, moving: np.ndarray,
               family_votes: float) -> np.ndarray | None:
     """The scans on ``moving``'s side of a minimum cut of the ``kept`` edges (capacities: ``votes``) between
-    ``fixed`` and ``moving``, if the cut is not empty, ``family_votes`` exceed its votes by ``consensus.MARGIN``
-    (as a single scan's move must) and it leaves two scans or more on each side; else None."""
-    if np.intersect1d(fixed, moving).size:
-        return None
+    ``fixed`` and ``moving`` (disjoint), if the cut is not empty, ``family_votes`` exceed its votes by
+    ``consensus.MARGIN`` (as a single scan's move must) and it leaves two scans or more on each side; else None."""
     n = graph.n
     cap = np.rint(votes[kept] * _CAPACITY).astype(np.int64)
     big = int(cap.sum()) * 2 + 1
