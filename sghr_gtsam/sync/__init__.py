@@ -249,16 +249,16 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     Two starts: ``poses`` (the IRLS warm start) and the scans grown from the most consistent core. Each is
     polished by LM on its consistent edges (growing chains registration errors, which the consistency test
     would read as disagreement), then whole groups and single scans move where most of their edges agree
-    (``replace_groups``, ``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a look-alike from
-    dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the core's evidence
-    runs thin (docs/BENCHMARKS.md). The grown start replaces the IRLS one if it has more consistent edges,
-    and not fewer among those the other answer puts far off (``_overturns``); in the answer kept, groups held in
-    place by several wrong edges move across a minimum cut (``cut_moves``). The kept answer's consistent edges
-    then say what each weight class is worth in this graph (``inlier_odds``); re-placed with those votes, the
-    answer changes by the same rule with those votes (a look-alike placement that more, lighter edges propose
-    loses where light edges are mostly wrong). The final answer's
-    kept edges are those consistent at tolerances widened to the residual spread (``kept_edges_at``), so
-    that without outliers every edge stays and the final LM is plain least squares. Edges negligible from
+    (``replace_groups``, ``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a
+    look-alike from dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the
+    core's evidence runs thin (docs/BENCHMARKS.md). The grown start replaces the IRLS one if it has more
+    consistent edges, and not fewer among those the other answer puts far off (``_overturns``); in the answer
+    kept, groups held in place by several wrong edges move across a minimum cut (``cut_moves``). The kept
+    answer's consistent edges then say what each weight class is worth in this graph (``inlier_odds``);
+    re-placed with those votes, the answer changes by the same rule with those votes (a look-alike placement
+    that more, lighter edges propose loses where light edges are mostly wrong). The final answer's kept edges
+    are those consistent at tolerances widened to the residual spread (``kept_edges_at``), so that without
+    outliers every edge stays and the final LM is plain least squares. Edges negligible from
     the start (below ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
     from ..factor_graph import edge_information, polish as lm_polish

@@ -383,8 +383,7 @@ def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.n
     # front end's to verify (a building whose halves only wrong registrations joined: docs/BENCHMARKS.md).
     if flow.flow_value == 0 or (1.0 + MARGIN) * flow.flow_value >= family_votes * _CAPACITY:
         return None
-    residual = (C - flow.flow).tocsr()
-    residual.data[residual.data < 0] = 0
+    residual = (C - flow.flow).tocsr()  # ≥ 0: the flow is antisymmetric and within the capacities
     residual.eliminate_zeros()
     # The smallest sides: the scans the source still reaches, and those from which the sink is still reachable.
     held = breadth_first_order(residual, source, directed=True, return_predecessors=False)
