@@ -1,6 +1,7 @@
 """Loop evidence (sghr_gtsam.sync.cycles): triangles, their consistency, growing, group moves, the votes a
 first answer teaches, and the default loop polish against plain least squares, against a group hung on a heavy
-wrong edge and against a look-alike placement that more edges propose than the right one."""
+wrong edge and against a look-alike placement that more edges propose than the right one, and the moves across a
+minimum cut (groups held by several wrong edges)."""
 
 import networkx as nx
 import numpy as np
@@ -182,6 +183,17 @@ def test_a_group_held_by_several_wrong_edges_moves_across_the_cut_its_right_edge
 def test_a_group_stays_where_more_votes_hold_it(seed, wrong):
     """Fewer right votes than the wrong edges carry: the cut outvotes the family and nothing moves."""
     graph, truth, G = _held_group(seed, wrong, right=wrong)
+    start = truth.copy()
+    start[15:] = G @ truth[15:]
+    np.testing.assert_array_equal(cut_moves(graph, start, credibility(graph)), start)
+
+
+@FAST
+@given(seed=st.integers(0, 10**6))
+def test_two_parts_are_not_joined_on_dropped_edges_alone(seed):
+    """No consistent edge between the clusters: however many dropped edges agree on joining them, joining parts is
+    left to verified registrations, and nothing moves."""
+    graph, truth, G = _held_group(seed, wrong=0, right=6)
     start = truth.copy()
     start[15:] = G @ truth[15:]
     np.testing.assert_array_equal(cut_moves(graph, start, credibility(graph)), start)
