@@ -150,7 +150,8 @@ def test_a_look_alike_with_more_but_lighter_edges_than_the_right_placement_loses
 def _held_group(seed: int, wrong: int, right: int) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """Clusters of 15 and 10 scans (1° / 2 cm noise) joined by ``wrong`` heavy edges that agree on one wrong
     placement ``G`` of the small cluster (turned 90°, shifted 1.1 m: a look-alike repeated on several
-    registrations) and ``right`` light right ones. Returns the graph, the truth and ``G``."""
+    registrations) and ``right`` light right ones. Returns the graph, the truth and the poses with the small
+    cluster where ``G`` puts it."""
     a, truth_a, _ = random_graph(seed, 15, extra=3, rot_deg=1.0, trans_sigma=0.02)
     b, truth_b, _ = random_graph(seed + 1, 10, extra=3, rot_deg=1.0, trans_sigma=0.02)
     truth = np.concatenate([truth_a, truth_b])
@@ -160,7 +161,9 @@ def _held_group(seed: int, wrong: int, right: int) -> tuple[PoseGraph, np.ndarra
     T = [inv_T(truth[a_]) @ (G if k < wrong else np.eye(4)) @ truth[b_] for k, (a_, b_) in enumerate(zip(p, q))]
     graph = PoseGraph(n=25, i=np.r_[a.i, b.i + 15, p], j=np.r_[a.j, b.j + 15, q], T=np.concatenate([a.T, b.T, T]),
                       weight=np.r_[a.weight, b.weight, np.full(wrong, 1000.0), np.full(right, 1.0)])
-    return graph, truth, G
+    start = truth.copy()
+    start[15:] = G @ truth[15:]
+    return graph, truth, start
 
 
 def _outvoted(graph: PoseGraph, votes: np.ndarray, wrong: int, right: int) -> np.ndarray:
@@ -187,9 +190,7 @@ def test_a_group_held_by_several_wrong_edges_moves_across_the_cut_its_right_edge
     ones, agree on one correction, and the minimum cut between their ends is the wrong edges: it moves back. A scan
     whose own wrong edges outvote its right ones may go either way."""
     right = 2 * wrong + 2
-    graph, truth, G = _held_group(seed, wrong, right)
-    start = truth.copy()
-    start[15:] = G @ truth[15:]
+    graph, truth, start = _held_group(seed, wrong, right)
     votes = credibility(graph)
     assert max_errors(replace_groups(graph, start, votes), truth)[0] > 80.0
     free = ~_outvoted(graph, votes, wrong, right)
@@ -202,9 +203,7 @@ def test_a_group_held_by_several_wrong_edges_moves_across_the_cut_its_right_edge
 def test_a_group_stays_where_more_votes_hold_it(seed, wrong):
     """Fewer right votes than the wrong edges carry: the cut outvotes the family, and the small cluster stays where
     the wrong edges put it (but for scans its own weak links leave to a cut of their own)."""
-    graph, truth, G = _held_group(seed, wrong, right=wrong)
-    start = truth.copy()
-    start[15:] = G @ truth[15:]
+    graph, _, start = _held_group(seed, wrong, right=wrong)
     moved = cut_moves(graph, start, credibility(graph))
     assert _at(moved, start, 0)[15:].sum() >= 8
 
@@ -214,7 +213,5 @@ def test_a_group_stays_where_more_votes_hold_it(seed, wrong):
 def test_two_parts_are_not_joined_on_dropped_edges_alone(seed):
     """No consistent edge between the clusters: however many dropped edges agree on joining them, joining parts is
     left to verified registrations, and nothing moves."""
-    graph, truth, G = _held_group(seed, wrong=0, right=6)
-    start = truth.copy()
-    start[15:] = G @ truth[15:]
+    graph, _, start = _held_group(seed, wrong=0, right=6)
     np.testing.assert_array_equal(cut_moves(graph, start, credibility(graph)), start)

@@ -294,8 +294,8 @@ def cut_moves(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, max_deg: f
     """
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     poses = poses.copy()
+    kept = consistent_edges(graph, poses, max_deg, max_trans)
     for _ in range(max_rounds):
-        kept = consistent_edges(graph, poses, max_deg, max_trans)
         total = votes[kept].sum()
         for fixed, moving, M, family_votes in _families(graph, poses, votes, kept, max_deg, max_trans, families):
             side = _cut_side(graph, kept, votes, fixed, moving, family_votes)
@@ -303,8 +303,9 @@ def cut_moves(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, max_deg: f
                 continue
             trial = poses.copy()
             trial[side] = M @ poses[side]
-            if votes[consistent_edges(graph, trial, max_deg, max_trans)].sum() > total:
-                poses = trial
+            trial_kept = consistent_edges(graph, trial, max_deg, max_trans)
+            if votes[trial_kept].sum() > total:
+                poses, kept = trial, trial_kept
                 break
         else:
             break
