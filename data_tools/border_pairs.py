@@ -75,7 +75,7 @@ def families(moves: np.ndarray, weights: np.ndarray, tolerance: tuple[float, flo
     """The moves grouped so that every two moves of a group agree within ``tolerance``: the heaviest move not yet
     taken starts a family, which takes, heaviest first, every move left that agrees with all its members. A
     partition of ``range(len(moves))``, heaviest families' seeds first."""
-    rot, trans = (np.stack(e) for e in zip(*(relative_errors(moves, m[None]) for m in moves)))
+    rot, trans = relative_errors(moves[:, None], moves[None])
     agree = (rot <= tolerance[0]) & (trans <= tolerance[1])
     order = np.argsort(-np.asarray(weights), kind="stable")
     taken = np.zeros(len(moves), dtype=bool)
