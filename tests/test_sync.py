@@ -278,7 +278,7 @@ def test_a_group_held_by_several_look_alike_edges_is_moved_back(data_dir):
     graph, truth, _ = make_graph("sun3d-hotel_uc-scan3", 0.3, "structured", 7, root=data_dir)
     result = synchronize(graph)
     rot, trans = relative_errors(gauge_free(result.poses), gauge_free(truth))
-    assert np.sum((rot < 5.0) & (trans < 0.2)) >= 50
+    assert np.sum((rot < 5.0) & (trans < 0.2)) >= 52
 
 
 def _two_clusters(links: list[tuple[int, int, bool]], seed: int = 3) -> tuple[PoseGraph, np.ndarray]:
