@@ -9,9 +9,10 @@ scan, against that scan's GT pose. Registrations whose moves agree form a family
 larger than every wrong one is evidence a vote over the border could use; docs/BENCHMARKS.md, "Studyroom's group
 58–65: what each descriptor registers across its border", is this tool's first use.
 
-Command line: ``python -m data_tools.border_pairs SCENE_DIR LO-HI [--descriptors fpfh learned]`` reads the scans
-and ``gt_poses.txt`` of SCENE_DIR (scans named ``cloud_bin_<k>.ply``, the group ``cloud_bin_LO`` … ``cloud_bin_HI``)
-and prints, per descriptor, the right pairs, the pairs at or above the descriptor's inlier bar and the families.
+Command line: ``python -m data_tools.border_pairs SCENE_DIR LO-HI [--descriptors fpfh learned] [--all-pairs]``
+reads the scans and ``gt_poses.txt`` of SCENE_DIR (scans named ``cloud_bin_<k>.ply``, the group ``cloud_bin_LO`` …
+``cloud_bin_HI``) and prints, per descriptor, the right pairs, the pairs at or above the descriptor's inlier bar and
+the families; ``--all-pairs`` takes every pair across the border, as a search that does not know the GT would.
 """
 
 from __future__ import annotations
@@ -55,11 +56,15 @@ class Registration:
 
 
 def border_pairs(scans: list[np.ndarray], poses: np.ndarray, group: set[int], voxel: float,
-                 min_overlap: float = MIN_OVERLAP) -> list[tuple[int, int]]:
+                 min_overlap: float | None = MIN_OVERLAP) -> list[tuple[int, int]]:
     """Pairs ``(a, b)``, ``a`` outside ``group`` and ``b`` in it, whose larger directed overlap under ``poses``
-    exceeds ``min_overlap`` (the scans' points taken on a ``voxel`` grid)."""
+    exceeds ``min_overlap`` (the scans' points taken on a ``voxel`` grid); every such pair when it is None (what a
+    search that does not know the GT would have to weigh)."""
+    outside = [a for a in range(len(scans)) if a not in group]
+    if min_overlap is None:
+        return [(a, b) for a in outside for b in sorted(group)]
     M = combine(directed_overlap_matrix(scans, poses, RADIUS_VOXELS * voxel, voxel), "max")
-    return [(a, b) for a in range(len(scans)) if a not in group for b in sorted(group) if M[a, b] > min_overlap]
+    return [(a, b) for a in outside for b in sorted(group) if M[a, b] > min_overlap]
 
 
 def group_moves(poses: np.ndarray, registrations: list[Registration], centre: np.ndarray) -> np.ndarray:
@@ -113,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scene", type=Path)
     ap.add_argument("group", help="LO-HI: the group's scans cloud_bin_LO ... cloud_bin_HI")
     ap.add_argument("--descriptors", nargs="+", default=["fpfh", "learned"], choices=sorted(MIN_INLIERS))
+    ap.add_argument("--all-pairs", action="store_true",
+                    help=f"every pair across the border, not only those whose GT overlap exceeds {MIN_OVERLAP}")
     args = ap.parse_args(argv)
     lo, hi = (int(x) for x in args.group.split("-"))
     gt_names, gt_poses = read_poses(args.scene / "gt_poses.txt")
@@ -122,8 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     scans = [load_scan(args.scene / n) for n in names]
     voxel = default_voxel(scans)
     group = set(range(lo, hi + 1))
-    pairs = border_pairs(scans, poses, group, voxel)
-    print(f"{args.scene.name}: group {lo}–{hi}, {len(pairs)} border pairs with GT overlap > {MIN_OVERLAP}")
+    pairs = border_pairs(scans, poses, group, voxel, None if args.all_pairs else MIN_OVERLAP)
+    which = "every pair" if args.all_pairs else f"GT overlap > {MIN_OVERLAP}"
+    print(f"{args.scene.name}: group {lo}–{hi}, {len(pairs)} border pairs ({which})")
     for descriptor in args.descriptors:
         registrations = register_border(scans, poses, pairs, voxel, descriptor)
         bar = MIN_INLIERS[descriptor]

@@ -62,3 +62,4 @@ def test_border_pairs_are_the_overlapping_pairs_across_the_group():
     # Scan 3 covers 15 % of scan 1, but all of scan 3 lies on scan 1: the larger direction counts.
     assert pairs == [(0, 1), (3, 1)]
     assert border_pairs(scans, poses, group={3}, voxel=0.05) == [(0, 3), (1, 3)]
+    assert border_pairs(scans, poses, group={1, 2}, voxel=0.05, min_overlap=None) == [(0, 1), (0, 2), (3, 1), (3, 2)]
