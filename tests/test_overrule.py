@@ -8,7 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import open3d as o3d
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
@@ -90,6 +90,43 @@ def test_a_room_held_in_the_wrong_place_is_overruled_and_a_right_one_is_not(buil
 
     graph, result = _graph(truth, wrong, room)
     assert not overruled_edges(views, graph, result).any()
+
+
+def _held_by_one_edge(held: np.ndarray, dropped: list[tuple[np.ndarray, float]], group: np.ndarray):
+    """Edges within the group (w⁰ 200) and within the rest (150) as ``held`` places them, kept; one kept edge across
+    the group's border as ``held`` places it (w⁰ 100); and every nearby pair across the border once for each of
+    ``dropped`` (poses, w⁰), dropped. Returns the graph, the result and the index of each dropped family's first edge
+    and the holding edge's."""
+    near = np.linalg.norm(held[:, None, :3, 3] - held[None, :, :3, 3], axis=2) < 4.0
+    inner = [(a, b) for a in range(N) for b in range(a + 1, N) if group[a] == group[b]]
+    border = [(a, b) for a in range(N) for b in range(a + 1, N) if group[a] != group[b] and near[a, b]]
+    measured = [(held, ab, 200.0 if group[ab[0]] else 150.0, 1.0) for ab in inner] + [(held, border[0], 100.0, 1.0)]
+    measured += [(P, ab, weight, 0.0) for P, weight in dropped for ab in border]
+    ij = np.array([ab for _, ab, _, _ in measured])
+    graph = PoseGraph(n=N, i=ij[:, 0], j=ij[:, 1], T=np.array([inv_T(P[a]) @ P[b] for P, (a, b), _, _ in measured]),
+                      weight=np.array([w for _, _, w, _ in measured]))
+    result = SyncResult(poses=held, weights=np.array([k for _, _, _, k in measured]), residual_deg=np.zeros(len(ij)),
+                        component=np.zeros(N, dtype=int))
+    return graph, result, len(inner), [len(inner) + 1 + f * len(border) for f in range(len(dropped) + 1)]
+
+
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(degrees=st.floats(20, 180), sign=st.sampled_from([-1, 1]), inward=st.floats(0, 1.5),
+       other=st.floats(45, 180), other_sign=st.sampled_from([-1, 1]))
+def test_a_room_hung_on_one_edge_is_not_handed_to_a_heavier_wrong_registration(building, degrees, sign, inward,
+                                                                               other, other_sign):
+    """The room hangs on one kept registration that holds it turned; of its dropped registrations, a heavier family
+    agrees on another wrong place (turned ``other``°, 1 m into the other scans' view) and a lighter one on the right
+    place. The free space rules out the kept edge and the heavier family with it, so that synchronizing without
+    them cannot hang the room on that family instead; the right family stays."""
+    truth, room, views = building.truth, building.room, building.views
+    held = _moved(truth, room, sign * degrees, inward * building.towards)
+    assume(abs(sign * degrees - other_sign * other) > 20)
+    elsewhere = _moved(truth, room, other_sign * other, building.towards)
+    graph, result, holding, (heavier, lighter, end) = _held_by_one_edge(held, [(elsewhere, 15.0), (truth, 10.0)], room)
+    overruled = overruled_edges(views, graph, result)
+    assert overruled[holding] and overruled[heavier:lighter].all()
+    assert not overruled[:holding].any() and not overruled[lighter:end].any()
 
 
 @settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])

@@ -6,7 +6,10 @@ one place says where there is nothing, and a group placed on a look-alike cuts t
 around it. So each group that synchronization's kept edges hold together (``sync.disputes.linkage_groups``) is
 tried at the move its dropped registrations agree on, and when that move leaves far fewer of its scans in conflict
 with the other scans (``CONFLICT``, registered or not), the kept registrations that hold the group where it is are
-overruled: synchronization runs again without them.
+overruled: synchronization runs again without them. A group that one kept registration holds is tried at the move
+of each family of its dropped registrations, the cleanest taken; the families whose move the free space rules out
+are overruled with the held edge, or the next synchronization would hang the group on the heaviest of them (3DMatch
+mit_lab, docs/BENCHMARKS.md).
 
 3DMatch studyroom (docs/BENCHMARKS.md): its repeated desks hold fragments 25-33 3 m off, in conflict with 187 of the
 334 scan pairs judged; at the move fragment 33's dropped registration to 34 proposes, 24 of 83.
@@ -168,10 +171,11 @@ def _takes_part(P: np.ndarray, voxel: float) -> bool:
 
 @dataclass
 class _Trial:
-    """One group of scans (``linkage_groups``) tried at the move its agreeing dropped registrations propose."""
+    """One group of scans (``linkage_groups``) tried at the move its agreeing dropped registrations propose (for a
+    group one kept edge holds, the move of the family of them that leaves the fewest conflicts)."""
 
     group: np.ndarray  # (N,) bool
-    holding: np.ndarray  # (E,) bool: the kept edges leaving it
+    holding: np.ndarray  # (E,) bool: the kept edges leaving it, and the dropped ones ruled out with them
     agreeing: int  # dropped registrations agreeing on the move
     support: float  # their w⁰ over the holding edges'
     before: int  # scan pairs in conflict (one scan of the group, one outside) where it is
@@ -235,13 +239,32 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
         if before < MIN_GAIN and not many:
             continue
         after, seen_after = conflicts(group, move, most=before)
-        trials.append(_Trial(group, leaving & kept, len(agreeing), support, before, after, seen_before, seen_after))
+        holding = leaving & kept
+        if not alike and holding.sum() == 1:
+            # Hung on one kept edge, the group would go to its heaviest dropped family once that edge is overruled,
+            # right or not (mit_lab, docs/BENCHMARKS.md): every family with SUPPORT is tried, the cleanest move is
+            # kept, and the families the free space rules out as firmly as the group's place go with the edge.
+            tried, others = [(agreeing, after)], np.setdiff1d(dropped, agreeing)
+            while len(others):
+                family, family_move = agreeing_edges(graph, poses, group, others, tolerance)
+                others = np.setdiff1d(others, family)
+                if w[family].sum() < SUPPORT * held:
+                    continue
+                count, seen = conflicts(group, family_move, most=before)
+                tried.append((family, count))
+                if count < after:
+                    agreeing, move, after, seen_after = family, family_move, count, seen
+                    support = w[family].sum() / held
+            for family, count in tried:
+                holding[family] |= count > RATIO * before
+        trials.append(_Trial(group, holding, len(agreeing), support, before, after, seen_before, seen_after))
     return trials
 
 
 def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
     """(E,) bool: the kept edges of ``graph`` that hold a group of scans where the scans' free space (``views``)
-    rules it out, against the move that the group's dropped registrations agree on (module docstring).
+    rules it out, against the move that the group's dropped registrations agree on; for a group one kept edge holds,
+    also the dropped registrations whose move it rules out as firmly (module docstring).
     ``result.poses`` in the scans' centred frames, as ``views``. Groups of more than ``MAX_GROUP`` scans are not
     tried. Of groups that share scans or holding edges, the clearest case is taken (fewest conflicts left, then most
     removed)."""
