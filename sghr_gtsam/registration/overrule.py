@@ -291,11 +291,10 @@ def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.n
     on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot
     tell apart (identical rooms), of which synchronization took the one with more weight. None while
     ``overruled_edges`` has edges to overrule: that model is not the last."""
-    trials = _trials(views, graph, result, alike=True)
     out = np.zeros(graph.n, dtype=bool)
-    if _overruled(trials, graph).any():
+    if overruled_edges(views, graph, result).any():  # its conflicts are kept for the trials below (``judged``)
         return out
-    for t in trials:
+    for t in _trials(views, graph, result, alike=True):
         if t.agreeing >= MIN_AGREEING and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0:
             out |= t.group
     return out
