@@ -240,11 +240,10 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
             continue
         after, seen_after = conflicts(group, move, most=before)
         holding = leaving & kept
-        one_edge = holding.sum() == 1
-        if not alike and (one_edge or (after <= RATIO * before and before - after >= MIN_GAIN)):
-            # Once its holding edges are overruled, the group goes to its heaviest dropped family, right or not
-            # (mit_lab, docs/BENCHMARKS.md): the families the free space rules out as firmly as the group's place go
-            # with them, and a group hung on one kept edge takes the cleanest family's move, not the heaviest's.
+        if not alike and holding.sum() == 1:
+            # Hung on one kept edge, the group would go to its heaviest dropped family once that edge is overruled,
+            # right or not (mit_lab, docs/BENCHMARKS.md): every family with SUPPORT is tried, the cleanest move is
+            # kept, and the families the free space rules out as firmly as the group's place go with the edge.
             tried, others = [(agreeing, after)], np.setdiff1d(dropped, agreeing)
             while len(others):
                 family, family_move = agreeing_edges(graph, poses, group, others, tolerance)
@@ -253,7 +252,7 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
                     continue
                 count, seen = conflicts(group, family_move, most=before)
                 tried.append((family, count))
-                if one_edge and count < after:
+                if count < after:
                     agreeing, move, after, seen_after = family, family_move, count, seen
                     support = w[family].sum() / held
             for family, count in tried:
