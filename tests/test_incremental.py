@@ -101,12 +101,7 @@ def _graph_session(scene, nodes: int = 2) -> Session:
 
 def _assert_truth(session: Session, scene, max_deg: float = 1e-6, max_m: float = 1e-6) -> None:
     n = len(session.names)
-    truth = inv_T(scene.poses[0])[None] @ scene.poses[:n]
-    # The angle from the chordal distance, 2 asin(‖ΔR‖ / 2√2): relative_errors' arccos of the trace reads one ulp of
-    # the trace as 1.2e-6°, above max_deg, on a pose right to 1e-14°.
-    chord = np.linalg.norm(session.poses[:, :3, :3] - truth[:, :3, :3], axis=(1, 2))
-    rot = np.degrees(2 * np.arcsin(np.minimum(chord / (2 * np.sqrt(2)), 1.0)))
-    trans = np.linalg.norm(session.poses[:, :3, 3] - truth[:, :3, 3], axis=1)
+    rot, trans = relative_errors(session.poses, inv_T(scene.poses[0])[None] @ scene.poses[:n])
     assert rot.max() < max_deg and trans.max() < max_m, (rot.max(), trans.max())
 
 
