@@ -248,13 +248,13 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
             while len(others):
                 family, family_move = agreeing_edges(graph, poses, group, others, tolerance)
                 others = np.setdiff1d(others, family)
-                if w[family].sum() < SUPPORT * held:
+                weight = w[family].sum()
+                if weight < SUPPORT * held:
                     continue
                 count, seen = conflicts(group, family_move, most=before)
                 tried.append((family, count))
                 if count < after:
-                    agreeing, move, after, seen_after = family, family_move, count, seen
-                    support = w[family].sum() / held
+                    agreeing, move, support, after, seen_after = family, family_move, weight / held, count, seen
             for family, count in tried:
                 holding[family] |= count > RATIO * before
         trials.append(_Trial(group, holding, len(agreeing), support, before, after, seen_before, seen_after))
