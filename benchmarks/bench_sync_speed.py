@@ -28,9 +28,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ.get("OMP_NUM_THREADS", "1"))
 
 import argparse  # noqa: E402
-import csv  # noqa: E402
 import sys  # noqa: E402
-import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -40,8 +38,8 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
+from data_tools.resync import run_graph  # noqa: E402
 from data_tools.scene_gt import placement_groups  # noqa: E402
-from sghr_gtsam.io.g2o import read_g2o  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors  # noqa: E402
 from sghr_gtsam.sync import POLISHES, synchronize  # noqa: E402
@@ -80,34 +78,20 @@ def make_scene(n: int, seed: int, layout: str = "plane", outliers: float = OUTLI
     return poses, PoseGraph(n=n, i=i, j=j, T=T, weight=overlap * inliers), outlier
 
 
-def load_run(run_dir: Path) -> tuple[list[int], PoseGraph]:
-    """The pose graph of a ``sghr_gtsam run`` output directory: every edge of ``graph.g2o`` and, if present,
-    ``graph_rejected.g2o`` (measured T and information), with the initial weight of ``edges.csv``."""
-    ids, _, graph = read_g2o(run_dir / "graph.g2o")
-    rejected = run_dir / "graph_rejected.g2o"
-    if rejected.exists():
-        lines = [ln for ln in (run_dir / "graph.g2o").read_text().splitlines() if ln.startswith("VERTEX")]
-        with tempfile.NamedTemporaryFile("w", suffix=".g2o") as f:
-            f.write("\n".join(lines + rejected.read_text().splitlines()))
-            f.flush()
-            _, _, more = read_g2o(f.name)
-        graph = PoseGraph(n=graph.n, i=np.r_[graph.i, more.i], j=np.r_[graph.j, more.j], T=np.r_[graph.T, more.T],
-                          weight=np.ones(graph.num_edges + more.num_edges),
-                          information=np.r_[graph.information, more.information])
-    with open(run_dir / "edges.csv") as f:
-        w0 = {(int(r["i"]), int(r["j"])): float(r["initial_weight"]) for r in csv.DictReader(f)}
-    graph.weight = np.array([w0[(ids[a], ids[b])] for a, b in zip(graph.i, graph.j)])
-    if (np.linalg.eigvalsh(graph.information)[:, 0] <= 0).any():
-        graph.information = None  # older runs wrote zero information for edges synchronization dropped
-    return ids, graph
+def _fragment(name: str) -> int:
+    """k of ``cloud_bin_k.ply``."""
+    return int(name.split("_")[-1].split(".")[0])
 
 
 def real_graph(run_dir: Path, gt_file: Path, polishes: list[str], repeats: int) -> None:
     """Median seconds and all-pairs recall (5° / 0.2 m against ``gt_file``, fragment k = ``cloud_bin_k``) of
     every polish on a real run's graph."""
-    ids, graph = load_run(run_dir)
+    graph, scans, _ = run_graph(run_dir)
+    if (np.linalg.eigvalsh(graph.information)[:, 0] <= 0).any():
+        graph.information = None  # older runs wrote zero information for edges synchronization dropped
+    ids = [_fragment(name) for name in scans]
     names, P = read_poses(gt_file)
-    gt = {int(name.split("_")[-1].split(".")[0]): T for name, T in zip(names, P)}
+    gt = {_fragment(name): T for name, T in zip(names, P)}
     truth = np.stack([gt[k] for k in ids])
     synchronize(graph, iters=2)
     print(f"{run_dir}: {graph.n} scans, {graph.num_edges} edges; load average {os.getloadavg()[0]:.1f}")
