@@ -324,8 +324,8 @@ def _gaps(cells: list[tuple[tuple[str, float], list[dict]]]) -> str:
     (``cycles.credibility`` of the consistent edges) as the GT poses: there a better search of the default's
     objective would not find the truth. And ``polish robust``'s gt.log gain over the default on the graphs where
     it is higher, and the part of it on graphs where the default's answer carries more votes than ``robust``'s:
-    there ``robust`` is ahead by an answer the graph supports less, not by a search the default missed. Sums
-    over graphs divided by their number, so each part adds to the table's means."""
+    there ``robust`` is ahead by an answer the graph supports less, not by a search the default missed. Each is a
+    sum over the graphs with a gap (a gain), divided by the number of all graphs: a share of the cell's mean."""
     out = ["| kind | ρ | all pairs: default / oracle | gap to the oracle | of it where the default's answer carries "
            "≥ GT's votes | graphs with a gap: of them so | gt.log: default / `robust` | `robust`'s gain | of it "
            "where the default's answer carries more votes than `robust`'s | graphs where `robust` gains: of them so |",
