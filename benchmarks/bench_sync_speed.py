@@ -40,6 +40,7 @@ from scipy.spatial.transform import Rotation  # noqa: E402
 
 from data_tools.resync import run_graph  # noqa: E402
 from data_tools.scene_gt import placement_groups  # noqa: E402
+from sghr_gtsam.evaluate import fragment_id  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors  # noqa: E402
 from sghr_gtsam.sync import POLISHES, synchronize  # noqa: E402
@@ -78,20 +79,15 @@ def make_scene(n: int, seed: int, layout: str = "plane", outliers: float = OUTLI
     return poses, PoseGraph(n=n, i=i, j=j, T=T, weight=overlap * inliers), outlier
 
 
-def _fragment(name: str) -> int:
-    """k of ``cloud_bin_k.ply``."""
-    return int(name.split("_")[-1].split(".")[0])
-
-
 def real_graph(run_dir: Path, gt_file: Path, polishes: list[str], repeats: int) -> None:
     """Median seconds and all-pairs recall (5° / 0.2 m against ``gt_file``, fragment k = ``cloud_bin_k``) of
     every polish on a real run's graph."""
     graph, scans, _ = run_graph(run_dir)
     if (np.linalg.eigvalsh(graph.information)[:, 0] <= 0).any():
         graph.information = None  # older runs wrote zero information for edges synchronization dropped
-    ids = [_fragment(name) for name in scans]
+    ids = [fragment_id(name) for name in scans]
     names, P = read_poses(gt_file)
-    gt = {_fragment(name): T for name, T in zip(names, P)}
+    gt = {fragment_id(name): T for name, T in zip(names, P)}
     truth = np.stack([gt[k] for k in ids])
     synchronize(graph, iters=2)
     print(f"{run_dir}: {graph.n} scans, {graph.num_edges} edges; load average {os.getloadavg()[0]:.1f}")
