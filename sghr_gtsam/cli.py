@@ -204,8 +204,8 @@ def _names(names: list[str], shown: int = 4) -> str:
 
 
 def _summary_table(result: "RunResult", out: Path) -> "Table":
-    """The closing summary of a run: scans placed and flagged, the worst residual among the edges the result
-    rests on, and the seconds of each stage."""
+    """The closing summary of a run: scans placed and verified, the worst residual among the edges the result
+    rests on, and the seconds of each stage (the parts follow it, ``_close``)."""
     import numpy as np
     from rich.table import Table
 
@@ -214,8 +214,12 @@ def _summary_table(result: "RunResult", out: Path) -> "Table":
     table.add_column(style="bold")
     table.add_column()
     table.add_row("scans placed", f"{len(result.registered)}/{n}")
-    for label, names in [*result.flags.items(), ("skipped files", list(result.skipped))]:
-        table.add_row(label, f"{len(names)}" + (f": {_names(names)}" if names else ""))
+    if result.verdict is not None:
+        status = list(result.verdict.status.values())
+        table.add_row("verified", f"{status.count('verified')}, doubtful {status.count('doubtful')}, in "
+                      f"{len(result.verdict.parts)} part(s)")
+    skipped = list(result.skipped)
+    table.add_row("skipped files", f"{len(skipped)}" + (f": {_names(skipped)}" if skipped else ""))
     g, s = result.graph, result.sync
     kept = np.flatnonzero(s.weights > 0)
     table.add_row("edges kept", f"{len(kept)} of {g.num_edges} registered pairs")
@@ -229,9 +233,8 @@ def _summary_table(result: "RunResult", out: Path) -> "Table":
 
 
 def _close(result: "RunResult", out: Path, recorded: bool) -> None:
-    """Print the summary table, the warnings (stderr) and how to open the recording."""
-    from .result import FLAGS
-
+    """Print the summary table, one line per part (stderr when some scan is doubtful) and how to open the
+    recording."""
     console = _console()
     if console.is_terminal:
         console.print(_summary_table(result, out))
@@ -239,9 +242,10 @@ def _close(result: "RunResult", out: Path, recorded: bool) -> None:
         with console.capture() as table:
             console.print(_summary_table(result, out))
         typer.echo("\n".join(line.rstrip() for line in table.get().splitlines()))
-    for flag, names in result.flags.items():
-        if names:
-            typer.echo(f"{flag}{f' ({FLAGS[flag]})' if FLAGS[flag] else ''}: {', '.join(names)}", err=True)
+    if result.verdict is not None:
+        doubtful = bool(result.verdict.doubts) or len(result.verdict.parts) > 1 or bool(result.unregistered)
+        for line in result.verdict.summary():
+            typer.echo(line, err=doubtful)
     typer.echo(f"summary picture: {out / 'summary.png'}")
     if recorded:
         typer.echo(f"review the run: rerun {out / 'recording.rrd'}")
@@ -365,7 +369,7 @@ def demo(
         gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
         gt = gt[[gt_names.index(n) for n in result.names]]
         err = scan_errors(result.names, result.poses, gt)
-        flags = {name: flag for flag, names in reversed(result.flags.items()) for name in names}
+        flags = result.verdict.doubts if result.verdict is not None else {}
         good = err.within(5.0, 0.2)
         listed = [k for k, name in enumerate(result.names)
                   if len(result.names) <= _DEMO_ROWS or name in flags or not good[k]]

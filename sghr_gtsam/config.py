@@ -115,6 +115,9 @@ class Config:
     groups: bool = True
     """Register each group of unverified scans (held together by its own kept edges), merged, onto the merged
     verified rest, and the pairs that placement makes overlap by ICP from it (``registration.groups``)."""
+    max_sigma: float | None = None
+    """The largest σ (scene units) of a scan's points along its least determined direction for which its pose
+    counts as fixed (``verify.Verification``); None: the voxel, the resolution the run registers at."""
     free_space: bool = True
     """Give weight 0 to registrations that put one scan's surfaces in the space the other saw empty
     (``registration.visibility``; only scans seen from their frame's origin can be checked), and to those that hold
@@ -195,7 +198,7 @@ class Config:
             raise InputError(f"workers must be a positive integer; got {self.workers!r}")
         if self.ray is not None:
             _check_ray(self.ray)
-        for name in ("voxel", "normal_radius", "fpfh_radius", "icp_distance"):
+        for name in ("voxel", "normal_radius", "fpfh_radius", "icp_distance", "max_sigma"):
             value = getattr(self, name)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise InputError(f"{name} must be a positive finite number; got {value!r}")

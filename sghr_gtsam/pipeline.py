@@ -1,7 +1,7 @@
 """The SGHR pipeline, stage by stage (``_register``): scans -> local features -> global features and top-k graph ->
 pairwise registration on graph edges -> synchronization (history-reweighted IRLS, gtsam polish) -> free space
 overrules look-alike placements -> refinement, loop closure, retries and weak groups, synchronized again
-(``_densify``) -> poses and the scans the run doubts (``_run_result``)."""
+(``_densify``) -> poses, parts and each scan's status (``_run_result``, ``verify``)."""
 
 from __future__ import annotations
 
@@ -35,17 +35,18 @@ from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
 from .registration.edges import GUESSED, EdgeSet
-from .registration.information import STIFFEN, underdetermined
-from .registration.overrule import MIN_AGREEING, Viewpoints, look_alikes, overruled_edges
+from .registration.information import loosest
+from .registration.overrule import Viewpoints, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
-from .registration.visibility import contradicted_placements, held_by_contradicted
+from .registration.visibility import contradicted_placements
 from .result import RunResult
 from .scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
 from .se3 import inv_T
 from .store import Attribute, Store, Stored
-from .sync import contested, synchronize, unverified
+from .sync import synchronize, unverified
 from .types import InputError, IterationRecord, PoseGraph, Scan, SyncResult
+from .verify import Verdict, Verification, verify
 
 
 class _Timer:
@@ -328,32 +329,30 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
 
 def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, densify: DensifyReport,
                 first_weak: np.ndarray, skipped: dict[str, str], feature_kind: str) -> RunResult:
-    """The last synchronization's poses anchored at the first scan of the largest part, the scans it doubts
-    (flags), the covariances, back in the input frame."""
+    """The last synchronization's poses anchored at the first scan of the largest part, the covariances, the parts
+    and each scan's status (``verify``), back in the input frame."""
     log, names, n = stages.log, [s.name for s in stages.scans], len(stages.scans)
     main_part = result.component == 0
     main = np.flatnonzero(main_part)
     poses = inv_T(result.poses[main[0]])[None] @ result.poses  # the other parts have no reliable pose
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
-    for name in unregistered:
-        log(f"UNREGISTERED {name}: no reliable edge connects it to the largest part")
-    doubts = _doubts(stages, edges, graph, result, first_weak, poses, densify)
     free_space = stages.config.free_space
     out = RunResult(names=names, poses=poses, voxel=float(stages.voxel), scores=stages.scores, graph=graph,
                     pairs=edges.pairs, edge_origin=edges.origin, edge_conflict=edges.conflict if free_space else None,
                     edge_overruled=edges.overruled if free_space else None,
                     densify=densify.as_dict(), sync=result, unregistered=unregistered,
                     skipped=skipped, features=stages.features, timings=stages.timer.seconds,
-                    global_feature=feature_kind, **doubts, cache=stages.cache.report() if stages.cache else None)
+                    global_feature=feature_kind, cache=stages.cache.report() if stages.cache else None)
     with stages.timer.stage("covariances"):
         try:
             out.covariances = pose_covariances(out)
         except RuntimeError:  # gtsam: an indeterminate system (e.g. identical scans: no information across them)
             out.covariances = np.full((n, 6, 6), np.nan)
             log("covariances: the kept edges leave the poses' marginals indeterminate; written as NaN")
-    out.underdetermined = _underdetermined(out, main[0])
-    for name in out.underdetermined:
-        log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
+    with stages.timer.stage("verify"):
+        out.verdict = _verdict(stages, edges, out, first_weak)
+    densify.rescued = [names[k] for k in np.flatnonzero(first_weak) if out.verdict.status[names[k]] == "verified"]
+    out.densify = densify.as_dict()
     if stages.recorder:
         stages.recorder.log_final(poses, out.flags)
         stages.recorder.log_covariances(poses, out.covariances)
@@ -361,71 +360,28 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     return out
 
 
-def _doubts(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, first_weak: np.ndarray,
-            poses: np.ndarray, densify: DensifyReport) -> dict[str, list[str]]:
-    """The placed scans the run doubts, by flag (``unverified``, ``contested``, ``ambiguous``, ``contradicted``), each
-    said in the log; the scans weak after the first synchronization and no longer doubted go to ``densify.rescued``."""
-    log, names, n = stages.log, [s.name for s in stages.scans], len(stages.scans)
-    main_part = result.component == 0
-    # Loop closures start from the synchronized poses, so they confirm a weak scan where it is, right or wrong (a
-    # 50-scan room: one scan 114° off lost its flag that way); group edges start from one registration's guess. A scan
-    # weak after the first synchronization is verified only by the global registrations (top-k and retries) it now
-    # rests on, without the edges ICP found from a guess.
-    guessed = np.isin(np.array(edges.origin), GUESSED)
-    global_only = replace(result, weights=np.where(guessed, 0.0, result.weights))
-    first_weak = first_weak & main_part
-    flagged = unverified(graph, result) | (first_weak & unverified(graph, global_only))
-    disputed_scans = contested(graph, result)
-    look_alike, clash = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
-    if stages.views is not None:  # config.free_space
-        with stages.timer.stage("free_space"):
-            look_alike = look_alikes(stages.views, graph, result)
-            # A free-space conflict is blamed on the scans the graph doubts first (visibility.contradicted_scans).
-            clash = contradicted_placements(stages.features, poses, main_part, stages.voxel, stages.centres,
-                                            flagged | disputed_scans | look_alike)
-    for k in np.flatnonzero(flagged):
-        log(f"UNVERIFIED {names[k]}: placed through one registration, or one scan, that no loop of the graph checks")
-    # A contradicted scan's own flag says as much (a generated building: five right scans, contradicted, in a block).
-    held = held_by_contradicted(graph, result, main_part & ~clash, clash) & ~flagged
-    for k in np.flatnonzero(held):
-        log(f"UNVERIFIED {names[k]}: held by kept edges mostly to scans the free space contradicts")
-    flagged |= held
-    weak = [names[k] for k in np.flatnonzero(flagged)]
-    densify.rescued = [names[k] for k in np.flatnonzero(first_weak & ~flagged)]
-    disputed = [names[k] for k in np.flatnonzero(disputed_scans)]
-    for name in disputed:
-        log(f"CONTESTED {name}: the registrations synchronization dropped outweigh the ones its pose rests on")
-    alike, clashing = [names[k] for k in np.flatnonzero(look_alike)], [names[k] for k in np.flatnonzero(clash)]
-    for name in alike:
-        log(f"AMBIGUOUS {name}: {MIN_AGREEING} or more dropped registrations agree on another placement of it, with "
-            f"the scans placed with it, that their free space does not rule out (a look-alike)")
-    for name in clashing:
-        log(f"CONTRADICTED {name}: placed where other scans saw empty space, or seeing empty space where they are")
-    return {"unverified": weak, "contested": disputed, "ambiguous": alike, "contradicted": clashing}
+def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.ndarray) -> Verdict:
+    """Parts and scan status (``verify``). A registration that started from the pose it would check (loop closures
+    and group edges, ``GUESSED``) is no independent evidence for a scan weak after the first synchronization: it
+    confirms that scan where it is, right or wrong."""
+    graph, n = run.graph, len(run.names)
+    placed = np.zeros(n, dtype=bool)
+    placed[run.registered] = True
+    guessed = np.isin(np.array(run.edge_origin), GUESSED) & (first_weak[graph.i] | first_weak[graph.j])
+    kept = (run.sync.weights > 0) & ~guessed
+    points = Attribute(stages.features, "points")
+    spreads, directions = loosest(run.covariances, points, run.registered)
+    clash = None
+    if stages.config.free_space:
+        def clash(doubted: np.ndarray) -> np.ndarray:
+            return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
+    return verify(run.names, graph, kept, run.poses, placed, Verification(max_sigma=stages.config.max_sigma),
+                  stages.voxel, spreads, directions, clash)
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:
     """``k -> fn(shared, tasks[k])``: how the store makes a stage's item k again (``store.Store.sequence``)."""
     return lambda k: fn(shared, tasks[k])
-
-
-def _underdetermined(run: RunResult, anchor: int) -> list[str]:
-    """The registered scans (but the world one) whose pose is not fixed in some direction
-    (``information.underdetermined``; the stiffened covariances only when a kept edge leaves a direction free).
-    Judged on the covariances of the geometry alone, without the edges' grid terms (``PairResult.grid``): those
-    size the errors, they do not tell which directions the scans fix."""
-    others = [k for k in run.registered if k != anchor]
-    kept = [p for p, w in zip(run.pairs, run.sync.weights) if w > 0]
-    covariances, stiffened = run.covariances, None
-    try:
-        if any(p.grid is not None for p in kept):
-            covariances = pose_covariances(run, grid=False)
-        if run.graph.information is not None and any(p.free for p in kept):
-            stiffened = pose_covariances(run, stiffen=STIFFEN, grid=False)
-    except RuntimeError:  # indeterminate (see above): the spreads alone decide
-        pass
-    flagged = underdetermined(covariances, Attribute(run.features, "points"), run.voxel, others, stiffened)
-    return [run.names[k] for k in np.flatnonzero(flagged)]
 
 
 def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,

@@ -12,32 +12,19 @@ from .features.local import ScanFeatures
 from .registration.pairwise import PairResult
 from .se3 import transform_points
 from .types import PoseGraph, SyncResult
+from .verify import REASONS, Verdict
 
-
-FLAGS = {"unregistered": "", "unverified": "pose rests on one registration, or one scan, that no loop checks",
-         "contested": "dropped registrations outweigh the kept ones",
-         "ambiguous": "dropped registrations agree on another placement that free space cannot rule out",
-         "contradicted": "placed where other scans saw empty space",
-         "underdetermined": "not fixed to a voxel in some direction"}
-"""Each way a run can doubt a scan (a ``RunResult`` field naming the scans), in the order they are reported,
-with what it means in a line."""
-DOUBTS = tuple(flag for flag in FLAGS if flag != "unregistered")
-"""The flags a placed scan can carry."""
+FLAGS = {"unplaced": "no reliable registration joins it to the largest part", **REASONS}
+"""What the run says of a scan it does not verify: unplaced, or doubtful for one of ``verify.REASONS``."""
+DOUBTS = tuple(REASONS)
+"""The reasons a placed scan can be doubtful for."""
 
 
 @dataclass
 class RunResult:
     """Everything a run produced; ``poses[k]`` maps ``names[k]`` into the world (the frame of the
-    first scan of the largest connected part). Scans in ``unregistered`` have no reliable pose; scans in
-    ``unverified`` have one that rests on a single registration, or a single scan's registrations, that no loop
-    checks (``sync.unverified``), or that are held mostly to scans the free space contradicts
-    (``registration.visibility.held_by_contradicted``); scans in
-    ``contested`` have one against which the graph holds more registration evidence than for it
-    (``sync.contested``); scans in ``ambiguous`` have another placement that dropped registrations agree on and the
-    scans' free space cannot rule out (``registration.overrule.look_alikes``); scans in ``contradicted`` have one
-    that puts them where other scans saw empty space, or them seeing empty space where others are, blamed on the
-    scans already doubted first (``registration.visibility.contradicted_placements``); scans in
-    ``underdetermined`` have one their edges leave free in some direction."""
+    first scan of the largest connected part). Scans in ``unregistered`` have no pose; ``verdict`` says which
+    placed scans the evidence holds, in rigid parts, with one status per scan (``verify``)."""
 
     names: list[str]
     poses: np.ndarray
@@ -54,10 +41,6 @@ class RunResult:
     temporary folder is gone)."""
     timings: dict[str, float] = field(default_factory=dict)
     global_feature: str = ""
-    unverified: list[str] = field(default_factory=list)
-    contested: list[str] = field(default_factory=list)
-    ambiguous: list[str] = field(default_factory=list)
-    contradicted: list[str] = field(default_factory=list)
     edge_origin: list[str] = field(default_factory=list)
     """Per edge of ``graph``: how it entered (``registration.edges.ORIGINS``)."""
     edge_conflict: np.ndarray | None = None
@@ -69,9 +52,6 @@ class RunResult:
     densify: dict = field(default_factory=dict)
     """What refinement, loop closure and retries did (``registration.densify.DensifyReport``), and the
     scans they rescued (weak after the first synchronization, placed and verified at the end)."""
-    underdetermined: list[str] = field(default_factory=list)
-    """Scans whose pose the kept edges do not fix to within a voxel in some direction (a scan seen as a plane,
-    a corridor, a cylinder; ``registration.information.underdetermined``): placed, but not certain there."""
     covariances: np.ndarray | None = None
     """(N, 6, 6) covariance of each scan's pose relative to the world scan, gtsam order [rotation, translation]
     at the pose (``gtsam_api.pose_covariances``); NaN for unregistered scans. None: not computed yet."""
@@ -79,14 +59,18 @@ class RunResult:
     cache: dict | None = None
     """What the resume cache gave (``cache.Cache.report``: per kind, results cached and computed); None without
     one."""
+    verdict: Verdict | None = None
+    """Parts and each scan's status (``verify.verify``). None: not verified yet."""
     centres: np.ndarray | None = None
     """(N, 3) the point each scan was centred at (``features`` and ``sync`` are in those centred frames; ``poses``,
     ``graph`` and ``covariances`` in the scans' input frames)."""
 
     @property
     def flags(self) -> dict[str, list[str]]:
-        """The scans of each of ``FLAGS``, in its order."""
-        return {flag: getattr(self, flag) for flag in FLAGS}
+        """The scans of each of ``FLAGS``, in its order: the unregistered, then the doubtful by reason."""
+        doubts = {} if self.verdict is None else self.verdict.doubts
+        return {"unplaced": list(self.unregistered),
+                **{reason: [name for name in self.names if doubts.get(name) == reason] for reason in DOUBTS}}
 
     @property
     def registered(self) -> list[int]:

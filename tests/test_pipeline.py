@@ -68,9 +68,10 @@ def test_outputs_parse_back_to_the_result(room_run):
     n = len(result.names)
     assert report["pairs_exhaustive"] == n * (n - 1) // 2
     assert report["pairs_registered"] == result.graph.num_edges
-    assert report["unregistered"] == [] and report["unverified"] == result.unverified == []
-    assert report["contested"] == result.contested == []
-    assert report["underdetermined"] == result.underdetermined == []
+    # every scan of a generated room is placed right: one part, each scan verified, no doubt
+    assert report["unregistered"] == [] and report["doubts"] == result.verdict.doubts == {}
+    assert report["status"] == {name: "verified" for name in result.names}
+    assert [p["scans"] for p in report["parts"]] == [result.names] and report["parts"][0]["join"] is None
     # kept edges only: a failed registration's free directions listed a perfect scene as degenerate
     assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p, r
                                           in zip(result.graph.i, result.graph.j, result.pairs, rows)

@@ -2,11 +2,14 @@
 poses.txt, poses_kitti.txt, poses_tum.txt, graph.g2o, graph_rejected.g2o, edges.csv, merged.ply, summary.png,
 report.json, config.json, recording.rrd.
 
-graph.g2o is what a SLAM stack loads as it is: one vertex per registered scan (id = the scan's index in
-``report.json["scans"]``, mapped to its name in ``report.json["g2o_vertices"]``) at its final pose, and the
-edges the result rests on (kept by synchronization, both ends registered) with their calibrated information.
-graph_rejected.g2o holds the other registered pairs as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to
-be optimized). edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
+graph.g2o, poses_kitti.txt and poses_tum.txt are what a SLAM stack loads as they are, so they hold the world part
+only (``report.json["parts"][0]``, ``verify``): nothing in them rests on a join that failed verification. graph.g2o
+has one vertex per scan of that part (id = the scan's index in ``report.json["scans"]``, mapped to its name in
+``report.json["g2o_vertices"]``) at its final pose, and the edges the result rests on inside it (kept by
+synchronization) with their calibrated information. graph_rejected.g2o holds the other registered pairs (the
+other parts' edges and their joins among them) as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to be
+optimized). poses.txt has every placed scan, the other parts where their best join puts them (report.json says
+which). edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
 
 The folder is replaced as a whole (``io.atomic.staged_folder``): a run writes into a temporary folder beside it and swaps it
 in at the end, so a run stopped at any point (SIGINT, SIGTERM, SIGKILL, a failure) leaves the previous results
@@ -68,10 +71,20 @@ def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
                         "" if np.isnan(conflict[e]) else f"{conflict[e]:.4f}"])
 
 
+def world_part(result: "RunResult") -> list[int]:
+    """The scans of the world part (``verify``), in scan order; every registered scan before verification."""
+    if result.verdict is None:
+        return result.registered
+    world = set(result.verdict.parts[0].scans) if result.verdict.parts else set()
+    return [k for k, name in enumerate(result.names) if name in world]
+
+
 def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
-    """graph.g2o (registered scans, kept edges) and graph_rejected.g2o (every other pair), module doc."""
-    g, nodes = result.graph, result.registered
-    kept = np.array([s == "kept" for s in status], dtype=bool)
+    """graph.g2o (the world part's scans and kept edges) and graph_rejected.g2o (every other pair), module doc."""
+    g, nodes = result.graph, world_part(result)
+    inside = np.zeros(len(result.names), dtype=bool)
+    inside[nodes] = True
+    kept = np.array([s == "kept" for s in status], dtype=bool) & inside[g.i] & inside[g.j]
     index = np.full(len(result.names), -1)
     index[nodes] = np.arange(len(nodes))
     sub = PoseGraph(n=len(nodes), i=index[g.i[kept]], j=index[g.j[kept]], T=g.T[kept], weight=g.weight[kept],
@@ -96,16 +109,21 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
                   merged: np.ndarray) -> None:
     """Write every output; report.json goes last so its presence means the folder is complete.
 
-    Only registered scans get a pose in poses.txt / poses_kitti.txt / merged.ply: an unregistered
-    scan has no reliable pose, and it is listed in report.json and in a comment of poses.txt.
+    Only registered scans get a pose in poses.txt / merged.ply: an unregistered scan has no reliable pose, and it
+    is listed in report.json and in a comment of poses.txt. poses_kitti.txt and poses_tum.txt hold the world part
+    (module doc).
     """
     t0 = time.perf_counter()
-    keep = result.registered
+    keep, world = result.registered, world_part(result)
     names = [result.names[k] for k in keep]
     header = ("unregistered (no pose): " + ", ".join(result.unregistered)) if result.unregistered else None
+    others = len(keep) - len(world)
+    if others:
+        joined = f"{others} scan(s) outside the world part, placed by joins that failed verification (report.json parts)"
+        header = joined if header is None else header + "\n" + joined
     write_poses(out / "poses.txt", names, result.poses[keep], comment=header)
-    write_kitti(out / "poses_kitti.txt", result.poses[keep])
-    write_tum(out / "poses_tum.txt", result.poses[keep], keep)  # timestamp = scan index
+    write_kitti(out / "poses_kitti.txt", result.poses[world])
+    write_tum(out / "poses_tum.txt", result.poses[world], world)  # timestamp = scan index
     if result.covariances is None:
         result.covariances = pose_covariances(result)
     status = edge_status(result)
@@ -124,11 +142,7 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "scans": result.names,
         "registered": names,
         "unregistered": result.unregistered,
-        "unverified": result.unverified,
-        "contested": result.contested,
-        "ambiguous": result.ambiguous,
-        "contradicted": result.contradicted,
-        "underdetermined": result.underdetermined,
+        **(result.verdict.as_dict() if result.verdict is not None else {}),
         # the pairs the result rests on: a failed or rejected registration's free directions say nothing of the scene
         "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p, s
                              in zip(result.graph.i, result.graph.j, result.pairs, status) if p.free and s == "kept"],
@@ -141,13 +155,13 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "pairs_exhaustive": n * (n - 1) // 2,
         "edges_kept": int((result.sync.weights > 0).sum()),
         "edge_status": {key: status.count(key) for key in EDGE_STATUS},
-        "g2o_vertices": {str(k): result.names[k] for k in keep},
+        "g2o_vertices": {str(k): result.names[k] for k in world},
         "variance_factor": round(factor, 4),
         "pose_covariances": covariance_report(result),
         "seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
         "parameters": asdict(config),
-        "kitti_order": names,
+        "kitti_order": [result.names[k] for k in world],
     }
     with atomic_write(out / "report.json") as f:
         json.dump(_strict(report), f, indent=2, allow_nan=False)

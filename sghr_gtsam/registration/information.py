@@ -18,9 +18,9 @@ in any way, residuals in different cells are taken as independent.
 Degenerate geometry: a pair that sees only a plane, a corridor or a cylinder does not fix every direction of
 ``T``; ``free_directions`` finds those directions by moving the scan along them and bounds their information
 by the overlap's extent (the linearized model alone would credit noisy normals with a spurious stiffness).
-``pose_spread`` and ``underdetermined`` then judge a scan's pose covariance in the same metric (the
-displacement of its own points), so a scan held only by such edges is reported rather than placed as if
-its pose were certain.
+``pose_spread`` and ``loosest`` then judge a scan's pose covariance in the same metric (the displacement of its
+own points), so a scan held only by such edges is reported loose (``verify``) rather than placed as if its pose were
+certain.
 
 Why point-to-plane: tangential offsets between two samplings of one surface are not noise in the pose, and
 the point-to-point sum (``Σ [−[q]×, I]ᵀ[−[q]×, I]``) is blind to sliding along a plane; on simulated scenes
@@ -60,8 +60,7 @@ FREE_FLOOR = 1e-6
 """Least information of a free direction, relative to the pair's best-determined one (both per unit RMS
 displacement of the points): gtsam's Cholesky calls a pose block whose information spans more than about
 10⁷ indeterminate (a corridor pair bounded by its overlap alone spans 10⁹), so a free direction keeps a
-σ at most 1000× the best one's. ``underdetermined`` tells such a σ from a measured one by its dependence on
-this bound."""
+σ at most 1000× the best one's."""
 
 
 class Grid(Protocol):
@@ -246,25 +245,14 @@ def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(L.T @ covariance @ L)[-1], 0.0)))
 
 
-STIFFEN = 100.0
-"""``underdetermined`` compares covariances with the free directions' bounds as they are and this many times
-stiffer: a spread those bounds set shrinks by √STIFFEN = 10, one the measurements set does not move."""
-
-
-def underdetermined(covariances: np.ndarray, points: Sequence[np.ndarray], voxel: float, registered: list[int],
-                    stiffened: np.ndarray | None = None) -> np.ndarray:
-    """(N,) bool: the ``registered`` scans whose pose is not fixed in some direction.
-
-    A scan is flagged when its ``pose_spread`` exceeds ``voxel`` (the resolution the run registers at:
-    descriptors, inlier distances and grids all work at it), when the graph leaves its covariance
-    indeterminate, or when its spread is set by the bounds of its edges' free directions (``free_directions``)
-    rather than by measurements: ``stiffened`` holds the covariances with every kept edge's ``loose`` part
-    ``STIFFEN`` times stiffer, and a spread that shrinks by more than ``STIFFEN^¼`` (the geometric middle of no
-    change and ``√STIFFEN``) is one no measurement fixes. ``covariances``: (N, 6, 6) as
-    ``gtsam_api.pose_covariances``; ``points[k]``: scan k's points in its own frame, read once."""
-    flagged = np.zeros(len(covariances), dtype=bool)
+def loosest(covariances: np.ndarray, points: Sequence[np.ndarray], registered: Sequence[int]) -> tuple[np.ndarray,
+                                                                                                  np.ndarray]:
+    """(N,) ``pose_spread`` of each ``registered`` scan (inf where its covariance is not finite, NaN for the others)
+    and (N, 3) the unit axis along which its position is least determined (the translation block's longest axis;
+    NaN where not judged). ``points[k]``: scan k's points in its own frame, read once."""
+    spreads, axes = np.full(len(covariances), np.nan), np.full((len(covariances), 3), np.nan)
     for k in registered:
-        q = points[k]
-        spread = pose_spread(covariances[k], q)
-        flagged[k] = spread > voxel or (stiffened is not None and spread > STIFFEN**0.25 * pose_spread(stiffened[k], q))
-    return flagged
+        spreads[k] = pose_spread(covariances[k], points[k])
+        if np.isfinite(covariances[k]).all():
+            axes[k] = np.linalg.eigh(covariances[k][3:, 3:])[1][:, -1]
+    return spreads, axes

@@ -1,0 +1,254 @@
+"""Verification: which placed scans the evidence holds, as rigid parts with one status per scan.
+
+A pose is *verified* when registrations that can be checked against each other hold it. Three tests, each a
+standard one:
+
+1. **Loop-closure error against its noise.** Every kept registration ``T_ij`` is compared with the final poses:
+   ``r = Log(T_ij⁻¹ T_i⁻¹ T_j)`` (gtsam order), ``χ² = rᵀ Ω r`` with the edge's information ``Ω``. The information
+   of real scans is overconfident by a factor the graph itself measures: the a posteriori variance factor ``σ̂₀²``
+   (the median ``χ²`` over the median of ``χ²₆``, robust to the few wrong edges; never below 1, so the test is never
+   sharper than the stated noise). A registration passes when ``χ² / σ̂₀² ≤ χ²₆(1 − α)``.
+2. **Cycle consistency.** The passing registrations form the verified graph. Its biconnected components of three
+   or more scans are the *rigid parts*: any two scans of one are joined by two paths that share no scan, so every
+   pose in it is checked by a loop of registrations that closes within their noise. What joins two parts is a
+   *bridge* (one registration no loop checks) or an *articulation point* (one scan, whose registrations can all be
+   wrong the same way, as a symmetric room's can): such a join is reported and not trusted. Scans in no part of
+   three hang on one registration or one scan.
+3. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
+   that puts one scan's surfaces where another saw empty space is contradicted (``registration.visibility``),
+   blamed first on the scans outside the rigid parts.
+
+A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
+that only the bounds of their overlap fix. That is its covariance, reported with the direction and σ, and a doubt
+only where σ exceeds ``Verification.max_sigma``.
+
+Parts are ordered largest first; part 0 holds the world scan when it is the largest. A part whose join failed is
+placed where its best join puts it, and marked so (``Part.join``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+
+import gtsam
+import networkx as nx
+import numpy as np
+from scipy.stats import chi2
+
+from .types import PoseGraph
+
+LEVEL = 0.001
+"""α, the false-alarm rate of the χ² test of one registration against its noise."""
+REASONS = {"single registration": "held by one registration, or through one scan, that no loop checks",
+           "loop error": "its registrations do not close their loops within their noise (χ² test)",
+           "free space": "placed where other scans saw empty space, or seeing empty space where they are",
+           "loose": "its registrations leave a direction free beyond the tolerance (see report.json loose)"}
+"""Why a placed scan is doubtful: one of these, the first that applies in this order."""
+STATUSES = ("verified", "doubtful", "unplaced")
+
+
+@dataclass(frozen=True)
+class Verification:
+    """Parameters of the verification. ``max_sigma``: the largest σ (scene units) of a scan's points along its
+    least determined direction that still counts as placed; None: the voxel, the resolution the run registers
+    at (its descriptors, inlier distances and grids all work at it)."""
+
+    max_sigma: float | None = None
+    level: float = LEVEL
+
+
+@dataclass
+class Join:
+    """How a part hangs on another: the kept registrations between them (scan names) and why they do not verify
+    the join."""
+
+    to: int
+    edges: list[tuple[str, str]]
+    why: str
+
+
+@dataclass
+class Part:
+    id: int
+    scans: list[str]
+    join: Join | None = None
+    """None for part 0 (the world) and for a part that no registration joins to the rest."""
+
+    @property
+    def frame(self) -> str:
+        return "world" if self.id == 0 else "joined"
+
+
+@dataclass
+class Verdict:
+    """The verification's answer: parts (largest first), and per scan name a status (``STATUSES``), the reason
+    of each doubt (``REASONS``) and, for a loose pose, its free direction (unit, world frame) and σ."""
+
+    parts: list[Part]
+    status: dict[str, str]
+    doubts: dict[str, str]
+    loose: dict[str, dict[str, object]] = field(default_factory=dict)
+    variance_factor: float = float("nan")
+    edge_chi2: np.ndarray | None = None
+    """(E,) each edge's χ² / σ̂₀² at the final poses (NaN where not kept)."""
+
+    def part_of(self) -> dict[str, int]:
+        return {name: p.id for p in self.parts for name in p.scans}
+
+    def as_dict(self) -> dict:
+        return {"parts": [{"id": p.id, "scans": p.scans, "frame": p.frame,
+                           "join": None if p.join is None else asdict(p.join)} for p in self.parts],
+                "status": self.status, "doubts": self.doubts, "loose": self.loose,
+                "variance_factor": None if not np.isfinite(self.variance_factor) else self.variance_factor}
+
+    def summary(self, max_lines: int = 12) -> list[str]:
+        """One line per part of two or more scans, then the single scans in one line: at most ``max_lines`` + 2."""
+        lines = []
+        many = [p for p in self.parts if len(p.scans) > 1]
+        for p in many[:max_lines]:
+            doubtful = [s for s in p.scans if self.status[s] == "doubtful"]
+            where = "the world" if p.join is None and p.id == 0 else (
+                f"joined to part {p.join.to} by a join that failed: {p.join.why}" if p.join else "not joined")
+            said = f"part {p.id}: {len(p.scans)} scans, {len(p.scans) - len(doubtful)} verified; {where}"
+            if doubtful:
+                said += "; doubtful: " + _listed(doubtful, self.doubts)
+            lines.append(said)
+        if len(many) > max_lines:
+            lines.append(f"... {len(many) - max_lines} more parts (report.json parts)")
+        single = [p.scans[0] for p in self.parts if len(p.scans) == 1]
+        if single:
+            lines.append(f"{len(single)} scan(s) on their own, doubtful: " + _listed(single, self.doubts))
+        unplaced = [s for s, v in self.status.items() if v == "unplaced"]
+        if unplaced:
+            lines.append(f"{len(unplaced)} scan(s) unplaced: {_names(unplaced)}")
+        return lines
+
+
+def _names(names: list[str], most: int = 6) -> str:
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
+def _listed(names: list[str], doubts: dict[str, str]) -> str:
+    by_reason: dict[str, list[str]] = {}
+    for name in names:
+        by_reason.setdefault(doubts[name], []).append(name)
+    return "; ".join(f"{reason}: {_names(found)}" for reason, found in by_reason.items())
+
+
+def edge_chi2(graph: PoseGraph, poses: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E,) ``rᵀ Ω r`` of each of ``edges`` (bool mask) at ``poses`` (NaN elsewhere); ``r`` in gtsam's tangent
+    order, ``Ω`` the graph's information (identity without one)."""
+    out = np.full(graph.num_edges, np.nan)
+    for e in np.flatnonzero(edges):
+        i, j = int(graph.i[e]), int(graph.j[e])
+        predicted = gtsam.Pose3(poses[i]).between(gtsam.Pose3(poses[j]))
+        r = gtsam.Pose3.Logmap(gtsam.Pose3(graph.T[e]).between(predicted))
+        omega = np.eye(6) if graph.information is None else graph.information[e]
+        out[e] = float(r @ omega @ r)
+    return out
+
+
+def robust_variance_factor(chi2_values: np.ndarray) -> float:
+    """σ̂₀² from the median of 6-dof χ² values (a few wrong edges do not move it), at least 1; 1 for none."""
+    values = chi2_values[np.isfinite(chi2_values)]
+    if len(values) == 0:
+        return 1.0
+    return max(1.0, float(np.median(values) / chi2.median(6)))
+
+
+def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, placed: np.ndarray) -> np.ndarray:
+    """(N,) part label of each scan (−1 unplaced): the biconnected components of three or more scans of the
+    ``verified`` edges, largest first (ties: the one with the smallest scan); an articulation point goes to the
+    largest component it is in; every other placed scan is a part of its own."""
+    G = nx.Graph()
+    G.add_edges_from(zip(i[verified].tolist(), j[verified].tolist()))
+    components = sorted((sorted(c) for c in nx.biconnected_components(G) if len(c) >= 3),
+                        key=lambda c: (-len(c), c[0]))
+    label = np.full(n, -1)
+    for x, c in enumerate(components):
+        free = [k for k in c if label[k] < 0]
+        label[free] = x
+    alone = np.flatnonzero(placed & (label < 0))
+    label[alone] = len(components) + np.arange(len(alone))
+    sizes = np.bincount(label[label >= 0], minlength=label.max() + 1)
+    order = sorted(range(len(sizes)), key=lambda x: (-sizes[x], int(np.flatnonzero(label == x)[0])))
+    rank = np.empty(len(order), dtype=int)
+    rank[order] = np.arange(len(order))
+    return np.where(label >= 0, rank[np.maximum(label, 0)], -1)
+
+
+def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.ndarray, passed: np.ndarray,
+          weight: np.ndarray, names: Sequence[str]) -> Join | None:
+    """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none)."""
+    a, b = label[i], label[j]
+    out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
+    if not out.any():
+        return None
+    e = np.flatnonzero(out)
+    best = e[np.argmax(weight[e])]
+    to = int(b[best] if a[best] == part else a[best])
+    good = e[passed[e]]
+    if len(good) == 0:
+        why = "its registrations to the rest fail the χ² test against the poses"
+    elif len(good) == 1:
+        why = "one registration that no loop checks (a bridge)"
+    else:
+        inside = np.where(a[good] == part, i[good], j[good])
+        outside = np.where(a[good] == part, j[good], i[good])
+        why = "every registration goes through one scan (an articulation point)" if (
+            len(set(inside.tolist())) == 1 or len(set(outside.tolist())) == 1) else \
+            "registrations that close no loop with the part"
+    return Join(to=to, edges=[(names[i[x]], names[j[x]]) for x in e], why=why)
+
+
+def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.ndarray, placed: np.ndarray,
+           params: Verification, voxel: float, spreads: np.ndarray | None = None,
+           directions: np.ndarray | None = None, clash: np.ndarray | None = None) -> Verdict:
+    """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
+    ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``spreads``: (N,) σ of
+    each scan's points along its least determined direction (``registration.information.pose_spread``) and
+    ``directions`` (N, 3) that direction's translation part (None: not judged); ``clash``: a callable
+    ``doubted -> (N,) bool`` blaming free-space conflicts on scans, the doubted first (None: no free-space test)."""
+    n = len(names)
+    kept = kept & placed[graph.i] & placed[graph.j]
+    raw = edge_chi2(graph, poses, kept)
+    factor = robust_variance_factor(raw)
+    scaled = raw / factor
+    passed = kept & (scaled <= chi2.ppf(1.0 - params.level, 6))
+    label = rigid_parts(n, graph.i, graph.j, passed, placed)
+    parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
+    for p in parts[1:]:
+        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, graph.weight, names)
+    sizes = np.bincount(label[label >= 0], minlength=len(parts))
+    alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
+    failing = np.zeros(n, dtype=bool)
+    for ends in (graph.i, graph.j):
+        np.logical_or.at(failing, ends[kept & ~passed], True)
+    contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
+    max_sigma = voxel if params.max_sigma is None else params.max_sigma
+    loose = np.zeros(n, dtype=bool) if spreads is None else placed & (spreads > max_sigma)
+    status, doubts, loose_said = {}, {}, {}
+    for k, name in enumerate(names):
+        if not placed[k]:
+            status[name] = "unplaced"
+            continue
+        reason = ("loop error" if failing[k] and not _passes_twice(k, graph, passed) else "single registration") \
+            if alone[k] else "free space" if contradicted[k] else "loose" if loose[k] else None
+        status[name] = "verified" if reason is None else "doubtful"
+        if reason:
+            doubts[name] = reason
+        if loose[k]:
+            loose_said[name] = {"sigma": float(spreads[k]),
+                                "direction": None if directions is None else np.round(directions[k], 4).tolist()}
+    return Verdict(parts=parts, status=status, doubts=doubts, loose=loose_said, variance_factor=factor,
+                   edge_chi2=np.where(kept, scaled, np.nan))
+
+
+def _passes_twice(k: int, graph: PoseGraph, passed: np.ndarray) -> bool:
+    """Whether scan k has two or more registrations that pass the χ² test."""
+    return int(np.sum(passed & ((graph.i == k) | (graph.j == k)))) >= 2
+
+
+__all__ = ["Verification", "Verdict", "Part", "Join", "REASONS", "STATUSES", "verify", "edge_chi2",
+           "robust_variance_factor", "rigid_parts"]
