@@ -35,7 +35,6 @@ from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
 from .registration.edges import GUESSED, EdgeSet
-from .registration.information import loosest
 from .registration.overrule import Viewpoints, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
@@ -369,14 +368,14 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
     placed[run.registered] = True
     guessed = np.isin(np.array(run.edge_origin), GUESSED) & (first_weak[graph.i] | first_weak[graph.j])
     kept = (run.sync.weights > 0) & ~guessed
-    points = Attribute(stages.features, "points")
-    spreads, directions = loosest(run.covariances, points, run.registered)
+    bounded = None if graph.information is None else np.stack(
+        [info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)])
     clash = None
     if stages.config.free_space:
         def clash(doubted: np.ndarray) -> np.ndarray:
             return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
     return verify(run.names, graph, kept, run.poses, placed, Verification(max_sigma=stages.config.max_sigma),
-                  stages.voxel, spreads, directions, clash)
+                  stages.voxel, Attribute(stages.features, "points"), bounded, clash)
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:

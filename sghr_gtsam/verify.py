@@ -28,7 +28,7 @@ placed where its best join puts it, and marked so (``Part.join``).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 
 import gtsam
@@ -36,6 +36,7 @@ import networkx as nx
 import numpy as np
 from scipy.stats import chi2
 
+from .sync.rotation import connected_components
 from .types import PoseGraph
 
 LEVEL = 0.001
@@ -203,13 +204,14 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
 
 
 def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.ndarray, placed: np.ndarray,
-           params: Verification, voxel: float, spreads: np.ndarray | None = None,
-           directions: np.ndarray | None = None, clash: np.ndarray | None = None) -> Verdict:
+           params: Verification, voxel: float, points: Sequence[np.ndarray] | None = None,
+           bounded: np.ndarray | None = None, clash: Callable[[np.ndarray], np.ndarray] | None = None) -> Verdict:
     """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
-    ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``spreads``: (N,) σ of
-    each scan's points along its least determined direction (``registration.information.pose_spread``) and
-    ``directions`` (N, 3) that direction's translation part (None: not judged); ``clash``: a callable
-    ``doubted -> (N,) bool`` blaming free-space conflicts on scans, the doubted first (None: no free-space test)."""
+    ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
+    k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``bounded``: (E, 6, 6) the
+    information the covariances use, free directions bounded by the overlap alone (default: the graph's);
+    ``clash``: ``doubted -> (N,) bool``, the scans free-space conflicts are blamed on, the doubted first (None: no
+    free-space test)."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
     raw = edge_chi2(graph, poses, kept)
@@ -227,7 +229,14 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
         np.logical_or.at(failing, ends[kept & ~passed], True)
     contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
     max_sigma = voxel if params.max_sigma is None else params.max_sigma
-    loose = np.zeros(n, dtype=bool) if spreads is None else placed & (spreads > max_sigma)
+    spreads, axes = np.full(n, np.nan), np.full((n, 3), np.nan)
+    information = graph.information if bounded is None else bounded
+    if points is not None and information is not None:  # over the passing registrations that hold each scan
+        held = connected_components(n, graph.i, graph.j, passed)
+        for x in np.unique(held[placed]):
+            if np.sum(held == x) >= 2:
+                _part_spreads(held == x, graph, passed, information * (1.0 / factor), poses, points, spreads, axes)
+    loose = placed & (np.nan_to_num(spreads, nan=0.0) > max_sigma)
     status, doubts, loose_said = {}, {}, {}
     for k, name in enumerate(names):
         if not placed[k]:
@@ -239,10 +248,37 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
         if reason:
             doubts[name] = reason
         if loose[k]:
-            loose_said[name] = {"sigma": float(spreads[k]),
-                                "direction": None if directions is None else np.round(directions[k], 4).tolist()}
+            loose_said[name] = {"sigma": float(spreads[k]), "axis": np.round(axes[k], 4).tolist()}
     return Verdict(parts=parts, status=status, doubts=doubts, loose=loose_said, variance_factor=factor,
                    edge_chi2=np.where(kept, scaled, np.nan))
+
+
+def _part_spreads(members: np.ndarray, graph: PoseGraph, passed: np.ndarray, information: np.ndarray,
+                  poses: np.ndarray, points: Sequence[np.ndarray], spreads: np.ndarray, axes: np.ndarray) -> None:
+    """Fill ``spreads`` and ``axes`` (``registration.information.loosest``) of the ``members`` scans from the
+    marginal covariances of their passing registrations, relative to their first scan (a stiff prior)."""
+    from .factor_graph import anchor_prior
+    from .registration.information import loosest
+
+    edges = np.flatnonzero(passed & members[graph.i] & members[graph.j])
+    factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    nodes = np.flatnonzero(members)
+    for k in nodes:
+        values.insert(int(k), gtsam.Pose3(poses[k]))
+    for e in edges:
+        factors.add(gtsam.BetweenFactorPose3(int(graph.i[e]), int(graph.j[e]), gtsam.Pose3(graph.T[e]),
+                                             gtsam.noiseModel.Gaussian.Information(information[e])))
+    factors.add(gtsam.PriorFactorPose3(int(nodes[0]), gtsam.Pose3(poses[nodes[0]]),
+                                       anchor_prior(float(np.abs(information[edges]).max()))))
+    try:
+        marginals = gtsam.Marginals(factors, values)
+    except RuntimeError:  # indeterminate: some direction nothing fixes
+        spreads[nodes] = np.inf
+        return
+    covariances = np.full((len(poses), 6, 6), np.nan)
+    for k in nodes:
+        covariances[k] = marginals.marginalCovariance(int(k))
+    spreads[nodes], axes[nodes] = (a[nodes] for a in loosest(covariances, points, nodes))
 
 
 def _passes_twice(k: int, graph: PoseGraph, passed: np.ndarray) -> bool:

@@ -1,6 +1,6 @@
-"""Degenerate geometry (issue 14, item 4): pairs whose registration leaves a direction free (a plane, a corridor,
-a cylinder) are found and carry no information there but their overlap's extent, and a scan whose pose the
-kept edges leave free is reported underdetermined rather than placed as if it were certain."""
+"""Degenerate geometry: pairs whose registration leaves a direction free (a plane, a corridor, a cylinder) are
+found and carry no information there but their overlap's extent, and a scan whose pose the kept edges leave free
+is reported loose, with its σ, rather than placed as if it were certain (``verify``)."""
 
 import gtsam
 import numpy as np
@@ -13,15 +13,15 @@ from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
-from sghr_gtsam.gtsam_api import marginal_covariances, to_gtsam
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.registration import batch
-from sghr_gtsam.registration.information import (STIFFEN, displacement_metric, pose_spread,
-                                                  registration_information, underdetermined)
+from sghr_gtsam.registration.information import (displacement_metric, loosest, pose_spread,
+                                                  registration_information)
 from sghr_gtsam.registration.pairwise import score_pair
 from sghr_gtsam.registration.refine import Pyramid
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.types import PoseGraph
+from sghr_gtsam.verify import Verification, verify
 
 VOXEL = 0.05
 NOISE = 0.003
@@ -116,32 +116,32 @@ def _graph(kinds: list[tuple[int, int, str]], n: int, seed: int, stiffen: float 
     return graph, poses, source.points
 
 
-def _covariances(kinds: list[tuple[int, int, str]], stiffen: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    graph, poses, points = _graph(kinds, 3, seed=5, stiffen=stiffen)
-    factors, values = to_gtsam(graph, poses, keys=lambda k: k)
-    stiff = 1e4 * np.abs(graph.information).max()  # as gtsam_api.pose_covariances anchors its world scan
-    factors.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(poses[0]), gtsam.noiseModel.Isotropic.Precision(6, stiff)))
-    return marginal_covariances(factors, values, list(range(graph.n))), points
+def _verdict(kinds: list[tuple[int, int, str]]):
+    graph, poses, points = _graph(kinds, 3, seed=5)
+    names = [f"s{k}" for k in range(3)]
+    everyone = np.ones(3, dtype=bool)
+    return verify(names, graph, np.ones(graph.num_edges, dtype=bool), poses, everyone, Verification(), VOXEL,
+                  [points] * 3)
 
 
-def test_a_scan_held_by_a_corridor_edge_alone_is_underdetermined_and_a_second_edge_fixes_it():
-    """Scan 2 hangs on scan 1 by a corridor registration: its spread is the bound of the corridor's free
-    direction (10× smaller when that is 100× stiffer) and it is the one flagged; a corner registration to
-    scan 0 as well fixes it (spread under a tenth of a voxel, whatever the bound) and nothing is flagged."""
+def test_a_scan_held_by_a_corridor_edge_alone_is_loose_and_a_second_edge_fixes_it():
+    """Scan 2 hangs on scan 1 by a corridor registration: its spread along the corridor is the bound of the free
+    direction, above a voxel, and it is the one reported loose (and, on no loop, doubtful); a corner
+    registration to scan 0 as well fixes it, closes a loop, and every scan is verified."""
     kinds = [(0, 1, "corner"), (1, 2, "corridor")]
-    (C, points), (stiff, _) = _covariances(kinds), _covariances(kinds, STIFFEN)
-    assert underdetermined(C, [points] * 3, VOXEL, [1, 2], stiff).tolist() == [False, False, True]
-    assert pose_spread(C[2], points) / pose_spread(stiff[2], points) == pytest.approx(np.sqrt(STIFFEN), rel=0.05)
-    assert pose_spread(C[1], points) / pose_spread(stiff[1], points) == pytest.approx(1.0, rel=0.05)
+    verdict = _verdict(kinds)
+    assert list(verdict.loose) == ["s2"] and verdict.loose["s2"]["sigma"] > VOXEL
+    assert np.linalg.norm(verdict.loose["s2"]["axis"]) == pytest.approx(1.0, abs=1e-3)
+    assert verdict.status["s2"] == "doubtful"
     kinds.append((0, 2, "corner"))
-    (C, points), (stiff, _) = _covariances(kinds), _covariances(kinds, STIFFEN)
-    assert not underdetermined(C, [points] * 3, VOXEL, [1, 2], stiff).any()
-    assert pose_spread(C[2], points) < VOXEL / 10
+    verdict = _verdict(kinds)
+    assert verdict.loose == {} and verdict.doubts == {}
+    assert [p.scans for p in verdict.parts] == [["s0", "s1", "s2"]]
 
 
-def test_an_indeterminate_covariance_is_underdetermined():
-    C = np.full((2, 6, 6), np.nan)
-    assert underdetermined(C, [np.eye(3)] * 2, VOXEL, [1]).tolist() == [False, True]
+def test_an_indeterminate_covariance_is_infinitely_loose():
+    spreads, axes = loosest(np.full((2, 6, 6), np.nan), [np.eye(3)] * 2, [1])
+    assert np.isnan(spreads[0]) and spreads[1] == np.inf and np.isnan(axes).all()
 
 
 # --- the pipeline: a corridor whose middle scan sees nothing but its walls ---------------------------------
@@ -171,12 +171,12 @@ def _corridor_scene(seed: int = 0):
     return scans, poses
 
 
-def test_a_scan_that_sees_only_a_corridor_is_reported_underdetermined(monkeypatch):
+def test_a_scan_that_sees_only_a_corridor_is_reported_loose(monkeypatch):
     """Every pair of the corridor is registered as the truth would be, except that the middle scan's pairs put
     it 3 voxels along the corridor: exactly what its geometry cannot tell apart. Those two pairs leave one
     direction free, the others none; the scans beyond the middle one (2, 3, 4), which nothing ties to the world
-    scan along the corridor, are reported underdetermined, and every scan placed more than a voxel off is
-    among them; scans 0 and 1, which the boxes fix, are placed within a tenth of a voxel and not flagged."""
+    scan along the corridor, are reported loose, and every scan placed more than a voxel off is among them;
+    scans 0 and 1, which the boxes fix, are placed within a tenth of a voxel and not loose."""
     scans, poses = _corridor_scene()
     voxel = VOXEL
     off = poses.copy()
@@ -198,9 +198,11 @@ def test_a_scan_that_sees_only_a_corridor_is_reported_underdetermined(monkeypatc
     free = {(int(i), int(j)): p.free for i, j, p in zip(result.graph.i, result.graph.j, result.pairs)
             if abs(int(i) - int(j)) == 1}
     assert len(free) == n - 1 and all((f >= 1) == (2 in pair) for pair, f in free.items()), free
-    assert result.underdetermined == ["scan_2.ply", "scan_3.ply", "scan_4.ply"], result.underdetermined
+    loose = result.verdict.loose
+    assert list(loose) == ["scan_2.ply", "scan_3.ply", "scan_4.ply"], loose
     off_by_more = {result.names[k] for k in np.flatnonzero(err.translation > voxel)}
-    assert off_by_more and off_by_more <= set(result.underdetermined), off_by_more
+    assert off_by_more and off_by_more <= set(loose), off_by_more
+    assert all(result.verdict.status[name] == "doubtful" for name in loose)
     assert err.translation[:2].max() < voxel / 10
 
 
