@@ -3,11 +3,12 @@
 A pose is *verified* when registrations that can be checked against each other hold it. Three tests, each a
 standard one:
 
-1. **Loop-closure error against its noise.** Every kept registration ``T_ij`` is compared with the final poses:
-   ``r = Log(T_ij⁻¹ T_i⁻¹ T_j)`` (gtsam order), ``χ² = rᵀ Ω r`` with the edge's information ``Ω``. The information
-   of real scans is overconfident by a factor the graph itself measures: the a posteriori variance factor ``σ̂₀²``
-   (the median ``χ²`` over the median of ``χ²₆``, robust to the few wrong edges; never below 1, so the test is never
-   sharper than the stated noise). A registration passes when ``χ² / σ̂₀² ≤ χ²₆(1 − α)``.
+1. **Loop-closure error against its noise.** Every kept registration ``T_ij`` is compared with the final poses,
+   by the consistency test synchronization itself uses (``sync.consensus.consistent_edges``): it passes when
+   ``T_ij⁻¹ T_i⁻¹ T_j`` lies within a good registration's error budget (``consensus.MAX_DEG`` and the translation
+   tolerance) or within its own noise (``χ² = rᵀ Ω r ≤ χ²₆(0.999)``, ``r`` the residual in gtsam's order, ``Ω`` the
+   edge's information). Real registrations carry systematic errors that point noise does not see (their
+   information is overconfident by the factor ``σ̂₀²`` below), so a χ² test alone would break right loops.
 2. **Cycle consistency.** The passing registrations form the verified graph. Its biconnected components of three
    or more scans are the *rigid parts*: any two scans of one are joined by two paths that share no scan, so every
    pose in it is checked by a loop of registrations that closes within their noise. What joins two parts is a
@@ -19,8 +20,9 @@ standard one:
    blamed first on the scans outside the rigid parts.
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
-that only the bounds of their overlap fix. That is its covariance, reported with the direction and σ, and a doubt
-only where σ exceeds ``Verification.max_sigma``.
+that only the bounds of their overlap fix. That is its covariance, from the passing registrations' information
+scaled by the a posteriori variance factor ``σ̂₀²`` (the median ``χ²`` over the median of ``χ²₆``: robust, never
+below 1), reported with the direction and σ, and a doubt only where σ exceeds ``Verification.max_sigma``.
 
 Parts are ordered largest first; part 0 holds the world scan when it is the largest. A part whose join failed is
 placed where its best join puts it, and marked so (``Part.join``).
@@ -29,20 +31,20 @@ placed where its best join puts it, and marked so (``Part.join``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import gtsam
 import networkx as nx
 import numpy as np
-from scipy.stats import chi2
+from scipy.special import chdtri
 
+from .sync.consensus import consistent_edges
 from .sync.rotation import connected_components
 from .types import PoseGraph
 
-LEVEL = 0.001
-"""α, the false-alarm rate of the χ² test of one registration against its noise."""
+_CHI2_6_MEDIAN = float(chdtri(6, 0.5))  # scipy.special: scipy.stats costs a second to import
 REASONS = {"single registration": "held by one registration, or through one scan, that no loop checks",
-           "loop error": "its registrations do not close their loops within their noise (χ² test)",
+           "loop error": "its registrations do not close their loops within their noise",
            "free space": "placed where other scans saw empty space, or seeing empty space where they are",
            "loose": "its registrations leave a direction free beyond the tolerance (see report.json loose)"}
 """Why a placed scan is doubtful: one of these, the first that applies in this order."""
@@ -56,7 +58,6 @@ class Verification:
     at (its descriptors, inlier distances and grids all work at it)."""
 
     max_sigma: float | None = None
-    level: float = LEVEL
 
 
 @dataclass
@@ -91,8 +92,6 @@ class Verdict:
     doubts: dict[str, str]
     loose: dict[str, dict[str, object]] = field(default_factory=dict)
     variance_factor: float = float("nan")
-    edge_chi2: np.ndarray | None = None
-    """(E,) each edge's χ² / σ̂₀² at the final poses (NaN where not kept)."""
 
     def part_of(self) -> dict[str, int]:
         return {name: p.id for p in self.parts for name in p.scans}
@@ -155,7 +154,7 @@ def robust_variance_factor(chi2_values: np.ndarray) -> float:
     values = chi2_values[np.isfinite(chi2_values)]
     if len(values) == 0:
         return 1.0
-    return max(1.0, float(np.median(values) / chi2.median(6)))
+    return max(1.0, float(np.median(values) / _CHI2_6_MEDIAN))
 
 
 def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, placed: np.ndarray) -> np.ndarray:
@@ -191,7 +190,7 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
     to = int(b[best] if a[best] == part else a[best])
     good = e[passed[e]]
     if len(good) == 0:
-        why = "its registrations to the rest fail the χ² test against the poses"
+        why = "its registrations to the rest do not close their loops within their noise"
     elif len(good) == 1:
         why = "one registration that no loop checks (a bridge)"
     else:
@@ -214,10 +213,8 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     free-space test)."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
-    raw = edge_chi2(graph, poses, kept)
-    factor = robust_variance_factor(raw)
-    scaled = raw / factor
-    passed = kept & (scaled <= chi2.ppf(1.0 - params.level, 6))
+    passed = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
+    factor = robust_variance_factor(edge_chi2(graph, poses, passed))
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
@@ -249,8 +246,7 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
             doubts[name] = reason
         if loose[k]:
             loose_said[name] = {"sigma": float(spreads[k]), "axis": np.round(axes[k], 4).tolist()}
-    return Verdict(parts=parts, status=status, doubts=doubts, loose=loose_said, variance_factor=factor,
-                   edge_chi2=np.where(kept, scaled, np.nan))
+    return Verdict(parts=parts, status=status, doubts=doubts, loose=loose_said, variance_factor=factor)
 
 
 def _part_spreads(members: np.ndarray, graph: PoseGraph, passed: np.ndarray, information: np.ndarray,

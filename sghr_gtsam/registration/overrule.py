@@ -8,18 +8,17 @@ tried at the move its dropped registrations agree on, and when that move leaves 
 with the other scans (``CONFLICT``, registered or not), the kept registrations that hold the group where it is are
 overruled: synchronization runs again without them. A group that one kept registration holds is tried at the move
 of each family of its dropped registrations, the cleanest taken; the families whose move the free space rules out
-are overruled with the held edge, or the next synchronization would hang the group on the heaviest of them (3DMatch
-mit_lab, docs/BENCHMARKS.md).
-
-3DMatch studyroom (docs/BENCHMARKS.md): its repeated desks hold fragments 25-33 3 m off, in conflict with 187 of the
-334 scan pairs judged; at the move fragment 33's dropped registration to 34 proposes, 24 of 83.
+are overruled with the held edge, or the next synchronization would hang the group on the heaviest of them.
+Repeated furniture (a row of identical desks) holds a group of fused RGB-D fragments metres off in conflict with
+more than half the scan pairs judged; at the move its dropped registrations propose, with a quarter of them
+(docs/benchmarks.md, free space).
 
 Fused RGB-D fragments are seen from their first camera but fused over many: their free space is noisier than one
-range image's, so the range image here is coarser (``BIN_DEG``, ``MARGIN_VOXELS``) than the per-pair check's
+range image's, so the range image here is coarser (``COARSE_BIN_DEG``, ``COARSE_MARGIN_VOXELS``) than the per-pair check's
 (``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``).
 
-Identical rooms give no conflict at either placement: there the group's scans are only flagged (``look_alikes``),
-since nothing in the scans says which placement is right (a generated 16-scan hotel, docs/BENCHMARKS.md).
+Identical rooms give no conflict at either placement: nothing in the scans says which placement is right, and
+verification (``verify``) reports what the loops of registrations hold.
 
 The same coarse range images judge single registrations that the per-pair check cannot (fused fragments), once the
 first synchronization's loop-checked registrations vouch for the scans' frames (``Viewpoints.vouch``): a frame whose
@@ -40,11 +39,11 @@ from ..sync.disputes import agreeing_edges, linkage_groups
 from ..types import PoseGraph, SyncResult
 from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, range_image, seen_from_origin, seen_in_front_of
 
-BIN_DEG = 3.0
-"""Angular cells of the range image (degrees). On studyroom's registered pairs (judged against its re-fitted GT),
-3° and 6 voxels keep 99 % of the right pairs' conflict below 0.07 where 1° and 3 voxels (the per-pair check's)
-reach 0.21; wrong pairs read 0.13 at the median."""
-MARGIN_VOXELS = 6.0
+COARSE_BIN_DEG = 3.0
+"""Angular cells of the range image (degrees). Fused fragments' free space is blurred by their many cameras: on
+real fused fragments' right registrations, 3° and 6 voxels keep 99 % of the conflicts below 0.07 where 1° and 3
+voxels (the per-pair check's) reach 0.21; wrong ones read 0.13 at the median (docs/benchmarks.md, free space)."""
+COARSE_MARGIN_VOXELS = 6.0
 """A point is in front of a surface when nearer along the ray by more than this many voxels."""
 RATIO = 0.5
 """A move overrules a placement when it leaves at most this fraction of the group's conflicts."""
@@ -59,15 +58,12 @@ every group the linkage forms on the way (a generated 500-scan building: 152 s a
 SAMPLE = 2000
 """Points of a scan, about, whose fraction in another's free space is measured (every n-th point of its grid): a
 fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONFLICT``."""
-MIN_AGREEING = 3
-"""Dropped registrations that must agree on another placement of a group before ``look_alikes`` calls it one:
-structured look-alikes come backed by 2-4 (issue 11), a lone wrong registration by one."""
 MIN_LOOPED = 20
 """Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
 (``Viewpoints.vouch``): one conflict among them is then at most 5 %."""
 MAX_FALSE_ALARMS = 0.05
-"""... and the largest fraction of them in conflict (six 3DMatch scenes after the first synchronization: 0-2.7 %,
-only wrong registrations; the Stanford bunny, in its object's frame: 28 %, all right)."""
+"""... and the largest fraction of them in conflict: fused fragments read 0-2.7 % after the first synchronization,
+only wrong registrations; an object scan in its object's frame 28 %, all right (docs/benchmarks.md, free space)."""
 CONE_DEG = 80.0
 """A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
 a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.seen_from_origin``)."""
@@ -93,7 +89,7 @@ class Viewpoints:
                 continue
             P = points[k]  # one scan at a time
             if _takes_part(P, voxel):
-                self.images[k] = range_image(P, BIN_DEG)
+                self.images[k] = range_image(P, COARSE_BIN_DEG)
                 self.samples[k] = P[::max(1, len(P) // SAMPLE)]
                 lo, hi = P.min(axis=0), P.max(axis=0)
                 self.corners[k] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
@@ -136,7 +132,7 @@ class Viewpoints:
         ``MIN_IN_VIEW`` points in view; the moves are made only when asked for."""
         for x, y, T_xy in ((a, b, T_ab), (b, a, T_ba)):
             seen, fraction = seen_in_front_of(self.images[x], transform_points(T_xy(), self.samples[y]),
-                                              self.voxel, MARGIN_VOXELS, BIN_DEG)
+                                              self.voxel, COARSE_MARGIN_VOXELS, COARSE_BIN_DEG)
             if seen >= MIN_IN_VIEW:
                 yield fraction
 
@@ -146,9 +142,9 @@ class Viewpoints:
         edges that ``result`` kept and that are no bridges of the kept graph are each checked by a loop; judged at
         their registrations (``fraction``), at least ``MIN_LOOPED`` of them, at most ``MAX_FALSE_ALARMS`` of them
         may read as conflicts. Where a frame's origin is no viewpoint, right registrations read as conflicts: the
-        Stanford bunny's scans are in the object's frame (origin inside it), 7 of its 25 loop-checked edges after
-        the first synchronization, all right; on six 3DMatch scenes, whose fused fragments are seen from their first
-        camera, 9 of 802, all wrong (docs/BENCHMARKS.md, session 40)."""
+        scans of an object turned on a table are in the object's frame (origin inside it), 7 of its 25 loop-checked edges after
+        the first synchronization, all right; on fused RGB-D fragments, seen from their first camera, 9 of 802, all
+        wrong (docs/benchmarks.md, free space)."""
         kept = result.weights > 0
         looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
         fractions = np.array([self.fraction(int(graph.i[e]), int(graph.j[e]), graph.T[e]) for e in looped])
@@ -176,18 +172,14 @@ class _Trial:
 
     group: np.ndarray  # (N,) bool
     holding: np.ndarray  # (E,) bool: the kept edges leaving it, and the dropped ones ruled out with them
-    agreeing: int  # dropped registrations agreeing on the move
     support: float  # their w⁰ over the holding edges'
     before: int  # scan pairs in conflict (one scan of the group, one outside) where it is
     after: int  # ... and at the move (counted up to ``before`` + 1)
-    seen_before: int  # scan pairs judged (boxes meet, ``MIN_IN_VIEW`` points in view) where it is
-    seen_after: int  # ... and at the move
 
 
-def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool = False) -> list[_Trial]:
-    """The groups worth a move: for ``overruled_edges``, those with ``SUPPORT`` and ``MIN_GAIN`` conflicts to
-    remove; with ``alike`` (for ``look_alikes``, once a run: a folded building's groups cost up to ``MAX_GROUP`` x
-    ``MAX_PARTNERS`` tests each) also those with ``MIN_AGREEING`` registrations for the move."""
+def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[_Trial]:
+    """The groups worth a move for ``overruled_edges``: those with ``SUPPORT`` and ``MIN_GAIN`` conflicts to
+    remove."""
     main = result.component == 0
     poses = result.poses
     take = np.array([k for k in sorted(views.images) if main[k]], dtype=np.int64)
@@ -201,21 +193,21 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
         order = np.argsort(np.linalg.norm((lo[near] + hi[near]) / 2 - box.mean(axis=0), axis=1), kind="stable")
         return take[near[order[:MAX_PARTNERS]]]
 
-    def conflicts(group: np.ndarray, move: np.ndarray, most: float = np.inf) -> tuple[int, int]:
-        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it, and pairs judged;
-        counting stops above ``most`` (neither rule takes a move with more conflicts than the group has now)."""
+    def conflicts(group: np.ndarray, move: np.ndarray, most: float = np.inf) -> int:
+        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it; counting stops above
+        ``most`` (no move with more conflicts than the group has now is taken)."""
         outside = ~group[take]
-        count, seen = 0, 0
+        count = 0
         for a in take[group[take]]:
             for b in partners(views.box(a, move @ poses[a]), outside):
                 key = (int(a), int(b), move.tobytes())
                 if key not in judged:
                     judged[key] = views.conflict(a, b, move @ poses[a], poses[b])
                 if np.isfinite(judged[key]):
-                    count, seen = count + int(judged[key]), seen + 1
+                    count += int(judged[key])
                 if count > most:
-                    return count, seen
-        return count, seen
+                    return count
+        return count
 
     kept = result.weights > 0
     i, j, w = graph.i, graph.j, graph.weight
@@ -232,17 +224,16 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
         support = w[agreeing].sum() / held if held > 0 else np.inf
-        many = alike and len(agreeing) >= MIN_AGREEING
-        if support < SUPPORT and not many:
+        if support < SUPPORT:
             continue
-        before, seen_before = conflicts(group, np.eye(4))
-        if before < MIN_GAIN and not many:
+        before = conflicts(group, np.eye(4))
+        if before < MIN_GAIN:
             continue
-        after, seen_after = conflicts(group, move, most=before)
+        after = conflicts(group, move, most=before)
         holding = leaving & kept
-        if not alike and holding.sum() == 1:
+        if holding.sum() == 1:
             # Hung on one kept edge, the group would go to its heaviest dropped family once that edge is overruled,
-            # right or not (mit_lab, docs/BENCHMARKS.md): every family with SUPPORT is tried, the cleanest move is
+            # right or not (measured on real fused fragments): every family with SUPPORT is tried, the cleanest move is
             # kept, and the families the free space rules out as firmly as the group's place go with the edge.
             tried, others = [(agreeing, after)], np.setdiff1d(dropped, agreeing)
             while len(others):
@@ -251,13 +242,13 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
                 weight = w[family].sum()
                 if weight < SUPPORT * held:
                     continue
-                count, seen = conflicts(group, family_move, most=before)
+                count = conflicts(group, family_move, most=before)
                 tried.append((family, count))
                 if count < after:
-                    agreeing, move, support, after, seen_after = family, family_move, weight / held, count, seen
+                    agreeing, move, support, after = family, family_move, weight / held, count
             for family, count in tried:
                 holding[family] |= count > RATIO * before
-        trials.append(_Trial(group, holding, len(agreeing), support, before, after, seen_before, seen_after))
+        trials.append(_Trial(group, holding, support, before, after))
     return trials
 
 
@@ -282,19 +273,4 @@ def _overruled(trials: list[_Trial], graph: PoseGraph) -> np.ndarray:
         if not np.any(taken & t.group) and not np.any(out & t.holding):
             taken |= t.group
             out |= t.holding
-    return out
-
-
-def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> np.ndarray:
-    """(N,) bool: scans of a group that ``MIN_AGREEING`` or more dropped registrations agree on placing elsewhere,
-    where the scans' free space (``views``) finds no more conflicts than where it is, judged on some scan pairs and
-    on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot
-    tell apart (identical rooms), of which synchronization took the one with more weight. None while
-    ``overruled_edges`` has edges to overrule: that model is not the last."""
-    out = np.zeros(graph.n, dtype=bool)
-    if overruled_edges(views, graph, result).any():  # its conflicts are kept for the trials below (``judged``)
-        return out
-    for t in _trials(views, graph, result, alike=True):
-        if t.agreeing >= MIN_AGREEING and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0:
-            out |= t.group
     return out

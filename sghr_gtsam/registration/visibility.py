@@ -6,7 +6,7 @@ whatever the descriptors agreed on: look-alike rooms and corridors register with
 
 Only scans whose frame origin is their viewpoint can say it. A scan seen from its origin hides almost none of
 its own points behind others (``SELF_HIDDEN``); a fused RGB-D fragment, an object scan in its object's frame or a
-georeferenced scan hides a sixth or more of them (3DMatch fragments 16-18 %, the Stanford bunny 18 %), and its
+georeferenced scan hides a sixth or more of them (16-18 % of a fused RGB-D fragment, 18 % of an object's range scan), and its
 pairs are not checked here; fused fragments' are by the overrule's coarser range images, once the graph's loops
 vouch for the scene's frames (``overrule.Viewpoints.vouch``)."""
 
@@ -17,7 +17,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..store import Attribute, Stored
-from ..types import PoseGraph, SyncResult
 
 BIN_DEG = 1.0
 """Angular size of the range image's cells (azimuth x elevation); a cell keeps its nearest point."""
@@ -186,9 +185,9 @@ def contradicted_scans(clash: np.ndarray, doubted: np.ndarray | None = None) -> 
     A scan placed wrong cuts through the free space of every scan around it (a 50-scan room: six misplaced scans in
     conflict with 14-31 scans each, the right ones only with those six); a single conflicting pair (a depth edge, a
     handful of points in view) blames no one. A conflict says that two placements disagree, not which one is wrong:
-    where a group placed wrong is larger than the right scans that see it (3DMatch hotel_umd1: a corridor placed
-    177° off, 14 of its scans in view of 6 right ones), the most conflicts are the right scans', and the graph's
-    doubt about the other group is what tells them apart."""
+    where a group placed wrong is larger than the right scans that see it (a corridor placed 177° off, 14 of its
+    scans in view of 6 right ones), the most conflicts are the right scans', and the graph's doubt about the other
+    group is what tells them apart."""
     left = clash.copy()
     blamed = np.zeros(len(clash), dtype=bool)
     for pool in (np.zeros(len(clash), dtype=bool) if doubted is None else doubted, np.ones(len(clash), dtype=bool)):
@@ -210,25 +209,3 @@ def contradicted_placements(features: Stored, poses: np.ndarray, placed: np.ndar
     points = Attribute(features, "points")
     checked = placed & viewpoints(points, voxel, centres)
     return contradicted_scans(placement_conflicts(points, poses, checked, voxel), doubted)
-
-
-def held_by_contradicted(graph: PoseGraph, result: SyncResult, candidates: np.ndarray,
-                         clash: np.ndarray) -> np.ndarray:
-    """(N,) bool: the ``candidates`` that the edges ``result`` kept join mostly (more than half) to ``clash`` scans
-    (``contradicted_placements``) or to candidates found so, until none is added. Such a scan is placed as one block
-    with scans that the free space says are misplaced, so the registrations that hold it verify nothing. A
-    simulated room (docs/BENCHMARKS.md, session 35): seven scans with next to no true overlap with the others, held
-    113° off by look-alike registrations; five of them contradicted, the other two called rescued, and a scan held
-    by the block unflagged."""
-    kept = result.weights > 0
-    i, j = graph.i[kept], graph.j[kept]
-    partners = np.bincount(i, minlength=graph.n) + np.bincount(j, minlength=graph.n)
-    out = np.zeros(graph.n, dtype=bool)
-    while True:
-        doubted = (clash | out).astype(float)
-        clashing = np.bincount(i, weights=doubted[j], minlength=graph.n) + np.bincount(j, weights=doubted[i],
-                                                                                         minlength=graph.n)
-        more = candidates & ~out & (2 * clashing > partners)
-        if not more.any():
-            return out
-        out |= more

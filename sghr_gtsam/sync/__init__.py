@@ -23,7 +23,6 @@ from ..se3 import inv_T, non_rigid, project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import biconnected_core, blocks
 from .consensus import MAX_DEG, consensus_placement, consistent_edges, edge_residuals, translation_tolerance
-from .disputes import contested
 from .cycles import credibility, cut_moves, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
 from .irls import REWEIGHTS, irls, solve_poses, usable_edges
 from .rotation import connected_components, rotation_residuals
@@ -234,9 +233,9 @@ def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.nd
 
     Such edges are all that place one part against the other, and least squares has already placed the parts by
     them: their residuals are the share of a loop's error they took (a lone edge takes none), not a vote
-    against a placement that other edges support. Dropping them loses the part instead (hotel_umd3: five right
-    scans held by two loop-checked registrations 2.7° / 0.10 m off after least squares spread a corridor's
-    error, against a tolerance of 0.08 m: docs/BENCHMARKS.md)."""
+    against a placement that other edges support. Dropping them loses the part instead (five right scans held by
+    two loop-checked registrations 2.7° / 0.10 m off after least squares spread a corridor's error, against a
+    tolerance of 0.08 m)."""
     part = connected_components(graph.n, graph.i, graph.j, refit)
     return kept & ~refit & (part[graph.i] != part[graph.j]) & ~_far(graph, poses)
 
@@ -287,8 +286,8 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     if _overturns(usable, np.ones(graph.num_edges), (Q, kept_q), (P, kept)):
         P, kept = Q, kept_q
     # Groups held by several wrong edges move in the answer kept, not within each start: moved within the grown
-    # start, home_at's first graph gave an answer that won a near-tie (183 against 181 consistent edges) with 13
-    # scans still turned 86°, where the IRLS start was right (docs/BENCHMARKS.md).
+    # start, a real scene's first graph gave an answer that won a near-tie (183 against 181 consistent edges) with
+    # 13 scans still turned 86°, where the IRLS start was right.
     P = cut_moves(usable, P, cred)
     kept = consistent_edges(usable, P)
     # A second opinion with the votes the first answer learned.
@@ -309,9 +308,8 @@ def _overturns(graph: PoseGraph, votes: np.ndarray, challenger: tuple[np.ndarray
     consistency tolerances) its share carries at least as many.
 
     Votes alone are decided by edges just inside the tolerances in one answer and just outside in the other:
-    on home_at's final graph, 204 consistent edges against 203, in some orders of the edges, for an answer
-    that turns 24 scans 91° and that 4 edges to them support against 6 (docs/BENCHMARKS.md, the order of the
-    edges). Far-off edges alone would let a drifted answer win: one whose scans sit 10-20° off puts few edges
+    on a real scene's final graph, 204 consistent edges against 203, in some orders of the edges, for an answer
+    that turns 24 scans 91° and that 4 edges to them support against 6. Far-off edges alone would let a drifted answer win: one whose scans sit 10-20° off puts few edges
     far."""
     (Q, kept_q), (P, kept) = challenger, incumbent
     if votes[kept_q].sum() <= votes[kept].sum():
@@ -435,4 +433,4 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
     return replace(graph, n=n, i=i.astype(np.int64), j=j.astype(np.int64), T=T, weight=w, information=info)
 
 
-__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph", "unverified", "contested"]
+__all__ = ["METHODS", "POLISHES", "synchronize", "checked_graph", "unverified"]
