@@ -15,7 +15,12 @@ standard one:
    *bridge* (one registration no loop checks) or an *articulation point* (one scan, whose registrations can all be
    wrong the same way, as a symmetric room's can): such a join is reported and not trusted. Scans in no part of
    three hang on one registration or one scan.
-3. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
+3. **Competing placements.** Registrations that synchronization dropped may agree among themselves on another
+   placement of a scan or of a group that kept registrations hold together (the linkage groups of
+   ``sync.disputes``). When two or more agree on one move of it and outweigh (``w⁰``) the kept registrations
+   that hold it there, and moving the scans at their far ends instead would cost as much, the evidence against the
+   join passes the same test as the evidence for it: the join is disputed and the group is a part of its own.
+4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
    that puts one scan's surfaces where another saw empty space is contradicted (``registration.visibility``),
    blamed first on the scans outside the rigid parts.
 
@@ -31,6 +36,7 @@ placed where its best join puts it, and marked so (``Part.join``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from itertools import chain
 from dataclasses import asdict, dataclass, field, replace
 
 import gtsam
@@ -38,13 +44,17 @@ import networkx as nx
 import numpy as np
 from scipy.special import chdtri
 
-from .sync.consensus import consistent_edges
+from .sync.consensus import consistent_edges, translation_tolerance
+from .sync.disputes import agreeing_edges, linkage_groups
 from .sync.rotation import connected_components
 from .types import PoseGraph
 
+MIN_AGREEING = 2
+"""Dropped registrations that must agree on another placement before it competes: as many as verify a placement."""
 _CHI2_6_MEDIAN = float(chdtri(6, 0.5))  # scipy.special: scipy.stats costs a second to import
 REASONS = {"single registration": "held by one registration, or through one scan, that no loop checks",
            "loop error": "its registrations do not close their loops within their noise",
+           "competing placement": "dropped registrations agree on another placement of it and outweigh its own",
            "free space": "placed where other scans saw empty space, or seeing empty space where they are",
            "loose": "its registrations leave a direction free beyond the tolerance (see report.json loose)"}
 """Why a placed scan is doubtful: one of these, the first that applies in this order."""
@@ -179,7 +189,7 @@ def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, plac
 
 
 def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.ndarray, passed: np.ndarray,
-          weight: np.ndarray, names: Sequence[str]) -> Join | None:
+          disputed: np.ndarray, weight: np.ndarray, names: Sequence[str]) -> Join | None:
     """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none)."""
     a, b = label[i], label[j]
     out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
@@ -189,7 +199,9 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
     best = e[np.argmax(weight[e])]
     to = int(b[best] if a[best] == part else a[best])
     good = e[passed[e]]
-    if len(good) == 0:
+    if disputed[e].any():
+        why = "dropped registrations agree on another placement of it and outweigh these"
+    elif len(good) == 0:
         why = "its registrations to the rest do not close their loops within their noise"
     elif len(good) == 1:
         why = "one registration that no loop checks (a bridge)"
@@ -214,11 +226,13 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
     passed = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
+    disputed = _disputed(graph, kept, placed, poses)
+    passed &= ~disputed
     factor = robust_variance_factor(edge_chi2(graph, poses, passed))
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
-        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, graph.weight, names)
+        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputed, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
     failing = np.zeros(n, dtype=bool)
@@ -239,8 +253,8 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
         if not placed[k]:
             status[name] = "unplaced"
             continue
-        reason = ("loop error" if failing[k] and not _passes_twice(k, graph, passed) else "single registration") \
-            if alone[k] else "free space" if contradicted[k] else "loose" if loose[k] else None
+        reason = _alone_reason(k, graph, kept, passed, disputed) if alone[k] else \
+            "free space" if contradicted[k] else "loose" if loose[k] else None
         status[name] = "verified" if reason is None else "doubtful"
         if reason:
             doubts[name] = reason
@@ -277,9 +291,39 @@ def _part_spreads(members: np.ndarray, graph: PoseGraph, passed: np.ndarray, inf
     spreads[nodes], axes[nodes] = (a[nodes] for a in loosest(covariances, points, nodes))
 
 
-def _passes_twice(k: int, graph: PoseGraph, passed: np.ndarray) -> bool:
-    """Whether scan k has two or more registrations that pass the χ² test."""
-    return int(np.sum(passed & ((graph.i == k) | (graph.j == k)))) >= 2
+def _alone_reason(k: int, graph: PoseGraph, kept: np.ndarray, passed: np.ndarray, disputed: np.ndarray) -> str:
+    """Why scan k is in no part of three: its join disputed, its registrations failing, or too few of them."""
+    own = (graph.i == k) | (graph.j == k)
+    if (own & disputed).any():
+        return "competing placement"
+    if (own & kept & ~passed).any() and int(np.sum(own & passed)) < 2:
+        return "loop error"
+    return "single registration"
+
+
+def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(E,) bool: the kept registrations that hold a scan, or a linkage group, where two or more dropped ones that
+    agree on another placement of it outweigh them (module doc, test 3)."""
+    i, j, w = graph.i, graph.j, graph.weight
+    inside = (w > 0) & placed[i] & placed[j]
+    tolerance = translation_tolerance(graph)
+    out = np.zeros(graph.num_edges, dtype=bool)
+    singles = (np.arange(graph.n) == k for k in np.flatnonzero(placed))
+    for group in chain(singles, linkage_groups(graph, kept, placed)):
+        leaving = inside & (group[i] != group[j])
+        holding = leaving & kept
+        held = w[holding].sum()
+        dropped = np.flatnonzero(leaving & ~kept)
+        if len(dropped) < MIN_AGREEING or w[dropped].sum() <= held:
+            continue
+        agreeing, _ = agreeing_edges(graph, poses, group, dropped, tolerance)
+        if len(agreeing) < MIN_AGREEING or w[agreeing].sum() <= held:
+            continue
+        accused = np.zeros(graph.n, dtype=bool)
+        accused[np.where(group[i[agreeing]], j[agreeing], i[agreeing])] = True
+        if w[inside & kept & (accused[i] != accused[j])].sum() >= held:  # else they accuse their far ends
+            out |= holding
+    return out
 
 
 __all__ = ["Verification", "Verdict", "Part", "Join", "REASONS", "STATUSES", "verify", "edge_chi2",

@@ -214,7 +214,7 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[_Tr
     inside = (w > 0) & main[i] & main[j]
     tolerance = translation_tolerance(graph)
     trials = []
-    for group in linkage_groups(graph, result):
+    for group in linkage_groups(graph, kept, main):
         if group.sum() > MAX_GROUP:
             continue
         leaving = inside & (group[i] != group[j])

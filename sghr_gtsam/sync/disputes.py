@@ -10,18 +10,17 @@ from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
 from ..se3 import inv_T
-from ..types import PoseGraph, SyncResult
+from ..types import PoseGraph
 from .consensus import MAX_DEG
 
 _CHUNK = 512
 """Candidate moves compared at once (bounds the pairwise arrays' memory)."""
 
 
-def linkage_groups(graph: PoseGraph, result: SyncResult) -> Iterator[np.ndarray]:
-    """(N,) bool masks: the groups of the largest part that its kept edges join in order of decreasing ``w⁰``
-    (single linkage: scans held by their strongest registrations first), each as it forms, up to half the largest
-    part (a larger group's outside is the smaller one, with the same edges leaving it)."""
-    main = result.component == 0
+def linkage_groups(graph: PoseGraph, kept: np.ndarray, main: np.ndarray) -> Iterator[np.ndarray]:
+    """(N,) bool masks: the groups of the ``main`` scans that the ``kept`` edges join in order of decreasing ``w⁰``
+    (single linkage: scans held by their strongest registrations first), each as it forms, up to half the ``main``
+    scans (a larger group's outside is the smaller one, with the same edges leaving it)."""
     i, j, w = graph.i, graph.j, graph.weight
     half = main.sum() / 2
     parent = np.arange(graph.n)
@@ -33,7 +32,7 @@ def linkage_groups(graph: PoseGraph, result: SyncResult) -> Iterator[np.ndarray]
             k = parent[k]
         return k
 
-    joins = np.flatnonzero((result.weights > 0) & (w > 0) & main[i] & main[j])
+    joins = np.flatnonzero(kept & (w > 0) & main[i] & main[j])
     for e in joins[np.argsort(-w[joins], kind="stable")]:
         a, b = root(int(i[e])), root(int(j[e]))
         if a == b:
