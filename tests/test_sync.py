@@ -9,11 +9,12 @@ from hypothesis import HealthCheck, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
-from sghr_gtsam.sync import METHODS, contested, synchronize, unverified
+from sghr_gtsam.sync import METHODS, synchronize, unverified
 from sghr_gtsam.sync.irls import irls, schedule_weights
 from sghr_gtsam.sync import rotation
 from sghr_gtsam.sync.rotation import DENSE_NODES, rotation_residuals, spectral_rotations
 from sghr_gtsam.types import InputError, PoseGraph, SyncResult
+from sghr_gtsam.verify import Verification, verify
 
 FAST = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -296,6 +297,15 @@ def _two_clusters(links: list[tuple[int, int, bool]], seed: int = 3) -> tuple[Po
     return graph, truth
 
 
+def _apart(graph: PoseGraph, result: SyncResult) -> np.ndarray:
+    """(N,) bool: the scans that verification (``verify``) doubts or does not put in scan 0's part."""
+    names = [str(k) for k in range(graph.n)]
+    kept = result.weights > 0
+    verdict = verify(names, graph, kept, result.poses, result.component == 0, Verification(), 0.05)
+    part = verdict.part_of()
+    return np.array([part.get(n, -1) != part["0"] or n in verdict.doubts for n in names])
+
+
 def test_a_cluster_joined_only_by_held_edges_is_unverified():
     """Two right links make a loop between the clusters, so every scan is verified; the same links held past the
     tolerances only to keep the parts joined (``SyncResult.held``) check nothing, and the small cluster is
@@ -325,10 +335,10 @@ def test_a_cluster_hung_on_one_wrong_edge_is_flagged_unverified():
 
 @FAST
 @given(seed=st.integers(0, 10**6), weak=st.integers(3, 8), heavier=st.floats(1.2, 20.0))
-def test_a_look_alike_placement_is_right_or_contested(seed, weak, heavier):
-    """home_at's fragment 32 in miniature: ``weak`` light edges put a scan 90° off; two edges whose summed
-    initial weight is ``heavier`` times theirs put it right. Whatever the polish chooses, the scan is right,
-    or wrong and flagged."""
+def test_a_look_alike_placement_is_right_or_set_apart(seed, weak, heavier):
+    """``weak`` light edges put a scan 90° off; two edges whose summed initial weight is ``heavier`` times theirs
+    put it right. Whatever the polish chooses, the scan is right, or wrong and doubted or a part of its own: the
+    dropped registrations that agree on its other placement outweigh those that hold it."""
     strong = heavier * weak / 2
     base, truth, _ = random_graph(seed, 20, extra=3, rot_deg=1.0, trans_sigma=0.02)
     rng = np.random.default_rng(seed)
@@ -346,13 +356,10 @@ def test_a_look_alike_placement_is_right_or_contested(seed, weak, heavier):
     result = synchronize(graph)
     rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
     assert rot[:scan].max() < 5.0
-    flagged = contested(graph, result) | unverified(graph, result) | (result.component != 0)
-    assert flagged[scan] == (rot[scan] >= 5.0)
-    # No group of right scans is blamed for the dropped edges: they accuse the one scan at their other end. (A
-    # right partner may still be outweighed on its own, by its strong dropped edge.)
-    signed = np.where(result.weights > 0, graph.weight, -graph.weight)
-    outweighed = (np.bincount(graph.i, signed, 21) + np.bincount(graph.j, signed, 21)) < 0
-    assert not (contested(graph, result) & ~outweighed)[:scan].any()
+    apart = _apart(graph, result)
+    assert apart[scan] or rot[scan] < 5.0
+    # No group of right scans is blamed for the dropped edges: they accuse the one scan at their other end.
+    assert not apart[:scan].any()
 
 
 def _linked_clusters(seed: int, links: list[tuple[int, int, bool, float]]) -> tuple[PoseGraph, np.ndarray]:
@@ -365,11 +372,11 @@ def _linked_clusters(seed: int, links: list[tuple[int, int, bool, float]]) -> tu
 
 @FAST
 @given(seed=st.integers(0, 10**6), weak=st.integers(3, 6), heavier=st.floats(1.2, 20.0))
-def test_a_group_placed_wrong_together_is_right_or_contested(seed, weak, heavier):
-    """studyroom's fragments 41-42 in miniature: ``weak`` light look-alike links, all agreeing, turn the 6-scan
-    cluster 180°; two right links ``heavier`` times their summed weight hold it where it is. No single scan is
-    outweighed (each keeps its strong edges inside the cluster), so only the group can be: whatever the polish
-    chooses, the cluster is right, or wrong and flagged."""
+def test_a_group_placed_wrong_together_is_right_or_set_apart(seed, weak, heavier):
+    """``weak`` light look-alike links, all agreeing, turn the 6-scan cluster 180°; two right links ``heavier``
+    times their summed weight hold it where it is. No single scan is outweighed (each keeps its strong edges inside
+    the cluster), so only the group can be: whatever the polish chooses, the cluster is right, or wrong and a part
+    of its own."""
     rng = np.random.default_rng(seed)
     a, b = rng.choice(15, weak + 2, replace=False), 15 + rng.permutation(6)
     light = 2.0
@@ -379,12 +386,11 @@ def test_a_group_placed_wrong_together_is_right_or_contested(seed, weak, heavier
     result = synchronize(graph)
     rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
     assert rot[:15].max() < 5.0
-    flagged = contested(graph, result) | unverified(graph, result) | (result.component != 0)
-    assert np.all(flagged[15:][rot[15:] >= 5.0])
+    assert np.all(_apart(graph, result)[15:][rot[15:] >= 5.0])
 
 
 def test_dropped_links_that_disagree_do_not_add_up_against_a_group():
-    """The cluster held right by two links (w⁰ 60 in all) is not contested by five wrong links of twice that
+    """The cluster held right by two links (w⁰ 60 in all) is not set apart by five wrong links of twice that
     weight in all when each would put it somewhere else: no two of them agree on one move."""
     rng = np.random.default_rng(5)
     wrong = [(int(rng.integers(15)), 15 + k, None, 24.0) for k in range(5)]
@@ -397,13 +403,13 @@ def test_dropped_links_that_disagree_do_not_add_up_against_a_group():
     result = synchronize(graph)
     rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
     assert rot.max() < 5.0 and np.all(result.weights[-5:] == 0)
-    assert not contested(graph, result)[15:].any()
+    assert not _apart(graph, result).any()
 
 
 def test_dropped_edges_accuse_the_scan_at_their_far_end_not_the_group_they_leave():
-    """home_at's fragment 32 against the scans it was dropped from: scan 21, placed 90° off by three light
-    edges to the 6-scan cluster, has two strong right edges to that cluster dropped. They outweigh what holds
-    the cluster to the rest (three links of 30), but moving scan 21 costs far less: it alone is contested."""
+    """Scan 21, placed 90° off by three light edges to the 6-scan cluster, has two strong right edges to that
+    cluster dropped. They outweigh what holds the cluster to the rest (three links of 30), but moving scan 21
+    costs far less: it alone is set apart."""
     graph, truth = _linked_clusters(3, [(2, 16, True, 30.0), (7, 19, True, 30.0), (11, 20, True, 30.0)])
     rng = np.random.default_rng(0)
     scan = truth[15] @ make_T(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-1, 1, 3))
@@ -419,7 +425,7 @@ def test_dropped_edges_accuse_the_scan_at_their_far_end_not_the_group_they_leave
     weights[-2:] = 0.0
     result = SyncResult(poses=placed, weights=weights, residual_deg=np.zeros(graph.num_edges),
                         component=np.zeros(22, dtype=int))
-    np.testing.assert_array_equal(np.flatnonzero(contested(graph, result)), [21])
+    np.testing.assert_array_equal(np.flatnonzero(_apart(graph, result)), [21])
 
 
 def test_a_cluster_hung_on_one_scan_is_flagged_unverified():
