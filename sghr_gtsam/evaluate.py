@@ -286,6 +286,8 @@ def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses
 
 
 def score_result(result: RunResult, gt_names: list[str], gt_poses: np.ndarray, **kwargs) -> SceneScore:
-    """``score_run`` of a pipeline ``RunResult`` (its poses, unregistered scans and flags)."""
+    """``score_run`` of a pipeline ``RunResult`` (its poses and unregistered scans), every scan outside its trusted
+    model flagged (doubtful, or in a part whose join to the world failed: ``verify.Verdict.trusted``)."""
+    trusted = set(result.names if result.verdict is None else result.verdict.trusted())
     return score_run(result.names, result.poses, gt_names, gt_poses, unregistered=result.unregistered,
-                     flagged=set().union(*result.flags.values()), **kwargs)
+                     flagged={n for n in result.names if n not in trusted}, **kwargs)

@@ -106,6 +106,10 @@ class Verdict:
     def part_of(self) -> dict[str, int]:
         return {name: p.id for p in self.parts for name in p.scans}
 
+    def trusted(self) -> list[str]:
+        """The verified scans of the world part (part 0): the model a user can take as it is."""
+        return [name for name in (self.parts[0].scans if self.parts else []) if self.status[name] == "verified"]
+
     def as_dict(self) -> dict:
         return {"parts": [{"id": p.id, "scans": p.scans, "frame": p.frame,
                            "join": None if p.join is None else asdict(p.join)} for p in self.parts],

@@ -163,10 +163,14 @@ def test_score_result_reads_the_runs_own_lists():
     from types import SimpleNamespace
 
     from sghr_gtsam.evaluate import score_result
+    from sghr_gtsam.verify import Part, Verdict
 
     names, gt, _, _ = _ring(6)
-    result = SimpleNamespace(names=names, poses=gt, unregistered=[names[1]],
-                             flags={"unregistered": [names[1]], "unverified": [names[4]], "contested": [names[0]]})
+    doubts = {names[4]: "single registration", names[0]: "free space"}
+    placed = [n for n in names if n != names[1]]
+    verdict = Verdict(parts=[Part(0, placed)], status={n: "doubtful" if n in doubts else "verified" for n in placed},
+                      doubts=doubts)
+    result = SimpleNamespace(names=names, poses=gt, unregistered=[names[1]], verdict=verdict)
     score = score_result(result, names, gt)
     assert score.unregistered == [names[1]] and score.flagged == [names[0], names[4]] and score.within == 5
     assert score.recall is None

@@ -159,7 +159,7 @@ def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, mo
         result = register(scans, cfg, log=lambda m: None, scores=scores)
         gt = scene.poses[[scene.names.index(nm) for nm in result.names]]
         err = scan_errors(result.names, result.poses, gt)
-        flagged = set(result.unverified) | set(result.unregistered)
+        flagged = set(result.names) - set(result.verdict.trusted())
         wrong_scans = {result.names[k] for k in range(n) if err.rotation_deg[k] > 2.0 or err.translation[k] > 0.2}
         assert wrong_scans <= flagged, (densify, wrong_scans, flagged)
         if not densify:  # the plant works: scan 5 hangs on the wrong edge alone
@@ -176,7 +176,7 @@ def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, mo
 def test_a_group_turned_behind_one_wrong_registration_is_registered_whole_and_put_right(seed, monkeypatch):
     """Two groups of four scans of a room, each registered within itself, joined by one registration turned 90°
     (given scores, k = 3; retries and free space off, so nothing else can move the group). Without the group stage
-    the far group ends 90° off, flagged unverified; with it, its merged scans registered onto the rest put all eight
+    the far group ends 90° off, outside the trusted model; with it, its merged scans registered onto the rest put all eight
     scans within 0.5° / one voxel of the truth, through group edges."""
     scene = make_scene(kind="room", n_scans=8, seed=seed)
     scans = [Scan(n, P) for n, P in zip(scene.names, scene.scans)]
@@ -200,12 +200,12 @@ def test_a_group_turned_behind_one_wrong_registration_is_registered_whole_and_pu
         err = scan_errors(result.names, result.poses, scene.poses[[scene.names.index(nm) for nm in result.names]])
         far = [result.names[k] for k in range(4, 8)]
         if not on:  # the plant works, and the run says so
-            assert (err.rotation_deg[4:] > 80).all() and set(far) <= set(result.unverified)
+            assert (err.rotation_deg[4:] > 80).all() and not set(far) & set(result.verdict.trusted())
             continue
         assert err.rotation_deg.max() < 0.5 and err.translation.max() < scene.voxel, (err.rotation_deg, err.translation)
         assert result.densify["groups_moved"] == 1 and result.densify["group_edges"] > 0
         assert "group" in result.edge_origin
-        assert set(far) <= set(result.unverified)  # ICP from one registration's guess verifies nothing
+        assert not set(far) & set(result.verdict.trusted())  # ICP from one registration's guess verifies nothing
 
 
 def test_weak_groups_are_the_flagged_scans_joined_by_kept_edges():

@@ -19,7 +19,7 @@ def run_notebook(path: Path) -> dict:
 
 def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     ns = run_notebook(NOTEBOOKS / "tour.ipynb")
-    assert ns["errors"].rotation_deg.max() < 1.0 and ns["result"].unverified == ns["result"].contested == []
+    assert ns["errors"].rotation_deg.max() < 1.0 and ns["result"].verdict.doubts == {}
     np.testing.assert_array_equal(np.flatnonzero(ns["synced"].weights == 0), ns["wrong"])
     assert ns["rot"].max() < 3.0
     cached = ns["again"].cache  # the second run read every result back from OUT/cache and computed none
@@ -29,7 +29,7 @@ def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     learned = ns["learned_score"]  # the same room matched on the learned descriptor
     assert learned.within == learned.scans == 8 and learned.unflagged_wrong == []
     assert ns["learned_config"].inlier_bar > ns["config"].inlier_bar
-    assert "unregistered: [] | unverified: [] | contested: []" in capsys.readouterr().out
+    assert "unregistered: [] | parts: 1 | doubts: {}" in capsys.readouterr().out
     assert not ns["work"].exists()  # the notebook removes its temporary folder
 
 

@@ -15,7 +15,8 @@ from sghr_gtsam.pipeline import run
 from sghr_gtsam.palette import FLAG_COLOURS, REJECTED, scan_colours
 from sghr_gtsam.recording import KEPT, TIMELINE, Recorder, edge_radii
 from sghr_gtsam.se3 import inv_T, make_T
-from sghr_gtsam.sync import contested, synchronize, unverified
+from sghr_gtsam.sync import synchronize
+from sghr_gtsam.verify import Verification, verify
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import PoseGraph
 
@@ -60,8 +61,9 @@ def _stages(rows) -> dict[int, str]:
 
 @pytest.fixture(scope="module")
 def flagged(tmp_path_factory):
-    """Nine scans: a 6-clique with two wrong edges; scan 6 hangs on one edge (unverified); scan 7 on an edge
-    too weak to use (unregistered); scan 8 on three weak right edges against one strong wrong one (contested)."""
+    """Nine scans: a 6-clique with two wrong edges; scan 6 hangs on one edge (single registration); scan 7 on an
+    edge too weak to use (unplaced); scan 8 on three weak right edges against one strong wrong one (verified: one
+    dropped registration is no competing placement)."""
     rng = np.random.default_rng(1)
     n = 9
     poses = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-3, 3, (n, 3)))
@@ -84,9 +86,9 @@ def flagged(tmp_path_factory):
     recorder.log_graph(graph, np.eye(n))
     result = synchronize(graph, on_iteration=recorder.on_iteration)
     recorder.log_sync(result)
-    flags = {"unregistered": [names[k] for k in np.flatnonzero(result.component != 0)],
-             "unverified": [names[k] for k in np.flatnonzero(unverified(graph, result))],
-             "contested": [names[k] for k in np.flatnonzero(contested(graph, result))]}
+    verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification(), 0.05)
+    flags = {"unplaced": [names[k] for k in np.flatnonzero(result.component != 0)],
+             **{reason: [n for n, r in verdict.doubts.items() if r == reason] for reason in set(verdict.doubts.values())}}
     recorder.log_final(result.poses, flags)
     recorder.close()
     return graph, result, names, points, flags, _rows(path), path

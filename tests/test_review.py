@@ -108,22 +108,22 @@ def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
     np.testing.assert_allclose(np.sort(drawn, axis=0), np.sort(scan_colours(4) / 255.0, axis=0))
 
 
-def test_summary_figure_rings_each_flagged_scan_in_its_first_flags_colour(watched_run):
-    """Every flag of a placed scan shows (it once ringed unverified and contested scans only): a ring in the
-    palette's colour of its first flag in report order, a legend entry and a count in the title for each flag."""
+def test_summary_figure_rings_each_doubtful_scan_in_its_reasons_colour(watched_run):
+    """Every doubt shows: a ring in the palette's colour of the scan's reason, a legend entry and a count in the
+    title for each reason."""
     from dataclasses import replace
 
     from matplotlib.collections import PathCollection
 
     result, _, _ = watched_run
     a, b, c = result.names[1:4]
-    flagged = replace(result, contradicted=[a, b], underdetermined=[b, c], unverified=[], contested=[])
+    flagged = replace(result, verdict=replace(result.verdict, doubts={a: "free space", b: "free space", c: "loose"}))
     top = summary_figure(flagged).axes[0]
     dots = next(col for col in top.collections if isinstance(col, PathCollection))
     rings = [tuple(np.round(rgba[:3] * 255).astype(int)) for rgba in dots.get_edgecolor()]
-    assert rings[1:] == [FLAG_COLOURS["contradicted"]] * 2 + [FLAG_COLOURS["underdetermined"]]
-    assert [t.get_text() for t in top.get_legend().get_texts()][2:] == ["contradicted", "underdetermined"]
-    assert "2 contradicted · 2 underdetermined" in top.get_title()
+    assert rings[1:] == [FLAG_COLOURS["free space"]] * 2 + [FLAG_COLOURS["loose"]]
+    assert [t.get_text() for t in top.get_legend().get_texts()][2:] == ["free space", "loose"]
+    assert "2 free space · 1 loose" in top.get_title()
 
 
 @pytest.mark.parametrize("n", [8, 30, 60])
