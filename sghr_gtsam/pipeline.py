@@ -368,14 +368,18 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
     placed[run.registered] = True
     guessed = np.isin(np.array(run.edge_origin), GUESSED) & (first_weak[graph.i] | first_weak[graph.j])
     kept = (run.sync.weights > 0) & ~guessed
-    bounded = None if graph.information is None else np.stack(
-        [info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)])
+    if run.sync.held is not None:  # past the tolerances, kept only to join two parts: they check nothing
+        kept &= ~run.sync.held
+    information, free = None, None
+    if graph.information is not None:  # the covariances' information: free directions bounded by the overlap alone
+        information = np.stack([info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)])
+        free = np.stack([np.zeros((6, 6)) if p.loose is None else p.loose for p in run.pairs])
     clash = None
     if stages.config.free_space:
         def clash(doubted: np.ndarray) -> np.ndarray:
             return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
     return verify(run.names, graph, kept, run.poses, placed, Verification(max_sigma=stages.config.max_sigma),
-                  stages.voxel, Attribute(stages.features, "points"), bounded, clash)
+                  stages.voxel, Attribute(stages.features, "points"), information, free, clash)
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:

@@ -25,9 +25,12 @@ standard one:
    blamed first on the scans outside the rigid parts.
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
-that only the bounds of their overlap fix. That is its covariance, from the passing registrations' information
-scaled by the a posteriori variance factor ``σ̂₀²`` (the median ``χ²`` over the median of ``χ²₆``: robust, never
-below 1), reported with the direction and σ, and a doubt only where σ exceeds ``Verification.max_sigma``.
+that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
+from the passing registrations' information scaled by the a posteriori variance factor ``σ̂₀²`` (the median ``χ²``
+over the median of ``χ²₆``: robust, never below 1). Its spread is set by those bounds, not by measurements, when
+it shrinks by more than ``STIFFEN^¼`` (the geometric middle of no change and ``√STIFFEN``) with every bound
+``STIFFEN`` times stiffer; such a scan is reported loose with the direction and σ, and doubted only where σ
+exceeds ``Verification.max_sigma``.
 
 Parts are ordered largest first; part 0 holds the world scan when it is the largest. A part whose join failed is
 placed where its best join puts it, and marked so (``Part.join``).
@@ -49,6 +52,9 @@ from .sync.disputes import agreeing_edges, linkage_groups
 from .sync.rotation import connected_components
 from .types import PoseGraph
 
+STIFFEN = 100.0
+"""How much stiffer the free directions' bounds are made to tell a spread they set from a measured one: one they
+set shrinks by √STIFFEN = 10, one the measurements set does not move."""
 MIN_AGREEING = 2
 """Dropped registrations that must agree on another placement before it competes: as many as verify a placement."""
 _CHI2_6_MEDIAN = float(chdtri(6, 0.5))  # scipy.special: scipy.stats costs a second to import
@@ -63,9 +69,9 @@ STATUSES = ("verified", "doubtful", "unplaced")
 
 @dataclass(frozen=True)
 class Verification:
-    """Parameters of the verification. ``max_sigma``: the largest σ (scene units) of a scan's points along its
-    least determined direction that still counts as placed; None: the voxel, the resolution the run registers
-    at (its descriptors, inlier distances and grids all work at it)."""
+    """Parameters of the verification. ``max_sigma``: the largest σ (scene units) of a loose scan's points along
+    its free direction that still counts as placed; None: the voxel, the resolution the run registers at (its
+    descriptors, inlier distances and grids all work at it)."""
 
     max_sigma: float | None = None
 
@@ -101,6 +107,7 @@ class Verdict:
     status: dict[str, str]
     doubts: dict[str, str]
     loose: dict[str, dict[str, object]] = field(default_factory=dict)
+    """Scans whose spread the free directions' bounds set: σ (scene units) and the axis it lies along."""
     variance_factor: float = float("nan")
 
     def part_of(self) -> dict[str, int]:
@@ -220,11 +227,13 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
 
 def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.ndarray, placed: np.ndarray,
            params: Verification, voxel: float, points: Sequence[np.ndarray] | None = None,
-           bounded: np.ndarray | None = None, clash: Callable[[np.ndarray], np.ndarray] | None = None) -> Verdict:
+           information: np.ndarray | None = None, free: np.ndarray | None = None,
+           clash: Callable[[np.ndarray], np.ndarray] | None = None) -> Verdict:
     """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
     ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
-    k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``bounded``: (E, 6, 6) the
-    information the covariances use, free directions bounded by the overlap alone (default: the graph's);
+    k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
+    each edge's information with its free directions bounded by the overlap alone (``PairResult.bounded``; default:
+    the graph's) and ``free`` its part along them (``PairResult.loose``; None: no direction is free);
     ``clash``: ``doubted -> (N,) bool``, the scans free-space conflicts are blamed on, the doubted first (None: no
     free-space test)."""
     n = len(names)
@@ -244,14 +253,19 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
         np.logical_or.at(failing, ends[kept & ~passed], True)
     contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
     max_sigma = voxel if params.max_sigma is None else params.max_sigma
-    spreads, axes = np.full(n, np.nan), np.full((n, 3), np.nan)
-    information = graph.information if bounded is None else bounded
-    if points is not None and information is not None:  # over the passing registrations that hold each scan
-        held = connected_components(n, graph.i, graph.j, passed)
+    spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
+    information = graph.information if information is None else information
+    if points is not None and information is not None and free is not None:
+        information = information / factor
+        held = connected_components(n, graph.i, graph.j, passed)  # over the passing registrations
         for x in np.unique(held[placed]):
             if np.sum(held == x) >= 2:
-                _part_spreads(held == x, graph, passed, information * (1.0 / factor), poses, points, spreads, axes)
-    loose = placed & (np.nan_to_num(spreads, nan=0.0) > max_sigma)
+                members = held == x
+                _part_spreads(members, graph, passed, information, poses, points, spreads, axes)
+                stiffer = information + (STIFFEN - 1.0) * free / factor
+                _part_spreads(members, graph, passed, stiffer, poses, points, stiff, np.full((n, 3), np.nan))
+    bound = placed & (np.nan_to_num(spreads, nan=0.0) > STIFFEN**0.25 * np.nan_to_num(stiff, nan=np.inf))
+    loose = bound & (spreads > max_sigma)
     status, doubts, loose_said = {}, {}, {}
     for k, name in enumerate(names):
         if not placed[k]:
@@ -262,7 +276,7 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
         status[name] = "verified" if reason is None else "doubtful"
         if reason:
             doubts[name] = reason
-        if loose[k]:
+        if bound[k]:
             loose_said[name] = {"sigma": float(spreads[k]), "axis": np.round(axes[k], 4).tolist()}
     return Verdict(parts=parts, status=status, doubts=doubts, loose=loose_said, variance_factor=factor)
 
