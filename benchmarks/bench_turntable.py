@@ -1,4 +1,4 @@
-"""Simulated turntable objects end to end, with and without the front end's steps 2-4 (issue 10).
+"""Simulated turntable objects end to end, with and without the front end's steps 2-4.
 
     python benchmarks/bench_turntable.py [--steps 24 36] [--seeds 0 1 2] [--noise 0.001] [--workers 2] [--set KEY=VALUE]
 
@@ -19,7 +19,7 @@ sync). Per row:
   registered / tried;
 - wall seconds of the ``register`` call (scans generated beforehand; other jobs share the machine).
 
-Goal (issue 10): no scan unverified, every scan within 0.3° of GT.
+Goal: no scan unverified, every scan within 0.3° of GT.
 """
 
 from __future__ import annotations

@@ -287,7 +287,7 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
     scans, features, voxel, cache = stages.scans, stages.features, stages.voxel, stages.cache
     densify = DensifyReport()
     # Retries go to scans beyond a bridge only: also retrying those beyond one scan took three of five simulated
-    # rooms past the 40 % budget of global registrations (docs/BENCHMARKS.md, session 20).
+    # rooms past the 40 % budget of global registrations (docs/BENCHMARKS.md at 18b90a6).
     first_weak = weak_scans(len(scans), graph.i, graph.j, result.weights > 0, result.component,
                             unverified(graph, result, one_scan=False))
     pyramids = None

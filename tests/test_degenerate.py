@@ -1,4 +1,4 @@
-"""Degenerate geometry (issue 14, item 4): pairs whose registration leaves a direction free (a plane, a corridor,
+"""Degenerate geometry: pairs whose registration leaves a direction free (a plane, a corridor,
 a cylinder) are found and carry no information there but their overlap's extent, and a scan whose pose the
 kept edges leave free is reported underdetermined rather than placed as if it were certain."""
 

@@ -175,7 +175,7 @@ def _kept_graph(n: int, ij: list[tuple[int, int]], kept: list[bool]) -> tuple[Po
 
 
 def test_scans_held_mostly_by_contradicted_ones_are_doubted():
-    """Simulated room 0 (docs/BENCHMARKS.md, sessions 35-36): scans 0-7 placed 113° off as one block; 0 3 4 5 7 are
+    """Simulated room 0 (docs/BENCHMARKS.md at 18b90a6): scans 0-7 placed 113° off as one block; 0 3 4 5 7 are
     contradicted, 1 and 2 were weak after the first synchronization and now rest on retried look-alike
     registrations to 47 and 48, and 16 hangs on the block. 2 and 16 are held mostly by contradicted scans; 1 is, once
     2 is doubted too. Scans held by right ones (32, 33, and 47 and 48 whose other edges are right) are not, and

@@ -1,4 +1,4 @@
-"""What the first synchronization teaches the front end (issue 10, steps 2-4): refine the kept edges from the
+"""What the first synchronization teaches the front end: refine the kept edges from the
 synchronized poses, close the loops those poses predict, and give the weak scans more partners. Each stage
 adds to or improves the ``EdgeSet``; the pipeline synchronizes again while they change it."""
 

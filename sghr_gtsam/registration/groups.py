@@ -1,4 +1,4 @@
-"""Weak groups registered whole (issue 10, step 4): a group of scans that hangs on the rest of the model by
+"""Weak groups registered whole: a group of scans that hangs on the rest of the model by
 registrations no loop checks (``sync.unverified``), or apart from it, is held together by its own kept edges but
 may be placed wrong as a block, e.g. turned 90° in a square room behind one look-alike registration. Loop
 closures cannot move it (they start from its place) and retries register its scans one at a time, each as

@@ -61,7 +61,7 @@ SAMPLE = 2000
 fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONFLICT``."""
 MIN_AGREEING = 3
 """Dropped registrations that must agree on another placement of a group before ``look_alikes`` calls it one:
-structured look-alikes come backed by 2-4 (issue 11), a lone wrong registration by one."""
+structured look-alikes come backed by 2-4, a lone wrong registration by one."""
 MIN_LOOPED = 20
 """Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
 (``Viewpoints.vouch``): one conflict among them is then at most 5 %."""
@@ -148,7 +148,7 @@ class Viewpoints:
         may read as conflicts. Where a frame's origin is no viewpoint, right registrations read as conflicts: the
         Stanford bunny's scans are in the object's frame (origin inside it), 7 of its 25 loop-checked edges after
         the first synchronization, all right; on six 3DMatch scenes, whose fused fragments are seen from their first
-        camera, 9 of 802, all wrong (docs/BENCHMARKS.md, session 40)."""
+        camera, 9 of 802, all wrong (docs/BENCHMARKS.md at 18b90a6)."""
         kept = result.weights > 0
         looped = np.flatnonzero(kept & ~bridge_edges(graph.n, graph.i, graph.j, kept))
         fractions = np.array([self.fraction(int(graph.i[e]), int(graph.j[e]), graph.T[e]) for e in looped])

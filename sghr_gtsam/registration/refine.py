@@ -1,5 +1,5 @@
 """Multi-scale ICP of a pair from a pose guess: the refinement of kept edges and the registration of loop
-closures (issue 10, steps 2 and 3).
+closures.
 
 A scan's ``Pyramid`` holds its points on grids of voxel v and v/2 (never finer than the scan's own spacing). ``refine_pair`` runs GICP coarse to fine from ``T_init`` (in the synchronized poses: ``T_i⁻¹ T_j``),
 each level starting where the coarser one ended, as Open3D's reconstruction system refines its fragments; the

@@ -217,7 +217,7 @@ def held_by_contradicted(graph: PoseGraph, result: SyncResult, candidates: np.nd
     """(N,) bool: the ``candidates`` that the edges ``result`` kept join mostly (more than half) to ``clash`` scans
     (``contradicted_placements``) or to candidates found so, until none is added. Such a scan is placed as one block
     with scans that the free space says are misplaced, so the registrations that hold it verify nothing. A
-    simulated room (docs/BENCHMARKS.md, session 35): seven scans with next to no true overlap with the others, held
+    simulated room (docs/BENCHMARKS.md at 18b90a6): seven scans with next to no true overlap with the others, held
     113° off by look-alike registrations; five of them contradicted, the other two called rescued, and a scan held
     by the block unflagged."""
     kept = result.weights > 0
