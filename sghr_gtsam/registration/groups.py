@@ -24,7 +24,7 @@ MIN_SCANS = 2
 """A single weak scan is the retries' business (``retry``); a group has geometry of its own to register."""
 GRID = 2.0
 """The merged sides' grid, in voxels: on the run's own grid a merged side of 20-70 thousand points left the right
-correspondences few and rarely mutual among the look-alike parts of a whole room (studyroom's groups: 1-9 inliers,
+correspondences few and rarely mutual among the look-alike parts of a whole room (rows of alike desks: 1-9 inliers,
 all wrong, 11-89 s a group); at twice the voxel, with FPFH's radius twice as wide in metres, two of its groups
 came out within 4.3° / 0.19 m of the truth, in 0.2-3 s."""
 MAX_POINTS = 2_000_000
