@@ -36,6 +36,11 @@ def commit(root: Path = ROOT) -> str:
     return head + ("+dirty" if dirty else "")
 
 
+STARTED_AT = commit()
+"""The commit when the benchmark started (it imports this module first): the code that ran, whatever is committed
+before it ends."""
+
+
 def _cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -72,7 +77,7 @@ def save(name: str, rows: Sequence[Sequence[Any]], columns: Sequence[str], comma
     record = {"name": name, "section": section, "title": title or name, "columns": list(columns),
               "rows": [list(row) for row in rows],
               "command": command or "python " + " ".join([_relative(sys.argv[0]), *sys.argv[1:]]),
-              "commit": commit(), "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "machine": machine(),
+              "commit": STARTED_AT, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "machine": machine(),
               "notes": notes, "transcribed": False}
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.json"

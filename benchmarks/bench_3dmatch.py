@@ -41,7 +41,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # data_tools
 from benchmarks._results import save  # noqa: E402
-from data_tools.other_3dmatch_scenes import GT_DIR as GT_3DMATCH, OTHER_SCENES  # noqa: E402
+from data_tools.other_3dmatch_scenes import GT_DIR as GT_3DMATCH  # noqa: E402
+from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 
 
@@ -244,8 +245,8 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
         started = time.perf_counter()
         overlap_log = str(data / scene.gt_dir / "gt_overlap.log") if gt_overlap and scene.gt_dir else "none"
         proc = subprocess.run([sys.executable, __file__, "--child", str(folder), json.dumps(overrides),
-                               str(workers) if workers else "none", overlap_log], capture_output=True, text=True, cwd=ROOT,
-                              check=False)
+                               str(workers) if workers else "none", overlap_log], capture_output=True, text=True,
+                              cwd=ROOT, check=False)
         wall = time.perf_counter() - started
     if proc.returncode:
         return {"scene": name, "error": (proc.stderr.strip().splitlines() or ["?"])[-1]}

@@ -3,8 +3,8 @@ or (``--scenes gen200 gen1000``) of generated buildings of that many scans.
 
 Graphs: ``data_tools.outlier_graphs.make_graph`` (top-10 GT-overlap graph, inliers with 2° / 5 cm noise, a
 fraction ρ of edges replaced by ``random`` or ``structured`` outliers; see that module); a generated
-building (``data_tools.building``) is drawn anew for every seed, with 3DMatch-like gt.log pairs and gt.info. Methods: the
-project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones — history and the
+building (``data_tools.building``) is drawn anew for every seed, with 3DMatch-like gt.log pairs and gt.info.
+Methods: the project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones — history and the
 paper's ablations constant g and no history — with both reweightings, ``authors`` and ``paper``, and the
 default robust polish; ``history/authors`` also with the other polishes and on graphs whose initial weight
 leaves out ``s`` or ``r``; ``spectral`` and ``lm`` as they are), every baseline of
