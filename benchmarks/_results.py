@@ -25,12 +25,14 @@ RESULTS = ROOT / "benchmarks" / "results"
 
 
 def commit(root: Path = ROOT) -> str:
-    """The short hash of HEAD, ``+dirty`` when tracked files differ from it; ``unknown`` outside a git checkout."""
+    """The short hash of HEAD, ``+dirty`` when tracked files other than results differ from it; ``unknown`` outside a
+    git checkout."""
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
                               check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
+                                ":!benchmarks/results", ":!docs/benchmarks.md"],  # results are not code
+                               cwd=root, capture_output=True, text=True, check=True).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
