@@ -40,7 +40,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # data_tools
-from data_tools.other_3dmatch_scenes import GT_DIR as GT_3DMATCH, OTHER_SCENES  # noqa: E402
+from benchmarks._results import save  # noqa: E402
+from data_tools.other_3dmatch_scenes import GT_DIR as GT_3DMATCH  # noqa: E402
+from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 
 
@@ -158,38 +160,52 @@ def labels(names: list[str]) -> str:
     return " ".join(fragment_label(n) for n in names) or "-"
 
 
-def print_table(rows: list[dict]) -> None:
+def tables(rows: list[dict]) -> list[tuple[str, list[str], list[list]]]:
+    """The runs' table, then (with ``--refit-gt``) the same runs against the re-fitted GT: (kind, columns, rows)."""
     from sghr_gtsam.result import FLAGS
 
     stages = list(dict.fromkeys(k for r in rows for k in r.get("seconds", {})))
-    print("| scene | scans | placed | unregistered | unverified | RR (paper) | within tol | ATE rmse m | median rot ° "
-          "| worst rot ° | " + " | ".join(f"{s} s" for s in stages) + " | wall s | peak MB | doubted (whole model) "
-          "| unflagged wrong | flagged by the run (" + "; ".join(FLAGS) + ") |")
-    print("|---" * (16 + len(stages)) + "|")
+    columns = ["scene", "scans", "placed", "unregistered", "unverified", "RR (paper)", "within tol", "ATE rmse m",
+               "median rot °", "worst rot °", *(f"{s} s" for s in stages), "wall s", "peak MB", "doubted (whole model)",
+               "unflagged wrong", "flagged by the run (" + "; ".join(FLAGS) + ")"]
+    cells = []
     for r in rows:
         if "error" in r:
-            print(f"| {r['scene']} | failed: {r['error']} |")
+            cells.append([r["scene"], f"failed: {r['error']}", *[""] * (len(columns) - 2)])
             continue
         rr = "-" if r["recall"] is None else f"{r['recall']:.3f}"
-        print(f"| {r['scene']} | {r['scans']} | {r['placed']}/{r['scans']} | {len(r['unregistered'])} "
-              f"| {len(r['unverified'])} | {rr} | {r['within']}/{r['scans']} | {r['ate_rmse']:.4g} "
-              f"| {r['median_rot']:.3g} | {r['worst_rot']:.3g} | "
-              + " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages)
-              + f" | {r['wall']:.0f} | {r['peak_mb']:.0f} | {labels(r['doubted'])} | {labels(r['unflagged_wrong'])} "
-              f"| " + "; ".join(labels(r["flags"].get(f, [])) for f in FLAGS) + " |")
+        cells.append([r["scene"], r["scans"], f"{r['placed']}/{r['scans']}", len(r["unregistered"]),
+                      len(r["unverified"]), rr, f"{r['within']}/{r['scans']}", f"{r['ate_rmse']:.4g}",
+                      f"{r['median_rot']:.3g}", f"{r['worst_rot']:.3g}",
+                      *(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages), f"{r['wall']:.0f}", f"{r['peak_mb']:.0f}",
+                      labels(r["doubted"]), labels(r["unflagged_wrong"]),
+                      "; ".join(labels(r["flags"].get(f, [])) for f in FLAGS)])
+    out = [("runs", columns, cells)]
     refit = [r for r in rows if "refit" in r]
     if refit:
-        print("\nThe same runs against the GT re-fitted to the scans (data_tools.refit_gt):\n")
-        print("| scene | pairs re-fitted | ICP optimum from GT: rot median / 90 % ° | trans median / 90 % m "
-              "| re-fitted GT vs GT: within tol, ATE m | within tol | ATE rmse m | doubted | unflagged wrong "
-              "| placed together (5° / 0.2 m): scans, fragments, turn against the largest |")
-        print("|---" * 10 + "|")
+        columns = ["scene", "pairs re-fitted", "ICP optimum from GT: rot median / 90 % °", "trans median / 90 % m",
+                   "re-fitted GT vs GT: within tol, ATE m", "within tol", "ATE rmse m", "doubted", "unflagged wrong",
+                   "placed together (5° / 0.2 m): scans, fragments, turn against the largest"]
+        cells = []
         for r in refit:
             f = r["refit"]
-            print(f"| {r['scene']} | {f['pairs']} | {f['rot'][0]:.2f} / {f['rot'][1]:.2f} | {f['trans'][0]:.3f} / "
-                  f"{f['trans'][1]:.3f} | {f['gt_within']}/{r['scans']}, {f['gt_ate']:.3f} | {f['within']}/{r['scans']} "
-                  f"| {f['ate_rmse']:.4g} | {labels(f['doubted'])} | {labels(f['unflagged_wrong'])} "
-                  f"| {'; '.join(f.get('groups', []))} |")
+            cells.append([r["scene"], f["pairs"], f"{f['rot'][0]:.2f} / {f['rot'][1]:.2f}",
+                          f"{f['trans'][0]:.3f} / {f['trans'][1]:.3f}",
+                          f"{f['gt_within']}/{r['scans']}, {f['gt_ate']:.3f}",
+                          f"{f['within']}/{r['scans']}", f"{f['ate_rmse']:.4g}", labels(f["doubted"]),
+                          labels(f["unflagged_wrong"]), "; ".join(f.get("groups", []))])
+        out.append(("refit", columns, cells))
+    return out
+
+
+def print_table(rows: list[dict]) -> None:
+    for kind, columns, cells in tables(rows):
+        if kind == "refit":
+            print("\nThe same runs against the GT re-fitted to the scans (data_tools.refit_gt):\n")
+        print("| " + " | ".join(columns) + " |")
+        print("|---" * len(columns) + "|")
+        for row in cells:
+            print("| " + " | ".join(str(c) for c in row) + " |")
 
 
 def child(scene_dir: str, overrides_json: str, workers: str, overlap_log: str) -> None:
@@ -229,8 +245,8 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
         started = time.perf_counter()
         overlap_log = str(data / scene.gt_dir / "gt_overlap.log") if gt_overlap and scene.gt_dir else "none"
         proc = subprocess.run([sys.executable, __file__, "--child", str(folder), json.dumps(overrides),
-                               str(workers) if workers else "none", overlap_log], capture_output=True, text=True, cwd=ROOT,
-                              check=False)
+                               str(workers) if workers else "none", overlap_log], capture_output=True, text=True,
+                              cwd=ROOT, check=False)
         wall = time.perf_counter() - started
     if proc.returncode:
         return {"scene": name, "error": (proc.stderr.strip().splitlines() or ["?"])[-1]}
@@ -310,6 +326,12 @@ def main() -> None:
         print(f"running {name} ...", file=sys.stderr, flush=True)
         rows.append(run_scene(args.data, name, overrides, args.workers, args.refit_gt, args.gt_overlap))
     print_table(rows)
+    if not overrides and not args.gt_overlap:  # the defaults' results: the benchmarks page's tables
+        which = "unseen" if args.scenes == ["unseen"] else "shared"  # the titles name the scenes
+        for kind, columns, cells in tables(rows):
+            title = (f"{', '.join(args.scenes)}: the runs" if kind == "runs"
+                     else f"{', '.join(args.scenes)}: the same runs against the GT re-fitted to the scans")
+            save(f"3dmatch_{which}_{kind}", cells, columns, section="3DMatch end to end", title=title)
     if args.json:
         from sghr_gtsam.io.atomic import atomic_write
 

@@ -1,4 +1,4 @@
-"""The executors against each other: in this process, the process pool and a local Ray instance (issue 15).
+"""The executors against each other: in this process, the process pool and a local Ray instance.
 
     python benchmarks/bench_executors.py [--scans 20] [--scene DIR] [--repeats 1]
 

@@ -1,5 +1,5 @@
 """Where refinement's GICP stops, for each step tolerance: the pairs it calls converged, and how far each stop lies
-from the same ICP run to its fixed point (issue 10).
+from the same ICP run to its fixed point.
 
     python benchmarks/bench_icp_stop.py [--data ../shared/data] [--scenes studyroom home_at] [--pairs 40]
         [--steps 0.0205 0.025 0.01 0.005] [--budgets 10] [--seed 0]

@@ -1,6 +1,6 @@
 """The learned local descriptor (``sghr_gtsam.features.learned``, ``Config.descriptor = "learned"``): its training
 data and training on simulated rooms, its inlier bar, and FPFH against it on the gt.log pairs of real 3DMatch scenes
-(issue 10, step 1: "a learned local descriptor ... trained here on simulated scans").
+(a learned local descriptor trained here on simulated scans).
 
     python benchmarks/bench_learned_descriptor.py data DIR [--scenes 160]       # ~10 min on 2 cores
     python benchmarks/bench_learned_descriptor.py train DIR WEIGHTS.npz [--minutes 22]

@@ -1,4 +1,4 @@
-"""Peak memory of whole runs on large scans (issue 14 item 3, issue 15 item 2): does it stay under 4 GB, and does it
+"""Peak memory of whole runs on large scans: does it stay under 4 GB, and does it
 grow with the number of scans N?
 
     python benchmarks/bench_memory.py [--quick] [--workdir DIR] [--keep]

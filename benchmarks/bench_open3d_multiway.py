@@ -18,7 +18,7 @@ optimize_posegraph.py), with the same parameters, on the same voxel as our pipel
 Adaptations, because these scans are unordered fragments without the RGB-D odometry the script relies on:
 every edge is a loop closure (``uncertain``), and the initial poses come from a maximum spanning tree of the kept
 edges (weight: the information's [5, 5], the inlier count) from scan 0; a scan outside scan 0's part has no pose
-(unregistered). Open3D's refinement starts from each edge's stored transform; the issue-10 reading starts it
+(unregistered). Open3D's refinement starts from each edge's stored transform; the reading compared here starts it
 from the optimized poses, which is what is done here. Colored ICP (the script's default) needs colors the scans
 do not have. Both variants are scored by ``sghr_gtsam.evaluate.score_run`` (same tolerances as bench_3dmatch).
 Pairs run over ``--processes`` processes (Open3D single-threaded in each).

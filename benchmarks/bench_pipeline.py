@@ -2,7 +2,7 @@
 
     python benchmarks/bench_pipeline.py [--data ../shared/data] [--scenes kitchen bunny]
 
-Each scene runs in its own process so peak memory is the scene's own. Targets (issue 2): ≤ 15 s and
+Each scene runs in its own process so peak memory is the scene's own. Targets: ≤ 15 s and
 ≤ 3 GB per scene; kitchen: registration recall 100 %, ≥ 8/9 scans within 5°/0.2 m; bunny: 10/10 within 1°/1 mm.
 """
 

@@ -1,4 +1,4 @@
-"""Resume after SIGKILL on a large generated scene (issue 15): how much work a killed run loses.
+"""Resume after SIGKILL on a large generated scene: how much work a killed run loses.
 
     python benchmarks/bench_resume.py [--scans 500] [--kind building] [--kill-at 0.5] [--workers 2] [--workdir DIR]
     python benchmarks/bench_resume.py --scene SCENE --reference OUT --kill-at 0.2   # a kept bench_scale run

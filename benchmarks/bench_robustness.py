@@ -3,8 +3,8 @@ or (``--scenes gen200 gen1000``) of generated buildings of that many scans.
 
 Graphs: ``data_tools.outlier_graphs.make_graph`` (top-10 GT-overlap graph, inliers with 2° / 5 cm noise, a
 fraction ρ of edges replaced by ``random`` or ``structured`` outliers; see that module); a generated
-building (``data_tools.building``) is drawn anew for every seed, with 3DMatch-like gt.log pairs and gt.info. Methods: the
-project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones — history and the
+building (``data_tools.building``) is drawn anew for every seed, with 3DMatch-like gt.log pairs and gt.info.
+Methods: the project's ``synchronize`` for every entry of ``sghr_gtsam.sync.METHODS`` (the IRLS ones — history and the
 paper's ablations constant g and no history — with both reweightings, ``authors`` and ``paper``, and the
 default robust polish; ``history/authors`` also with the other polishes and on graphs whose initial weight
 leaves out ``s`` or ``r``; ``spectral`` and ``lm`` as they are), every baseline of
@@ -44,6 +44,7 @@ from multiprocessing import Pool  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from benchmarks._results import save  # noqa: E402
 from data_tools.outlier_graphs import GENERATED, KINDS, SCENES, ground_truth, make_graph  # noqa: E402
 from sghr_gtsam.evaluate import registration_recall  # noqa: E402
 from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
@@ -152,35 +153,40 @@ def all_pairs_recall(poses: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean(right_pairs(poses, truth)[2]))
 
 
-def tables(runs: list[Run], names: list[str], kinds: list[str], ratios: list[float]) -> str:
-    """Markdown: per kind, registration recall, then mean / median rotation error, by method and ratio."""
+def table_rows(runs: list[Run], names: list[str], kinds: list[str],
+               ratios: list[float]) -> list[tuple[str, str, list[str], list[list]]]:
+    """Per kind: registration recall (with seconds a scene), recall over all node pairs, then mean / median rotation
+    error, by method and ratio; each as (key, title, columns, rows)."""
     out = []
     for kind in kinds:
         mine = [r for r in runs if r.kind == kind]
         cell = {(r.method, r.ratio): [] for r in mine}
         for r in mine:
             cell[(r.method, r.ratio)].append(r)
-        header = "| method | " + " | ".join(f"ρ={x:g}" for x in ratios)
-        rule = "|---|" + "---:|" * len(ratios)
-        out += [f"\n### {kind} outliers: registration recall\n", header + " | s / scene |", rule + "---:|"]
+        header = ["method", *(f"ρ={x:g}" for x in ratios)]
+        recall, all_pairs, rotation = [], [], []
         for name in names:
             rs = [cell.get((name, x), []) for x in ratios]
             seconds = np.mean([r.seconds for group in rs for r in group]) if any(rs) else float("nan")
-            row = " | ".join(f"{np.mean([r.recall for r in g]):.3f}" if g else "–" for g in rs)
-            out.append(f"| {name} | {row} | {seconds:.2f} |")
-        out += [f"\n### {kind} outliers: recall over all node pairs ({ALL_PAIRS_DEG:g}° / {ALL_PAIRS_M:g} m)\n",
-                header + " |", rule]
-        for name in names:
-            rs = [cell.get((name, x), []) for x in ratios]
-            out.append(f"| {name} | " + " | ".join(f"{np.mean([r.all_pairs for r in g]):.3f}" if g else "–"
-                                                  for g in rs) + " |")
-        out += [f"\n### {kind} outliers: rotation error of the gt.log pairs, mean / median (°)\n", header + " |", rule]
-        for name in names:
-            rs = [cell.get((name, x), []) for x in ratios]
-            row = " | ".join(
-                f"{np.mean([r.rot_mean_deg for r in g]):.2f} / {np.mean([r.rot_median_deg for r in g]):.2f}"
-                if g else "–" for g in rs)
-            out.append(f"| {name} | {row} |")
+            recall.append([name, *(f"{np.mean([r.recall for r in g]):.3f}" if g else "–" for g in rs),
+                           f"{seconds:.2f}"])
+            all_pairs.append([name, *(f"{np.mean([r.all_pairs for r in g]):.3f}" if g else "–" for g in rs)])
+            rotation.append([name, *(f"{np.mean([r.rot_mean_deg for r in g]):.2f} / "
+                                     f"{np.mean([r.rot_median_deg for r in g]):.2f}" if g else "–" for g in rs)])
+        out += [(f"{kind}_recall", f"{kind} outliers: registration recall", [*header, "s / scene"], recall),
+                (f"{kind}_all_pairs", f"{kind} outliers: recall over all node pairs ({ALL_PAIRS_DEG:g}° / "
+                 f"{ALL_PAIRS_M:g} m)", header, all_pairs),
+                (f"{kind}_rotation", f"{kind} outliers: rotation error of the gt.log pairs, mean / median (°)", header,
+                 rotation)]
+    return out
+
+
+def tables(runs: list[Run], names: list[str], kinds: list[str], ratios: list[float]) -> str:
+    """Markdown of ``table_rows``."""
+    out = []
+    for _, title, columns, rows in table_rows(runs, names, kinds, ratios):
+        out += [f"\n### {title}\n", "| " + " | ".join(columns) + " |", "|---|" + "---:|" * (len(columns) - 1)]
+        out += ["| " + " | ".join(row) + " |" for row in rows]
     return "\n".join(out)
 
 
@@ -429,6 +435,14 @@ def main() -> None:
             f.writelines(json.dumps(asdict(r)) + "\n" for r in runs)
     print(f"{graphs}, {args.jobs} processes, {time.perf_counter() - start:.0f} s")
     print(tables(runs, names, args.kinds, ratios))
+    scenes = "3dmatch" if args.scenes == list(SCENES) else "_".join(args.scenes)
+    tables_ = {key: (columns, rows) for key, _, columns, rows in table_rows(runs, names, args.kinds, ratios)}
+    for kind in args.kinds:  # the page's table: all pairs / gt.log recall in one cell
+        columns, recall = tables_[f"{kind}_recall"]
+        _, all_pairs = tables_[f"{kind}_all_pairs"]
+        rows = [[a[0], *(f"{x} / {y}" for x, y in zip(a[1:], r[1:-1]))] for a, r in zip(all_pairs, recall)]
+        save(f"robustness_{scenes}_{kind}", rows, columns[:-1], section="Synchronization",
+             title=f"{kind} outliers: recall over all node pairs (5° / 0.2 m) / the paper's gt.log recall, {graphs}")
 
 
 if __name__ == "__main__":

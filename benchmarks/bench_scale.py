@@ -1,4 +1,4 @@
-"""Scale (issue 15): generated buildings of N scans end to end; how the seconds grow with N·k, the memory, and how
+"""Scale: generated buildings of N scans end to end; how the seconds grow with N·k, the memory, and how
 many scans land on GT.
 
     python benchmarks/bench_scale.py [--scans 100 500 2000] [--kind building] [--workers 2] [--workdir DIR] [--keep]

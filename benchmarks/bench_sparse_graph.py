@@ -5,7 +5,7 @@
     python benchmarks/bench_sparse_graph.py --sim-rooms 0 1 2 [--sim-scans 50] --ks 5 10 --random-seeds 1
     python benchmarks/bench_sparse_graph.py --sim-rooms 0 --steps [on off exhaustive] [--ks 10] [--set KEY=VALUE]
 
-Issue 4: is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
+Is the learned top-k graph at least as accurate as the exhaustive one with at most 40 % of its
 pairs? Every row is a full ``pipeline.register`` run (features, global scores and top-k graph, pairwise
 registration on the graph's edges, history-reweighted IRLS, gtsam polish) on the scans read once by
 ``scene.load_scene``, default ``Config`` except ``k``, ``global_feature`` and ``record=False``.
@@ -37,7 +37,7 @@ paper's claim is about 3DMatch scenes of ~54 scans and k = 10. These rows run th
 rooms of ``--sim-scans`` scans (``data_tools.simulate``, a dataset seed no head was trained or selected on),
 scored as the kitchen (``sim_scene``), with one exhaustive row (the learned-weights one would register the same pairs).
 
-``--steps`` (issue 10, with ``--sim-rooms``): three rows a room instead, default ``Config`` (VLAD codebook)
+``--steps`` (with ``--sim-rooms``): three rows a room instead, default ``Config`` (VLAD codebook)
 with ``workers=2``: top-k (the first of ``--ks``) with the front end's steps 2-4 (refine, loops, retry, groups: the
 default), the same graph with them off, and the exhaustive graph with them off. Besides recall, it counts the
 pairs that got *global* registration (FPFH matching + estimator: the top-k graph with its bridges, every
@@ -295,7 +295,7 @@ def global_pairs(res: pipeline.RunResult, k: int, connect: bool = True) -> int:
 
 
 def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = None) -> None:
-    """Issue 10: top-k with and without steps 2-4 against the exhaustive graph without them (``rows`` of
+    """Top-k with and without steps 2-4 against the exhaustive graph without them (``rows`` of
     ``STEPS_PLAN``), ``overrides`` (``Config`` fields) in every row; each row is printed as soon as it is measured
     (the exhaustive one takes long)."""
     n = len(scene.scans)
@@ -346,7 +346,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="instead of the real scenes: these simulated rooms (indices; the paper's scale)")
     ap.add_argument("--sim-scans", type=int, default=50, help="scans per simulated room (default 50)")
     ap.add_argument("--steps", nargs="*", choices=list(STEPS_PLAN), default=None,
-                    help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive (issue 10); "
+                    help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive; "
                          "no value: all three rows")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="with --steps: override a Config field in every row (repeatable)")

@@ -23,9 +23,9 @@ KERNELS = ("none", "huber", "cauchy", "tls")
 
 MIN_INLIERS = {"fpfh": 15, "learned": 31}
 """``Config.min_inliers`` by descriptor (given descriptors use FPFH's): one more than the most inliers a wrong
-pair reached among all pairs of the kitchen and the bunny (``benchmarks/bench_learned_descriptor.py bars``, sc2;
-FPFH 14, the learned descriptor 30); right FPFH pairs reach down to 9 there. On the 3DMatch home_at 5 of 45 grossly
-wrong FPFH pairs reach 15-27 (chance agreement between alike objects)."""
+pair reached among all pairs of the 3DMatch fragments and the bunny (``benchmarks/bench_learned_descriptor.py
+bars``, sc2; FPFH 14, the learned descriptor 30); right FPFH pairs reach down to 9 there. In a 60-fragment 3DMatch
+scene, 5 of 45 grossly wrong FPFH pairs reach 15-27 (chance agreement between alike objects)."""
 DESCRIPTORS = tuple(MIN_INLIERS)
 """Local descriptors (``features.local.compute_features``)."""
 
@@ -56,7 +56,7 @@ class Config:
     # --- scans and local features -------------------------------------------------------------
     voxel: float | None = None
     """Voxel size in scene units. None: derived from the scene as 1/100 of the median scan's
-    bounding-box diagonal (4.2 cm on the 3DMatch kitchen, 2.5 mm on the Stanford bunny: where the
+    bounding-box diagonal (4.2 cm on 3DMatch fragments, 2.5 mm on the Stanford bunny: where the
     pairwise benchmark got the most pairs right on both)."""
     min_points: int = 100
     """A scan with fewer finite points (after loading) is skipped and reported."""
@@ -67,8 +67,8 @@ class Config:
     descriptor: str = "fpfh"
     """Local descriptor that pairs are matched on: 'fpfh' (open3d's FPFH of the voxel grid) or 'learned' (a
     network trained on simulated rooms, ``features.learned``). The learned one registers more gt.log pairs right
-    on every 3DMatch test scene, and gives better whole models on home_at and studyroom but worse ones on mit_lab
-    and hotel_umd3, in twice the time (docs/BENCHMARKS.md). The top-k graph is built on FPFH either way."""
+    on every 3DMatch test scene, and gives better whole models on two of them but worse ones on two others, in twice
+    the time (docs/BENCHMARKS.md). The top-k graph is built on FPFH either way."""
     features: str | None = None
     """Folder of precomputed local features, per scan ``<stem>.kpts.npy`` (K×3 keypoints in the scan's
     frame) and ``<stem>.desc.npy`` (K×D descriptors), in the folder or any sub-folder (the SGHR authors'
@@ -81,11 +81,11 @@ class Config:
     connect: bool = True
     """Join the parts of the top-k graph by their best-scoring pairs (``graph.bridge_components``): with a
     small k the union of top-k choices can split the scans into parts that could never be placed together
-    (the kitchen at k = 2 with the learned head: two parts of four scans). False: the paper's graph as is."""
+    (nine 3DMatch fragments at k = 2 with the learned head: two parts of four scans). False: the paper's graph as is."""
     global_feature: str = "vlad"
     """Global feature: 'vlad' (NetVLAD initialised from a k-means codebook of this scene's descriptors)
     or 'learned' (a trained NetVLAD head, ``overlap_head``). 'vlad' is the default because it ranks
-    overlaps better on the kitchen and the bunny than the shipped FPFH head (docs/BENCHMARKS.md)."""
+    overlaps better on 3DMatch fragments and the bunny than the shipped FPFH head (docs/BENCHMARKS.md)."""
     overlap_head: str | None = None
     """Checkpoint of a trained NetVLAD head (ours, or the SGHR authors' ``netvlad_overlap_model_best.pth``
     for their 32-d YOHO descriptors); given, it scores the overlaps whatever ``global_feature`` says. Its
@@ -96,7 +96,7 @@ class Config:
     matcher: str = "sc2"
     """Robust estimator on mutual-nearest-neighbour matches: 'sc2' (second-order spatial compatibility,
     ``registration.estimators``), 'kiss' (kiss-matcher) or 'ransac' (open3d). 'sc2' gets the most pairs
-    right on the 3DMatch scenes and the kitchen at about the same cost (docs/BENCHMARKS.md)."""
+    right on the 3DMatch scenes at about the same cost (docs/BENCHMARKS.md)."""
     icp_distance: float = 1.5
     """ICP correspondence distance, in voxels."""
     min_inliers: int | None = None

@@ -109,7 +109,7 @@ def registration_recall_counting_unplaced(ids: list[int], poses: np.ndarray, gt_
     """The paper's protocol in full: like ``registration_recall``, but a ``gt.log`` pair (|i − j| > 1) whose
     fragments are both in the scene (``scene_ids``) while one of them was not placed (not in ``ids``)
     counts as FAILED (rmse ``inf``) instead of being skipped. Pairs naming a fragment outside the scene
-    (the kitchen folder holds 9 of the 60 fragments) are left out."""
+    (a folder holding 9 of a scene's 60 fragments) are left out."""
     placed = registration_recall(ids, poses, gt_log, gt_info, threshold)
     scene, index = set(scene_ids), set(ids)
     unplaced = [(a, b) for (a, b) in sorted(gt_log) if abs(a - b) > 1 and a in scene and b in scene

@@ -187,9 +187,9 @@ _STAGE: int | None = None  # the stage whose shared state a kept worker holds
 def kept_workers(workers: int | None, ray: str | None = None) -> Iterator[None]:
     """Within the block, the stages that run over ``workers`` processes share one pool of them instead of starting
     a pool each: a worker's memory of the scans it read, with the search structures and GICP clouds built on them
-    (``store.LRU_BYTES``), then serves every stage, not one. On kitchen60 (60 fragments, two workers) the pyramid
-    levels were built 840 times for 120 (refinement and two rounds of loop closure, each in each worker), 246 times
-    in one pool (docs/BENCHMARKS.md). Nothing is kept under Ray or with one worker; a stage asking for another
+    (``store.LRU_BYTES``), then serves every stage, not one. On a 3DMatch scene of 60 fragments (two workers) the
+    pyramid levels were built 840 times for 120 (refinement and two rounds of loop closure, each in each worker),
+    246 times in one pool (docs/BENCHMARKS.md). Nothing is kept under Ray or with one worker; a stage asking for another
     number of workers, or run by another thread, gets a pool of its own. Results do not depend on it: tasks are
     pure functions."""
     workers = default_workers() if workers is None else workers

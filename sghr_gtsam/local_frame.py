@@ -21,8 +21,8 @@ correspondences in voxel units, rerun) resolves 6e-4 voxels there, and loses met
 def centres(medians: np.ndarray, voxel: float) -> np.ndarray:
     """(N, 3) the point each scan is centred at: its median (``medians`` (N, 3), ``ScanStats.median``) when some scan
     lies farther than ``FAR_VOXELS`` from the origin (georeferenced coordinates), else zero. Scans near the origin are
-    not moved, since centring changes a run's rounding (and so, at the margin, its results: the kitchen's
-    cloud_bin_21 went from 1.5° to 3.4°)."""
+    not moved, since centring changes a run's rounding (and so, at the margin, its results: one 3DMatch
+    fragment went from 1.5° to 3.4°)."""
     return medians if np.abs(medians).max() > FAR_VOXELS * voxel else np.zeros_like(medians)
 
 

@@ -10,7 +10,7 @@ from sghr_gtsam.cells import unique_cells
 _COORDINATES = st.one_of(st.integers(-5, 5), st.integers(-(2**62), 2**62))  # small spans, and spans past one key
 
 
-_WRAP = 2**62  # a span of 2**63 wraps to a negative int64: found by hypothesis in CI, session 38
+_WRAP = 2**62  # a span of 2**63 wraps to a negative int64: found by hypothesis in CI
 
 
 @given(arrays(np.int64, st.tuples(st.integers(0, 200), st.just(3)), elements=_COORDINATES))

@@ -1,4 +1,4 @@
-"""The hostile-input corpus (issue 14): every case generated here, each asserting the one line the user gets
+"""The hostile-input corpus: every case generated here, each asserting the one line the user gets
 (never a traceback), the exit code and what is left in the output folder; hypothesis fuzzes the PLY, PCD and g2o
 readers. docs/BENCHMARKS.md lists the cases and their outcomes.
 

@@ -271,7 +271,7 @@ def test_session_fed_scan_by_scan_ends_at_the_batch_synchronization_of_its_edges
 @pytest.mark.slow
 @pytest.mark.parametrize("scene,max_deg,max_trans", [("kitchen", 0.5, 0.01), ("bunny", 0.1, 0.001)])
 def test_session_fed_real_scans_one_by_one_ends_at_the_batch_result(data_dir, scene, max_deg, max_trans):
-    """Issue 12's incremental target: kitchen and bunny fed scan by scan end within 0.5° / 1 cm and 0.1° / 1 mm of
+    """The incremental session's target: kitchen and bunny fed scan by scan end within 0.5° / 1 cm and 0.1° / 1 mm of
     the batch run of the same scans, every scan placed by both."""
     from sghr_gtsam.scene import load_scene
 
@@ -366,18 +366,3 @@ def test_sync_kernel_option(tmp_path):
 
     bad = CliRunner().invoke(app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "o.g2o"), "--kernel", "l1"])
     assert bad.exit_code == 2 and "kernel must be one of" in bad.output
-
-
-def test_readme_gtsam_example_runs(object_run, tmp_path, capsys):
-    """The README's GTSAM example, as written, on a generated scene."""
-    from pathlib import Path
-
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    section = readme[readme.index("## GTSAM API"):]
-    code = section[section.index("```python\n") + 10:section.index("```\n", section.index("```python\n"))]
-    scene_dir = object_run[2].parent / "scene"
-    code = code.replace('run("scene/", "out/", Config())', f'run({str(scene_dir)!r}, {str(tmp_path)!r}, '
-                        f'Config(voxel={object_run[0].voxel}, workers=1, record=False), log=lambda m: None)')
-    exec(compile(code, "README.md", "exec"), {})  # noqa: S102 - our own README
-    printed = capsys.readouterr().out.splitlines()
-    assert len(printed) == len(object_run[1].registered) and printed[0].startswith("x")

@@ -140,7 +140,7 @@ def test_initial_weight_ablations_use_score_or_inliers_alone():
     np.testing.assert_allclose(g.weight, runs["s"].graph.weight * runs["r"].graph.weight)
 
 
-# --- what the API refuses or skips before any work (a hostile review, session 31) ---------------------------------
+# --- what the API refuses or skips before any work (a hostile review) ---------------------------------
 
 
 def _room_scans(n: int = 4) -> list[Scan]:

@@ -1,4 +1,4 @@
-"""`run --features DIR [--overlap-head CKPT]`: precomputed keypoints + descriptors per scan (issue 4).
+"""`run --features DIR [--overlap-head CKPT]`: precomputed keypoints + descriptors per scan.
 
 On the authors' own YOHO output for kitchen fragments 0-5 the run must reproduce their overlap scores and
 land on GT; bad features folders must end in one line and no results."""

@@ -1,4 +1,4 @@
-"""Reviewing a run at a glance (issue 13): progress bars on a terminal (captured here), the command line's help,
+"""Reviewing a run at a glance: progress bars on a terminal (captured here), the command line's help,
 closing summary and quiet mode, summary.png and its palette, TUM poses beside KITTI."""
 
 import io

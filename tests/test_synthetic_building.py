@@ -147,11 +147,11 @@ def test_a_small_hotel_places_no_scan_wrongly_without_a_flag():
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "look-alikes (issue 11; issue 14 item 4's repeated-room test is the 16-scan hotel above), measured: the hotel "
+    "look-alikes (the repeated-room test is the 16-scan hotel above), measured: the hotel "
     "of 24 scans (seed 1; three identical rooms) stacks its rooms, and no "
     "group of scans has more than two dropped registrations agreeing on another placement: the top-10 graph holds "
     "look-alike registrations between the rooms and hardly any right one between rooms and corridors. 21 scans "
-    "are placed wrongly without a flag (docs/BENCHMARKS.md, look-alikes; 20 before session 37's free-space blame)"))
+    "are placed wrongly without a flag (docs/BENCHMARKS.md at 18b90a6, look-alikes; 20 before the free-space blame)"))
 def test_a_larger_hotel_places_no_scan_wrongly_without_a_flag():
     scene = make_scene("hotel", 24, seed=1)
     assert score_result(_register(scene), scene.names, scene.poses).unflagged_wrong == []

@@ -28,7 +28,7 @@ FPFH_MAX_NN = 100
 # Neighbours for the GICP covariances (small_gicp's default).
 COV_NEIGHBORS = 20
 # Given keypoints must lie on the scan: median distance to its grid at most this (voxels). The authors'
-# YOHO keypoints on the kitchen lie 0.33-0.35 voxels (median; all < 0.9) from the 4.1 cm grid;
+# YOHO keypoints on 3DMatch fragments lie 0.33-0.35 voxels (median; all < 0.9) from the 4.1 cm grid;
 # keypoints in another frame or unit lie metres away.
 KEYPOINT_MAX_DISTANCE = 2.0
 # Memory per point of the search structures (measured: 200k points): a GICP cloud with its covariances (and
@@ -163,7 +163,7 @@ def compute_features(
     it centred), the scan's origin: the sensor for scans in sensor coordinates (3DMatch),
     the object's inside for object-centred scans (Stanford). Either way they are consistent across
     scans, which FPFH needs (its angles change sign with the normals): unoriented normals lose 4 of
-    the 20 right kitchen pairs and 5 of the 24 right bunny pairs.
+    the 20 right 3DMatch pairs and 5 of the 24 right bunny pairs.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -238,8 +238,8 @@ def default_voxel(scans: list[np.ndarray]) -> float:
 def voxel_from_spans(spans: list[float]) -> float:
     """Voxel size from the scans' bounding-box diagonals ``spans``: 1/100 of the median one.
 
-    4.2 cm on the 3DMatch kitchen and 2.5 mm on the Stanford bunny, where both scenes do best:
-    with kiss-matcher and FPFH at 5 voxels the kitchen gets 19 / 20 / 19 of its 29 overlapping pairs
+    4.2 cm on 3DMatch fragments and 2.5 mm on the Stanford bunny, where both scenes do best:
+    with kiss-matcher and FPFH at 5 voxels nine 3DMatch fragments get 19 / 20 / 19 of its 29 overlapping pairs
     right at 3 / 4.2 / 5 cm (3 cm costs 2.5x the time), the bunny 24 / 24 / 22 / 19 at 2 / 2.5 / 3 /
     4 mm (coarser grids miss its 1 mm bound).
     """

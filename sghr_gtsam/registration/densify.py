@@ -1,4 +1,4 @@
-"""What the first synchronization teaches the front end (issue 10, steps 2-4): refine the kept edges from the
+"""What the first synchronization teaches the front end: refine the kept edges from the
 synchronized poses, close the loops those poses predict, and give the weak scans more partners. Each stage
 adds to or improves the ``EdgeSet``; the pipeline synchronizes again while they change it."""
 
@@ -192,8 +192,8 @@ def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncR
                progress: Progress = QUIET, cache: Cache | None = None) -> int:
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
     by overlap score; the pairs that register enter as retry edges. A scan placed in the largest part is retried
-    once a run; only one left outside it is retried again (studyroom: a second round of retries for every weak scan
-    cost 15 s for two kept right edges, docs/BENCHMARKS.md). Returns how many registered."""
+    once a run; only one left outside it is retried again (on a scene of repeated desks a second round of
+    retries for every weak scan cost 15 s for two kept right edges, docs/BENCHMARKS.md). Returns how many registered."""
     n = len(features)
     weak = weak_scans(n, edges.ij[:, 0], edges.ij[:, 1], _kept(edges, sync), sync.component, unverified)
     again = np.zeros(n, dtype=bool)

@@ -99,8 +99,9 @@ class EdgeSet:
         """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and, once
         ``views`` vouches for the scene's frames (``overrule.Viewpoints.vouch``), of those it leaves unjudged the
         coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
-        not seen from one origin (``visibility``), so only the coarse check judges them: studyroom's look-alike
-        registrations, 57 of its 127 wrong ones, none of its 256 right ones (docs/BENCHMARKS.md, session 39)."""
+        not seen from one origin (``visibility``), so only the coarse check judges them: in a scene of repeated
+        desks, the look-alike registrations, 57 of its 127 wrong ones, none of its 256 right ones
+        (docs/BENCHMARKS.md at 18b90a6)."""
         todo = np.flatnonzero(~self._checked)
         if len(todo):
             T = np.stack([self.pairs[e].T for e in todo])

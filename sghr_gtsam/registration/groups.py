@@ -1,4 +1,4 @@
-"""Weak groups registered whole (issue 10, step 4): a group of scans that hangs on the rest of the model by
+"""Weak groups registered whole: a group of scans that hangs on the rest of the model by
 registrations no loop checks (``sync.unverified``), or apart from it, is held together by its own kept edges but
 may be placed wrong as a block, e.g. turned 90° in a square room behind one look-alike registration. Loop
 closures cannot move it (they start from its place) and retries register its scans one at a time, each as
@@ -24,7 +24,7 @@ MIN_SCANS = 2
 """A single weak scan is the retries' business (``retry``); a group has geometry of its own to register."""
 GRID = 2.0
 """The merged sides' grid, in voxels: on the run's own grid a merged side of 20-70 thousand points left the right
-correspondences few and rarely mutual among the look-alike parts of a whole room (studyroom's groups: 1-9 inliers,
+correspondences few and rarely mutual among the look-alike parts of a whole room (rows of alike desks: 1-9 inliers,
 all wrong, 11-89 s a group); at twice the voxel, with FPFH's radius twice as wide in metres, two of its groups
 came out within 4.3° / 0.19 m of the truth, in 0.2-3 s."""
 MAX_POINTS = 2_000_000

@@ -192,8 +192,8 @@ class Information:
 
     Synchronization weighs an edge by ``measured``; the reported covariances and the ``underdetermined`` flag
     use ``matrix``. The move test also finds free directions on real scans that are not degenerate (21 of the
-    36 kitchen pairs, whose TSDF fragments' residuals are about as large as the move), and weighing those edges
-    by ``matrix`` cost the kitchen a scan (cloud_bin_21 unregistered, placed 1.6° / 0.16 m from the truth by
+    36 pairs of 3DMatch fragments, whose TSDF residuals are about as large as the move), and weighing those edges
+    by ``matrix`` cost such a scene a scan (left unregistered, placed 1.6° / 0.16 m from the truth by
     ``measured``): a doubt belongs in what is reported, not in where the scans go."""
 
     matrix: np.ndarray

@@ -1,4 +1,4 @@
-"""Loop proposals: pairs never registered that overlap under the synchronized poses (issue 10, step 3).
+"""Loop proposals: pairs never registered that overlap under the synchronized poses.
 
 The cheap test is a shared occupancy grid: each placed scan marks the cells (of ``CELL`` voxels) its
 points fall in, in the world frame; a pair's predicted overlap is the number of cells both mark over the

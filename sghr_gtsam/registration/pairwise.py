@@ -23,15 +23,15 @@ from .estimators import sc2_estimate
 from .information import Information, nearest_points, registration_information
 
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
-# matching is 4-6x faster than exact search and registers the same pairs (+-1) on the kitchen and
-# the bunny; with 3 both scenes lose pairs. On the authors' 32-d YOHO descriptors (kitchen 0-5) it
+# matching is 4-6x faster than exact search and registers the same pairs (+-1) on the 3DMatch fragments and
+# the bunny; with 3 both scenes lose pairs. On the authors' 32-d YOHO descriptors (six fragments) it
 # finds 97-101 % as many mutual matches as exact search and gets the same 14 of 15 pairs right.
 MATCH_EPS = 2.0
 # A match counts towards r_ij when the final T_ij brings its two points this close (voxels).
 INLIER_DISTANCE = 1.5
 # ``PairResult.coverage`` counts the cells of this size (voxels) that the inliers occupy in scan i. A
 # consensus-maximising estimator (sc2) also finds chance agreement between unrelated parts, but there the
-# inliers crowd on one object: on kitchen, bunny and home_at no grossly wrong pair (> 10 deg or
+# inliers crowd on one object: on two 3DMatch scenes and the bunny no grossly wrong pair (> 10 deg or
 # 0.5 m) covered more than 10 cells, where its r_ij reached 27 (benchmarks/bench_pairwise.py).
 COVERAGE_CELL = 5.0
 # open3d RANSAC on the matches: inlier distance (voxels) and its stopping rule.
@@ -39,7 +39,7 @@ RANSAC_DISTANCE = 1.5
 RANSAC_MAX_ITERATION = 100_000
 RANSAC_CONFIDENCE = 0.999
 # GICP stops after this many iterations or when an update is below these (radians; voxels). From a
-# robust estimate it converges in 2-7 iterations (36 of the 44 right kitchen and bunny pairs); the
+# robust estimate it converges in 2-7 iterations (36 of the 44 right 3DMatch and bunny pairs); the
 # rest creep along low-overlap surfaces, and a cap of 10 registers the same pairs as 30 at half the
 # cost (wrong pairs never converge, so they always use the whole cap).
 GICP_MAX_ITERATIONS = 10
@@ -122,7 +122,7 @@ def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.n
 def _kiss(p_i: np.ndarray, p_j: np.ndarray, voxel: float) -> np.ndarray:
     # Solved in voxel units: kiss-matcher's noise bounds are multiples of its voxel size, and it
     # refuses voxels under 5 mm (the bunny's is 2.5 mm). ROBIN's max-core pruning before the GNC
-    # solver matters: the solver alone got 14 kitchen pairs right where pruning got 17 (3 cm grid).
+    # solver matters: the solver alone got 14 3DMatch pairs right where pruning got 17 (3 cm grid).
     solver = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(1.0))
     solution = solver.prune_and_solve(
         list((p_j / voxel).astype(np.float32)), list((p_i / voxel).astype(np.float32))
@@ -204,7 +204,7 @@ def agreeing_matches(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarr
     """The ``mutual_matches`` that ``T`` brings within ``INLIER_DISTANCE`` voxels, for keypoints that are the grid
     points (FPFH, the learned descriptor; not given keypoints). Only a point of scan j with a point of scan i that
     close can be one, so only those are looked up in descriptor space, and only their partners looked back
-    (``score_pair`` in 0.55× the time on kitchen pairs).
+    (``score_pair`` in 0.55× the time on 3DMatch pairs).
     A k-d query's answer for one point does not depend on the others queried with it, so the pairs are exactly
     those of ``mutual_matches`` that agree. ``search``: ``information.nearest_points`` of scan j's points moved by
     ``T``."""

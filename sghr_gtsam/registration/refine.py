@@ -1,5 +1,5 @@
 """Multi-scale ICP of a pair from a pose guess: the refinement of kept edges and the registration of loop
-closures (issue 10, steps 2 and 3).
+closures.
 
 A scan's ``Pyramid`` holds its points on grids of voxel v and v/2 (never finer than the scan's own spacing). ``refine_pair`` runs GICP coarse to fine from ``T_init`` (in the synchronized poses: ``T_i⁻¹ T_j``),
 each level starting where the coarser one ended, as Open3D's reconstruction system refines its fragments; the
@@ -37,18 +37,19 @@ from .pairwise import PAIRS, PairResult, informed, scored
 LEVELS = (1.0, 0.5)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six bunny pairs started a voxel
 off GT, v/4 landed within 0.03° of what v/2 gives (0.03-0.38° from GT) at 3× the time (0.24 s a pair against
-0.08 s), and on the dense kitchen fragments its 100k-point grids cost 0.7-2.5 s a pair."""
+0.08 s), and on dense 3DMatch fragments its 100k-point grids cost 0.7-2.5 s a pair."""
 LEVEL_DISTANCE = (2.0, 1.5)
 """GICP correspondence distance of each level, in that level's voxels: the coarse level admits the
 synchronized guess's drift (a few centimetres on 3DMatch), the fine ones only close neighbours."""
 LEVEL_ITERATIONS = (10, 10)
 """From a guess 1° / v/2 off GT GICP converges within these on 36-38 of 40 3DMatch pairs; 20, small_gicp's default,
-converges on all and turned studyroom's and kitchen's models both ways, no clear gain (docs/BENCHMARKS.md)."""
+converges on all and turned two 3DMatch scenes' models both ways, no clear gain (docs/BENCHMARKS.md)."""
 STEP_VOXELS = 0.025
 """GICP has converged when a step moves the scan less than this (voxels v) and turns it less than 0.1°. In voxels,
 as every other length here, so that a scene registers alike in any unit (small_gicp's default, 1e-3 in scene units,
 was 0.0004 v in millimetres: settled ICPs ran out of iterations and their edges were lost). v/40 is that default
-at the 3DMatch scenes' 4 cm voxel; on studyroom a 2 % change of it turns the run's path (docs/BENCHMARKS.md)."""
+at the 3DMatch scenes' 4 cm voxel; on a scene of repeated desks a 2 % change of it turns the run's path
+(docs/BENCHMARKS.md)."""
 MAX_MOVE_DEG = 5.0
 MAX_MOVE_VOXELS = 3.0
 """A re-registration confirms the synchronized poses only if ICP stays near the guess: a larger move means
@@ -189,7 +190,7 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
     T, converged, coarser = multiscale_icp(pyramid_i, pyramid_j, T_init)
     if not (converged and stays_near(T, T_init, voxel)):
         # A move away from the guess is no evidence for the poses the guess came from, whatever its score:
-        # skipping the scoring saves the descriptor matching and the information (40 % of a pair on kitchen60).
+        # skipping the scoring saves the descriptor matching and the information (40 % of a pair on 3DMatch).
         return PairResult(T, 0, 0.0, 0.0, None, time.perf_counter() - start, matches=matches), False
     result, search = scored(target_i, source_j, T, voxel, icp_distance, matches)
     if confirms(result, True, min_inliers):

@@ -1,4 +1,4 @@
-"""Effort where the graph is weak (issue 10, step 4): scans left unregistered, unverified or hanging on
+"""Effort where the graph is weak: scans left unregistered, unverified or hanging on
 fewer than ``MIN_DEGREE`` kept edges get global registration against their next candidates by overlap
 score: an adaptive k instead of one k for everyone."""
 
