@@ -4,14 +4,17 @@
         bunny_ring | unseen] [--set key=value ...] [--workers N] [--refit-gt] [--gt-overlap] [--json rows.json]
 
 Each scene runs ``sghr_gtsam.pipeline.run`` in its own process (so peak memory is the scene's own) and is scored
-by ``sghr_gtsam.evaluate.score_run``: fragments placed / unregistered / unverified; registration recall by the
-paper's protocol (gt.log pairs with |i − j| > 1, a pair with an unplaced fragment counts as failed); and the
+by ``sghr_gtsam.evaluate.score_run``: fragments placed / unregistered; registration recall by the paper's
+protocol on 3DMatch (gt.log) and 3DLoMatch (its gt.log: pairs of 10-30 % overlap) pairs with |i − j| > 1, a pair
+with an unplaced fragment counting as failed; the run's parts (``verify``) by ``evaluate.score_parts``: a scan is
+misplaced when outside the largest rigid piece of its own part (15° / 0.6 m against GT), and the doubted scans
+(the run's doubts) are scored against the misplaced ones; and the
 whole model: one rigid alignment of all placed scan positions to GT (as ``evo_ape --align``), then the scans
 within 5° / 0.2 m (bunny: 0.2° / 0.5 mm, aligned by whole poses: its sensor positions ring the object and
 leave a positions-only alignment's rotation loose), ATE rmse and rotation errors. ``doubted`` lists the placed scans
-outside the tolerance (fragment numbers), ``flagged`` those the run itself doubted (``RunResult.flags``), and
-``unflagged wrong`` the scans placed without a flag that one rigid alignment of those scans alone leaves outside
-the tolerance (``SceneScore.unflagged_wrong``: a wrong model that looks right). ``bunny_ring`` is the bunny's six
+outside the tolerance (fragment numbers), and ``unflagged wrong`` the scans of the trusted model (``Verdict.trusted``: the
+verified scans of the world part) that one rigid alignment of those scans alone leaves outside the tolerance
+(``SceneScore.unflagged_wrong``: a wrong model that looks right). ``bunny_ring`` is the bunny's six
 ring scans alone (45-90° apart). ``unseen`` is the other five 3DMatch test scenes (``kitchen60``, ``home_md``,
 ``hotel_umd1``, ``hotel_umd3``, ``mit_lab``), built by ``data_tools.other_3dmatch_scenes`` into a folder of their own.
 ``--refit-gt`` also scores the 3DMatch scenes against their GT re-fitted to the scans (``data_tools.refit_gt``):
@@ -139,14 +142,32 @@ def scene_gt(data: Path, scene: Scene) -> dict:
     return kw
 
 
-def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None,
-              flags: dict[str, list[str]]) -> dict:
-    """One JSON-able row from a ``SceneScore``, the run's timings and its flags."""
+def lo_gt(data: Path, scene: Scene) -> tuple[dict, dict] | None:
+    """The scene's 3DLoMatch pairs (gt.log, gt.info of the 3DLoMatch benchmark; the kitchen's gtLo files), or None."""
+    from sghr_gtsam.io.poses import read_gt_info, read_gt_log
+
+    if not scene.gt_dir:
+        return None
+    folder = data / scene.gt_dir
+    for log, info in ((folder / "gtLo.log", folder / "gtLo.info"),
+                      (data / scene.gt_dir.replace("/3DMatch/", "/3DLoMatch/") / "gt.log",
+                       data / scene.gt_dir.replace("/3DMatch/", "/3DLoMatch/") / "gt.info")):
+        if log.is_file() and info.is_file():
+            return read_gt_log(log), read_gt_info(info)
+    return None
+
+
+def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None, parts,
+              lo_recall: float | None) -> dict:
+    """One JSON-able row from a ``SceneScore``, the run's timings, its ``evaluate.PartsScore`` and its 3DLoMatch
+    recall."""
     w = score.whole
     return {
         "scene": name, "scans": score.scans, "placed": len(score.placed), "unregistered": score.unregistered,
-        "unverified": flags.get("unverified", []), "flags": flags, "unflagged_wrong": score.unflagged_wrong,
-        "recall": score.recall.recall if score.recall else None,
+        "parts": [len(p) for p in parts.parts], "pieces": [len(p) for p in parts.pieces],
+        "misplaced": parts.misplaced, "doubts": parts.doubted, "caught": parts.caught,
+        "unflagged_wrong": score.unflagged_wrong,
+        "recall": score.recall.recall if score.recall else None, "lo_recall": lo_recall,
         "within": score.within, "tolerance": [score.max_deg, score.max_trans], "ate_rmse": w.ate_rmse,
         "median_rot": float(np.median(w.rotation_deg)), "worst_rot": float(w.rotation_deg.max()),
         "worst_trans": float(w.translation.max()), "seconds": seconds, "wall": wall, "peak_mb": peak_mb,
@@ -162,24 +183,23 @@ def labels(names: list[str]) -> str:
 
 def tables(rows: list[dict]) -> list[tuple[str, list[str], list[list]]]:
     """The runs' table, then (with ``--refit-gt``) the same runs against the re-fitted GT: (kind, columns, rows)."""
-    from sghr_gtsam.result import FLAGS
-
     stages = list(dict.fromkeys(k for r in rows for k in r.get("seconds", {})))
-    columns = ["scene", "scans", "placed", "unregistered", "unverified", "RR (paper)", "within tol", "ATE rmse m",
-               "median rot °", "worst rot °", *(f"{s} s" for s in stages), "wall s", "peak MB", "doubted (whole model)",
-               "unflagged wrong", "flagged by the run (" + "; ".join(FLAGS) + ")"]
+    columns = ["scene", "scans", "placed", "RR (paper)", "3DLoMatch RR", "parts (scans)", "misplaced in its part",
+               "doubted by the run", "of them misplaced", "within tol", "ATE rmse m", "median rot °", "worst rot °",
+               *(f"{s} s" for s in stages), "wall s", "peak MB", "outside tol (whole model)", "unflagged wrong"]
     cells = []
     for r in rows:
         if "error" in r:
             cells.append([r["scene"], f"failed: {r['error']}", *[""] * (len(columns) - 2)])
             continue
         rr = "-" if r["recall"] is None else f"{r['recall']:.3f}"
-        cells.append([r["scene"], r["scans"], f"{r['placed']}/{r['scans']}", len(r["unregistered"]),
-                      len(r["unverified"]), rr, f"{r['within']}/{r['scans']}", f"{r['ate_rmse']:.4g}",
+        lo = "-" if r["lo_recall"] is None else f"{r['lo_recall']:.3f}"
+        cells.append([r["scene"], r["scans"], f"{r['placed']}/{r['scans']}", rr, lo,
+                      " + ".join(map(str, r["parts"])), labels(r["misplaced"]), labels(r["doubts"]),
+                      len(r["caught"]), f"{r['within']}/{r['scans']}", f"{r['ate_rmse']:.4g}",
                       f"{r['median_rot']:.3g}", f"{r['worst_rot']:.3g}",
                       *(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages), f"{r['wall']:.0f}", f"{r['peak_mb']:.0f}",
-                      labels(r["doubted"]), labels(r["unflagged_wrong"]),
-                      "; ".join(labels(r["flags"].get(f, [])) for f in FLAGS)])
+                      labels(r["doubted"]), labels(r["unflagged_wrong"])])
     out = [("runs", columns, cells)]
     refit = [r for r in rows if "refit" in r]
     if refit:
@@ -226,14 +246,15 @@ def child(scene_dir: str, overrides_json: str, workers: str, overlap_log: str) -
         scans, skipped = load_scene(scene_dir, config, log)
         scores = log_overlaps(Path(overlap_log), [fragment_id(s.name) for s in scans])
         res = register(scans, config, log=log, skipped=skipped, scores=scores)
+    verdict = res.verdict
     print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
-                      "flags": res.flags, "timings": res.timings,
-                      "peak_mb": peak_memory_mb()}))
+                      "trusted": verdict.trusted(), "parts": [p.scans for p in verdict.parts],
+                      "doubts": list(verdict.doubts), "timings": res.timings, "peak_mb": peak_memory_mb()}))
 
 
 def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False,
               gt_overlap: bool = False) -> dict:
-    from sghr_gtsam.evaluate import score_run
+    from sghr_gtsam.evaluate import fragment_id, registration_recall_counting_unplaced, score_parts, score_run
 
     scene = SCENES[name]
     with tempfile.TemporaryDirectory() as subset:
@@ -253,8 +274,18 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
     r = json.loads(proc.stdout.strip().splitlines()[-1])
     names, poses = r["names"], np.array(r["poses"])
     gt = scene_gt(data, scene)
-    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set().union(*r["flags"].values()), **gt)
-    row = score_row(name, score, r["timings"], wall, r["peak_mb"], r["flags"])
+    flagged = set(names) - set(r["trusted"])
+    score = score_run(names, poses, unregistered=r["unregistered"], flagged=flagged, **gt)
+    gt_by_name = dict(zip(gt["gt_names"], gt["gt_poses"]))
+    parts = score_parts(names, poses, np.stack([gt_by_name[n] for n in names]), r["parts"], r["doubts"])
+    lo_recall = None
+    lo = lo_gt(data, scene)
+    if lo is not None:
+        placed = [k for k, n in enumerate(names) if n not in set(r["unregistered"])]
+        lo_recall = registration_recall_counting_unplaced(
+            [fragment_id(names[k]) for k in placed], poses[placed], *lo,
+            scene_ids=[fragment_id(n) for n in gt["gt_names"]]).recall
+    row = score_row(name, score, r["timings"], wall, r["peak_mb"], parts, lo_recall)
     row["poses"] = dict(zip(names, r["poses"]))  # for scoring against another reference later
     if refit_gt and scene.gt_dir:
         row["refit"] = refit_row(data, scene, names, poses, r, gt)
@@ -269,7 +300,7 @@ def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: 
 
     fit = refit([load_scan(data / scene.folder / n) for n in gt["gt_names"]], gt["gt_poses"], 0.025)
     against = {**gt, "gt_poses": fit.poses, "gt_log": None, "gt_info": None}
-    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set().union(*r["flags"].values()),
+    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set(names) - set(r["trusted"]),
                       **against)
     moved = whole_model_errors(gt["gt_names"], fit.poses, gt["gt_poses"], gt["align"])
     rot, trans = fit.icp_move.T

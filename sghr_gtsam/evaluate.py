@@ -291,3 +291,39 @@ def score_result(result: RunResult, gt_names: list[str], gt_poses: np.ndarray, *
     trusted = set(result.names if result.verdict is None else result.verdict.trusted())
     return score_run(result.names, result.poses, gt_names, gt_poses, unregistered=result.unregistered,
                      flagged={n for n in result.names if n not in trusted}, **kwargs)
+
+
+@dataclass
+class PartsScore:
+    """The parts of a run against GT: per part (largest first) its scans and its largest rigid piece (the most
+    scans whose poses relative to one of them all lie within the tolerance of GT's), the ``misplaced`` scans
+    (outside the largest rigid piece of their own part) and the ``doubted`` ones (the run's doubts)."""
+
+    parts: list[list[str]]
+    pieces: list[list[str]]
+    misplaced: list[str]
+    doubted: list[str]
+
+    @property
+    def caught(self) -> list[str]:
+        """The misplaced scans the run doubted."""
+        return [n for n in self.misplaced if n in set(self.doubted)]
+
+
+def score_parts(names: list[str], poses: np.ndarray, gt_poses: np.ndarray, parts: list[list[str]],
+                doubted: Iterable[str], max_deg: float = 15.0, max_trans: float = 0.6) -> PartsScore:
+    """``PartsScore`` of ``parts`` (lists of names) of the scans ``names`` at ``poses`` against ``gt_poses``."""
+    poses, gt_poses = _scored(names, poses, gt_poses)
+    index = {n: k for k, n in enumerate(names)}
+    pieces, misplaced = [], []
+    for part in parts:
+        ks = [index[n] for n in part]
+        best: list[int] = []
+        for r in ks:
+            rot, trans = relative_errors(inv_T(poses[r])[None] @ poses[ks], inv_T(gt_poses[r])[None] @ gt_poses[ks])
+            piece = [k for k, a, b in zip(ks, rot, trans) if a <= max_deg and b <= max_trans]
+            if len(piece) > len(best):
+                best = piece
+        pieces.append([names[k] for k in best])
+        misplaced += [names[k] for k in ks if k not in best]
+    return PartsScore([list(p) for p in parts], pieces, misplaced, sorted(set(doubted), key=index.get))

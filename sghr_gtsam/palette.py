@@ -8,7 +8,7 @@ import numpy as np
 
 _TABLEAU10 = ("1f77b4", "ff7f0e", "2ca02c", "d62728", "9467bd", "8c564b", "e377c2", "7f7f7f", "bcbd22", "17becf")
 FLAG_COLOURS = {"unplaced": (255, 40, 40), "single registration": (255, 170, 0), "loop error": (230, 60, 230),
-                "free space": (150, 90, 255), "loose": (0, 200, 200)}
+                "competing placement": (255, 120, 160), "free space": (150, 90, 255), "loose": (0, 200, 200)}
 """8-bit colour of each scan flag (``result.FLAGS``: a box in the recording, a ring in summary.png)."""
 REJECTED = (255, 70, 40)
 """Edges synchronization rejected: red-orange, apart from the kept edges' colour for red-green colour blindness

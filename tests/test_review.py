@@ -233,3 +233,11 @@ def test_summary_figure_places_georeferenced_scans_where_local_ones_are():
         dots = next(c for c in summary_figure(result).axes[0].collections if isinstance(c, PathCollection))
         spreads.append(pdist(dots.get_offsets()))
     np.testing.assert_allclose(spreads[1], spreads[0], atol=0.05)
+
+
+def test_every_flag_has_a_colour_of_its_own():
+    """A run whose doubts included a reason without a colour failed at its end (KeyError in the recording)."""
+    from sghr_gtsam.result import FLAGS
+
+    assert set(FLAGS) == set(FLAG_COLOURS)
+    assert len(set(FLAG_COLOURS.values())) == len(FLAG_COLOURS)
