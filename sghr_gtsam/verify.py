@@ -26,8 +26,8 @@ standard one:
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
 that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
-from the passing registrations' information scaled by the a posteriori variance factor ``σ̂₀²`` (the median ``χ²``
-over the median of ``χ²₆``: robust, never below 1). Its spread is set by those bounds, not by measurements, when
+from the passing registrations' measured information scaled by the a posteriori variance factor ``σ̂₀²`` (the median
+``χ²`` over the median of ``χ²₆``: robust, never below 1), plus the bounds as they are. Its spread is set by those bounds, not by measurements, when
 it shrinks by more than ``STIFFEN^¼`` (the geometric middle of no change and ``√STIFFEN``) with every bound
 ``STIFFEN`` times stiffer; such a scan is reported loose with the direction and σ, and doubted only where σ
 exceeds ``Verification.max_sigma``.
@@ -256,14 +256,14 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
     if points is not None and information is not None and free is not None:
-        information = information / factor
+        measured = (information - free) / factor  # the bounds are the overlap's extent, not a noise to rescale
         held = connected_components(n, graph.i, graph.j, passed)  # over the passing registrations
         for x in np.unique(held[placed]):
             if np.sum(held == x) >= 2:
                 members = held == x
-                _part_spreads(members, graph, passed, information, poses, points, spreads, axes)
-                stiffer = information + (STIFFEN - 1.0) * free / factor
-                _part_spreads(members, graph, passed, stiffer, poses, points, stiff, np.full((n, 3), np.nan))
+                _part_spreads(members, graph, passed, measured + free, poses, points, spreads, axes)
+                _part_spreads(members, graph, passed, measured + STIFFEN * free, poses, points, stiff,
+                              np.full((n, 3), np.nan))
     bound = placed & (np.nan_to_num(spreads, nan=0.0) > STIFFEN**0.25 * np.nan_to_num(stiff, nan=np.inf))
     loose = bound & (spreads > max_sigma)
     status, doubts, loose_said = {}, {}, {}
