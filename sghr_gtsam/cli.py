@@ -272,6 +272,9 @@ def run(
     features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
+    max_sigma: Optional[float] = typer.Option(None, "--max-sigma", help="Largest σ (scene units) along a direction "
+                                              "only the overlap's bounds fix for which a scan is not doubted as "
+                                              "loose." + _default("the voxel")),
     workers: Optional[int] = typer.Option(None, help="Processes for local features, pairwise registration, "
                                           "refinement and loop closure." + _default("every core")),
     ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS",
@@ -288,7 +291,8 @@ def run(
 ) -> None:
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
-                 workers=workers, ray=ray, record=record, cache=cache, global_feature=global_feature,
+                 max_sigma=max_sigma, workers=workers, ray=ray, record=record, cache=cache,
+                 global_feature=global_feature,
                  descriptor=descriptor, features=features and str(features),
                  overlap_head=overlap_head and str(overlap_head))
     with _loading():

@@ -121,7 +121,7 @@ class Verdict:
         return {"parts": [{"id": p.id, "scans": p.scans, "frame": p.frame,
                            "join": None if p.join is None else asdict(p.join)} for p in self.parts],
                 "status": self.status, "doubts": self.doubts, "loose": self.loose,
-                "variance_factor": None if not np.isfinite(self.variance_factor) else self.variance_factor}
+                "robust_variance_factor": None if not np.isfinite(self.variance_factor) else self.variance_factor}
 
     def summary(self, max_lines: int = 12) -> list[str]:
         """One line per part of two or more scans, then the single scans in one line: at most ``max_lines`` + 2."""

@@ -96,7 +96,8 @@ def test_bad_options_and_config_files_are_one_line_errors(tmp_path):
     bad_json.write_text("{not json")
     unknown = tmp_path / "unknown.json"
     unknown.write_text('{"k": 4, "colour": "red"}')
-    for args in (["--polish", "sometimes"], ["--method", "magic"], ["--k", "0"], ["--config", bad_json],
+    for args in (["--polish", "sometimes"], ["--method", "magic"], ["--k", "0"], ["--max-sigma", "-1"],
+                 ["--config", bad_json],
                  ["--config", unknown], ["--config", tmp_path / "missing.json"]):
         r = _run("run", scene, "--out", tmp_path / "out", *args)
         assert r.exit_code == 2, args
@@ -109,8 +110,8 @@ def test_config_file_values_hold_unless_an_option_overrides_them(tmp_path):
 
     path = tmp_path / "config.json"
     path.write_text('{"k": 4, "polish": "lm", "record": false}')
-    cfg = _config(path, k=None, polish=None, record=None, iters=7)
-    assert (cfg.k, cfg.polish, cfg.record, cfg.iters) == (4, "lm", False, 7)
+    cfg = _config(path, k=None, polish=None, record=None, iters=7, max_sigma=0.1)
+    assert (cfg.k, cfg.polish, cfg.record, cfg.iters, cfg.max_sigma) == (4, "lm", False, 7, 0.1)
     assert _config(path, k=6).k == 6
 
 
