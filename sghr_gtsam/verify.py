@@ -321,11 +321,13 @@ def _alone_reason(k: int, graph: PoseGraph, kept: np.ndarray, passed: np.ndarray
 
 def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> np.ndarray:
     """(E,) bool: the kept registrations that hold a scan, or a linkage group, where two or more dropped ones that
-    agree on another placement of it outweigh them (module doc, test 3)."""
+    agree on another placement of it outweigh them (module doc, test 3). Of nested disputed groups, the largest
+    is cut off: the same dropped registrations move any of its subgroups as well, which says nothing of the
+    registrations inside it."""
     i, j, w = graph.i, graph.j, graph.weight
     inside = (w > 0) & placed[i] & placed[j]
     tolerance = translation_tolerance(graph)
-    out = np.zeros(graph.num_edges, dtype=bool)
+    disputed: list[tuple[np.ndarray, np.ndarray]] = []
     singles = (np.arange(graph.n) == k for k in np.flatnonzero(placed))
     for group in chain(singles, linkage_groups(graph, kept, placed)):
         leaving = inside & (group[i] != group[j])
@@ -340,6 +342,10 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         accused = np.zeros(graph.n, dtype=bool)
         accused[np.where(group[i[agreeing]], j[agreeing], i[agreeing])] = True
         if w[inside & kept & (accused[i] != accused[j])].sum() >= held:  # else they accuse their far ends
+            disputed.append((group, holding))
+    out = np.zeros(graph.num_edges, dtype=bool)
+    for group, holding in disputed:
+        if not any(other.sum() > group.sum() and np.all(other[group]) for other, _ in disputed):
             out |= holding
     return out
 

@@ -1,0 +1,135 @@
+"""The verification layer (``verify``): rigid parts from loops of registrations that close within their noise,
+joins through one registration or one scan reported and not trusted, one status per scan."""
+
+import json
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from sghr_gtsam.se3 import inv_T, make_T
+from sghr_gtsam.types import PoseGraph
+from sghr_gtsam.verify import REASONS, STATUSES, Verification, verify
+
+
+def _poses(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.uniform(-3, 3, 3))
+                     for k in range(n)])
+
+
+def _graph(poses: np.ndarray, edges: list[tuple[int, int]], wrong: dict[int, np.ndarray] | None = None) -> PoseGraph:
+    """Exact measurements of ``edges`` between ``poses``; ``wrong[e]`` (4, 4) moves edge e's measurement."""
+    i, j = np.array(edges).T
+    T = inv_T(poses[i]) @ poses[j]
+    for e, move in (wrong or {}).items():
+        T[e] = T[e] @ move
+    return PoseGraph(n=len(poses), i=i, j=j, T=T, weight=np.full(len(edges), 10.0),
+                     information=np.tile(np.eye(6) * 1e4, (len(edges), 1, 1)))
+
+
+def _verdict(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray | None = None):
+    names = [f"s{k}" for k in range(graph.n)]
+    kept = np.ones(graph.num_edges, dtype=bool) if kept is None else kept
+    return verify(names, graph, kept, poses, np.ones(graph.n, dtype=bool), Verification(), 0.05)
+
+
+def _clique(nodes: range) -> list[tuple[int, int]]:
+    return [(a, b) for a in nodes for b in nodes if a < b]
+
+
+def test_a_ring_of_scans_is_one_verified_part():
+    """A turntable's scans, each registered to its neighbours: one loop checks every pose."""
+    poses = _poses(6, 0)
+    verdict = _verdict(_graph(poses, [(k, (k + 1) % 6) for k in range(6)]), poses)
+    assert [p.scans for p in verdict.parts] == [[f"s{k}" for k in range(6)]]
+    assert verdict.status == {f"s{k}": "verified" for k in range(6)} and verdict.doubts == {}
+    assert verdict.trusted() == [f"s{k}" for k in range(6)]
+
+
+def test_groups_joined_by_one_registration_are_two_parts_and_a_chain_is_all_doubtful():
+    poses = _poses(9, 1)
+    edges = _clique(range(5)) + _clique(range(5, 9)) + [(4, 5)]
+    verdict = _verdict(_graph(poses, edges), poses)
+    assert [p.scans for p in verdict.parts] == [[f"s{k}" for k in range(5)], [f"s{k}" for k in range(5, 9)]]
+    join = verdict.parts[1].join
+    assert join.to == 0 and join.edges == [("s4", "s5")] and "bridge" in join.why
+    assert set(verdict.status.values()) == {"verified"}  # right inside each part; the join is what is doubted
+    assert verdict.trusted() == [f"s{k}" for k in range(5)]
+
+    chain = _verdict(_graph(poses[:3], [(0, 1), (1, 2)]), poses[:3])
+    assert chain.doubts == {"s0": "single registration", "s1": "single registration", "s2": "single registration"}
+
+
+def test_a_group_hung_on_one_scan_is_a_part_of_its_own():
+    """Three registrations of one scan to a group, all agreeing (as a symmetric room's can all be wrong the same
+    way): no edge is a bridge, but the group hangs on that one scan (an articulation point)."""
+    poses = _poses(9, 2)
+    edges = _clique(range(5)) + _clique(range(5, 9)) + [(4, 5), (4, 6), (4, 7)]
+    verdict = _verdict(_graph(poses, edges), poses)
+    assert [len(p.scans) for p in verdict.parts] == [5, 4]
+    assert "articulation point" in verdict.parts[1].join.why
+
+
+def test_a_registration_that_breaks_its_loop_leaves_the_part_and_its_scan_is_doubted():
+    """Scan 5 hangs on two registrations; one is 30° off, so their loop does not close within any noise: the
+    scan is no longer checked by a loop, and the wrong registration's failure is the reason given."""
+    poses = _poses(6, 3)
+    edges = _clique(range(5)) + [(0, 5), (1, 5)]
+    turn = make_T(Rotation.from_euler("z", 30, degrees=True).as_matrix(), np.zeros(3))
+    graph = _graph(poses, edges, {len(edges) - 1: turn})
+    verdict = _verdict(graph, poses)  # the poses are the truth: the wrong edge does not fit them
+    assert verdict.doubts == {"s5": "loop error"}
+    assert [p.scans for p in verdict.parts][0] == [f"s{k}" for k in range(5)]
+
+
+def test_dropped_registrations_that_agree_on_another_placement_split_the_group_off():
+    """A 4-scan group held by two light registrations, while three heavier dropped ones agree on placing it 90°
+    turned: the join is disputed and the group is a part of its own, each part verified inside."""
+    poses = _poses(9, 4)
+    edges = _clique(range(5)) + _clique(range(5, 9)) + [(0, 5), (1, 6), (2, 7), (3, 8), (4, 5)]
+    turn = make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), np.array([0.5, 0.0, 0.0]))
+    graph = _graph(poses, edges)
+    for e in range(len(edges) - 5, len(edges) - 2):  # measured as if the group were moved by ``turn`` in the world
+        graph.T[e] = inv_T(poses[graph.i[e]]) @ turn @ poses[graph.j[e]]
+    graph.weight[len(edges) - 5:len(edges) - 2] = 40.0
+    kept = np.ones(graph.num_edges, dtype=bool)
+    kept[len(edges) - 5:len(edges) - 2] = False
+    verdict = _verdict(graph, poses, kept)
+    assert [len(p.scans) for p in verdict.parts] == [5, 4]
+    assert "another placement" in verdict.parts[1].join.why
+    graph.weight[len(edges) - 5:len(edges) - 2] = 1.0  # lighter than what holds the group: no dispute
+    assert [len(p.scans) for p in _verdict(graph, poses, kept).parts] == [9]
+
+
+@settings(max_examples=20, deadline=None)
+@given(n=st.integers(3, 12), seed=st.integers(0, 10**6), extra=st.integers(0, 20))
+def test_parts_partition_the_placed_scans_and_a_loop_verifies(n, seed, extra):
+    """Exact measurements on a random graph: the parts partition the scans, every scan of a part of three or more
+    is verified, every scan alone is doubtful for a single registration, and moving the world moves nothing."""
+    rng = np.random.default_rng(seed)
+    poses = _poses(n, seed % 1000)
+    edges = [(k, k + 1) for k in range(n - 1)] + [tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(extra)]
+    edges = sorted(set(edges))
+    graph = _graph(poses, edges)
+    verdict = _verdict(graph, poses)
+    scans = sorted(s for p in verdict.parts for s in p.scans)
+    assert scans == sorted(f"s{k}" for k in range(n))
+    for p in verdict.parts:
+        expected = "verified" if len(p.scans) >= 3 else "doubtful"
+        assert all(verdict.status[s] == expected for s in p.scans), (p, verdict.status)
+        assert all(verdict.doubts[s] == "single registration" for s in p.scans if len(p.scans) == 1)
+    world = make_T(Rotation.random(random_state=seed % 97).as_matrix(), rng.uniform(-5, 5, 3))
+    moved = _verdict(graph, world[None] @ poses)
+    assert [p.scans for p in moved.parts] == [p.scans for p in verdict.parts] and moved.doubts == verdict.doubts
+
+
+def test_the_verdict_reads_as_strict_json_and_says_itself_in_few_lines():
+    poses = _poses(40, 5)
+    edges = [(k, k + 1) for k in range(39)] + _clique(range(4))
+    verdict = _verdict(_graph(poses, edges), poses)
+    data = json.loads(json.dumps(verdict.as_dict(), allow_nan=False))
+    assert set(data["status"].values()) <= set(STATUSES) and set(data["doubts"].values()) <= set(REASONS)
+    lines = verdict.summary()
+    assert len(lines) <= 15 and "36 scan(s) on their own" in lines[-1], lines
