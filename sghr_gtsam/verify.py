@@ -258,9 +258,10 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     if points is not None and information is not None and free is not None:
         measured = (information - free) / factor  # the bounds are the overlap's extent, not a noise to rescale
         held = connected_components(n, graph.i, graph.j, passed)  # over the passing registrations
+        has_free = np.abs(free).sum(axis=(1, 2)) > 0
         for x in np.unique(held[placed]):
-            if np.sum(held == x) >= 2:
-                members = held == x
+            members = held == x
+            if members.sum() >= 2 and (has_free & passed & members[graph.i] & members[graph.j]).any():
                 _part_spreads(members, graph, passed, measured + free, poses, points, spreads, axes)
                 _part_spreads(members, graph, passed, measured + STIFFEN * free, poses, points, stiff,
                               np.full((n, 3), np.nan))
