@@ -181,7 +181,8 @@ def robust_variance_factor(chi2_values: np.ndarray) -> float:
 def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, placed: np.ndarray) -> np.ndarray:
     """(N,) part label of each scan (−1 unplaced): the biconnected components of three or more scans of the
     ``verified`` edges, largest first (ties: the one with the smallest scan); an articulation point goes to the
-    largest component it is in; every other placed scan is a part of its own."""
+    largest component it is in (so a triangle hung on one can leave a part of two); every other placed scan is a
+    part of its own."""
     G = nx.Graph()
     G.add_edges_from(zip(i[verified].tolist(), j[verified].tolist()))
     components = sorted((sorted(c) for c in nx.biconnected_components(G) if len(c) >= 3),
