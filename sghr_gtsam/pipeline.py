@@ -367,7 +367,7 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
     placed = np.zeros(n, dtype=bool)
     placed[run.registered] = True
     guessed = np.isin(np.array(run.edge_origin), GUESSED) & (first_weak[graph.i] | first_weak[graph.j])
-    kept = (run.sync.weights > 0) & ~guessed
+    kept = run.sync.weights > 0
     if run.sync.held is not None:  # past the tolerances, kept only to join two parts: they check nothing
         kept &= ~run.sync.held
     information, free = None, None
@@ -379,7 +379,7 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
         def clash(doubted: np.ndarray) -> np.ndarray:
             return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
     return verify(run.names, graph, kept, run.poses, placed, Verification(max_sigma=stages.config.max_sigma),
-                  stages.voxel, Attribute(stages.features, "points"), information, free, clash)
+                  stages.voxel, Attribute(stages.features, "points"), information, free, clash, guessed)
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:

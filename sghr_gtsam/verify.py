@@ -229,19 +229,23 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
 def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.ndarray, placed: np.ndarray,
            params: Verification, voxel: float, points: Sequence[np.ndarray] | None = None,
            information: np.ndarray | None = None, free: np.ndarray | None = None,
-           clash: Callable[[np.ndarray], np.ndarray] | None = None) -> Verdict:
+           clash: Callable[[np.ndarray], np.ndarray] | None = None, dependent: np.ndarray | None = None) -> Verdict:
     """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
     ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
     k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
     each edge's information with its free directions bounded by the overlap alone (``PairResult.bounded``; default:
     the graph's) and ``free`` its part along them (``PairResult.loose``; None: no direction is free);
     ``clash``: ``doubted -> (N,) bool``, the scans free-space conflicts are blamed on, the doubted first (None: no
-    free-space test)."""
+    free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
+    started from the poses they would check): they count in what holds a group against a competing placement, not
+    in the loops that verify it."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
     passed = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
     disputed = _disputed(graph, kept, placed, poses)
     passed &= ~disputed
+    if dependent is not None:
+        passed &= ~dependent
     factor = robust_variance_factor(edge_chi2(graph, poses, passed))
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
@@ -258,13 +262,16 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     information = graph.information if information is None else information
     if points is not None and information is not None and free is not None:
         measured = (information - free) / factor  # the bounds are the overlap's extent, not a noise to rescale
-        held = connected_components(n, graph.i, graph.j, passed)  # over the passing registrations
+        # Each part with the single scans that hang on it: a pose is judged in its own part, not across a join.
+        single = alone[graph.i] | alone[graph.j]
+        within = passed & ((label[graph.i] == label[graph.j]) | single)
+        held = connected_components(n, graph.i, graph.j, within)
         has_free = np.abs(free).sum(axis=(1, 2)) > 0
         for x in np.unique(held[placed]):
             members = held == x
-            if members.sum() >= 2 and (has_free & passed & members[graph.i] & members[graph.j]).any():
-                _part_spreads(members, graph, passed, measured + free, poses, points, spreads, axes)
-                _part_spreads(members, graph, passed, measured + STIFFEN * free, poses, points, stiff,
+            if members.sum() >= 2 and (has_free & within & members[graph.i] & members[graph.j]).any():
+                _part_spreads(members, graph, within, measured + free, poses, points, spreads, axes)
+                _part_spreads(members, graph, within, measured + STIFFEN * free, poses, points, stiff,
                               np.full((n, 3), np.nan))
     bound = placed & (np.nan_to_num(spreads, nan=0.0) > STIFFEN**0.25 * np.nan_to_num(stiff, nan=np.inf))
     loose = bound & (spreads > max_sigma)
