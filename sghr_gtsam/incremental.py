@@ -339,8 +339,9 @@ class Session:
 
     def run_result(self) -> RunResult:
         """The session as a ``RunResult`` in the input frames (world = the first scan, also without ``anchor``; scans
-        not placed are unregistered; the caller's factors are not in it), each edge with its registration in ``pairs`` and the pose covariances computed in the
-        centred frames. A node from ``add_node`` has no points (an empty grid in ``features``)."""
+        not placed are unregistered; the caller's factors are not in it), each edge with its registration in ``pairs``
+        and the pose covariances computed in the centred frames. A node from ``add_node`` has no points (an empty
+        grid in ``features``)."""
         n = len(self.names)
         if not n:
             raise InputError("run_result: the session has no scans yet")
