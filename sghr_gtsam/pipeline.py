@@ -163,11 +163,17 @@ def _also_recorded(log: Log, recorder: Recorder) -> Log:
     return both
 
 
+def _silent(message: str) -> None:
+    """The API's default ``log``: it prints nothing (the CLI passes its own)."""
+
+
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
-             log: Log = print, skipped: dict[str, str] | None = None,
+             log: Log | None = None, skipped: dict[str, str] | None = None,
              scores: np.ndarray | None = None, progress: Progress = QUIET, cache: Cache | None = None,
              store: Store | None = None) -> RunResult:
-    """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe.
+    """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe. ``log``: called
+    with each stage message, a line of text (``log=print`` shows them as the command line does); by default nothing is
+    printed.
 
     ``scores``: an (N, N) symmetric matrix of overlap scores to choose the top-k graph from instead of the
     global features (e.g. ground-truth overlaps or another method's), with their values as ``s`` in ``w⁰``.
@@ -179,6 +185,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     time where they are needed, ``RunResult.features`` too.
     """
     config.validate()
+    log = log or _silent
     scores = check_given(scans, scores)
     if recorder:
         log = _also_recorded(log, recorder)
@@ -428,13 +435,15 @@ def _underdetermined(run: RunResult, anchor: int) -> list[str]:
     return [run.names[k] for k in np.flatnonzero(flagged)]
 
 
-def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
+def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log | None = None,
         progress: Progress = QUIET) -> RunResult:
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``, which is replaced as a
     whole when the run completes (``io.atomic.staged_folder``): stopped or failed, it leaves ``out_dir`` as it
     was. ``out_dir`` must be new, empty or an earlier run's results (``InputError`` otherwise). ``progress``
-    observes the long stages (``progress.TerminalProgress`` draws bars)."""
+    observes the long stages (``progress.TerminalProgress`` draws bars). ``log``: called with each stage message
+    (``log=print`` shows them as the command line does); by default nothing is printed."""
     config.validate()
+    log = log or _silent
     started = time.perf_counter()
     out = Path(out_dir)
     check_output_folder(out, Path(scene_dir))
