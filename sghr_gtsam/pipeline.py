@@ -34,7 +34,7 @@ from .recording import Recorder
 from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
-from .registration.edges import GUESSED, EdgeSet
+from .registration.edges import GUESSED, EdgeSet, edge_status
 from .registration.information import STIFFEN, underdetermined
 from .registration.overrule import MIN_AGREEING, Viewpoints, look_alikes, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
@@ -49,9 +49,11 @@ from .types import InputError, IterationRecord, PoseGraph, Scan, SyncResult
 
 
 class _Timer:
-    def __init__(self, on_stage: Callable[[str], None] | None = None) -> None:
+    def __init__(self, on_stage: Callable[[str], None] | None = None,
+                 on_end: Callable[[str, float], None] | None = None) -> None:
         self.seconds: dict[str, float] = {}
         self._on_stage = on_stage  # told each stage's name as it starts (the recording's steps)
+        self._on_end = on_end  # told each stage's name and seconds as it ends (the recording's data)
 
     @contextmanager
     def stage(self, name: str):
@@ -59,7 +61,10 @@ class _Timer:
             self._on_stage(name)
         t0 = time.perf_counter()
         yield
-        self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        self.seconds[name] = self.seconds.get(name, 0.0) + seconds
+        if self._on_end:
+            self._on_end(name, seconds)
 
 
 def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
@@ -189,7 +194,7 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     scores = check_given(scans, scores)
     if recorder:
         log = _also_recorded(log, recorder)
-    timer = _Timer(recorder.begin_stage if recorder else None)
+    timer = _Timer(recorder.begin_stage if recorder else None, recorder.end_stage if recorder else None)
     skipped = dict(skipped or {})
     stats = [s.statistics() for s in scans]  # a scan given without them is read here, one at a time
     scans, stats, scores = usable_scans(scans, stats, scores, skipped, log, config.min_points)
@@ -363,6 +368,7 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
         log(f"UNDERDETERMINED {name}: its edges do not fix its pose to within a voxel in some direction")
     if stages.recorder:
         stages.recorder.log_final(poses, out.flags)
+        stages.recorder.log_edge_status(poses, edge_status(out))
         stages.recorder.log_covariances(poses, out.covariances)
     local_frame.to_input_frame(out, stages.centres)
     return out
@@ -455,7 +461,11 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log | N
         cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
         store = Store(cache, scratch=stage)  # without a cache, removed before the swap (and with the stage)
         try:
-            recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight) if config.record else None
+            recorder = None
+            if config.record:
+                name = f"{Path(scene_dir).resolve().name} → {out.resolve().name}"  # two runs side by side told apart
+                recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight, name=name)
+                recorder.end_stage("load", timer.seconds["load"])
             try:
                 result = register(scans, config, recorder, log, skipped, progress=progress, cache=cache, store=store)
             finally:
