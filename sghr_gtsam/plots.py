@@ -120,9 +120,9 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
 
-    if status is None:
-        from .registration.edges import edge_status
+    from .registration.edges import EDGE_STATUS, edge_status
 
+    if status is None:
         status = edge_status(result)
     placed = result.registered
     n = len(result.names)
@@ -148,7 +148,8 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     top, hist = fig.subplots(1, 2, width_ratios=[1.6, 1])
     top.imshow(image, extent=extent, origin="lower", interpolation="nearest")
     g, weights = result.graph, result.sync.weights
-    by_status = {key: [e for e in range(g.num_edges) if status[e] == key] for key in dict.fromkeys(["kept", *status])}
+    by_status = {key: [e for e in range(g.num_edges) if status[e] == key] for key in EDGE_STATUS
+                 if key == "kept" or key in status}
     kept, rejected = by_status["kept"], by_status.get("rejected", [])
     w_max = max((weights[e] for e in kept), default=1.0)
     segments = np.stack([centres[g.i], centres[g.j]], axis=1)
@@ -175,7 +176,7 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     legend = [Line2D([], [], color=KEPT_COLOUR, lw=2, label=f"kept edge ({len(kept)}; width = weight)")]
     legend += [Line2D([], [], color=_hex(EDGE_COLOURS[key]), lw=1, ls=(0, (3, 2)) if key in DRAWN else ":",
                       label=f"{key} edge ({len(edges)}{'' if key in DRAWN else ', not drawn'})")
-               for key, edges in by_status.items() if key != "kept" and (edges or key == "rejected")]
+               for key, edges in by_status.items() if key != "kept"]
     legend += [Line2D([], [], marker="o", ls="", mfc="white", mec=_hex(FLAG_COLOURS[flag]), mew=2.5, label=flag)
                for flag in doubts]
     top.legend(handles=legend, loc="upper right", fontsize=8, framealpha=0.8)
