@@ -17,7 +17,6 @@
    (``sync.consensus.consistent_edges``: off by more than the registration tolerances and more than its own
    noise), the robust stage re-runs (``synchronize`` with the ``Config``'s method and polish, over every edge
    so far) and ISAM2 restarts from its poses and the edges it kept.
-
 5. A caller's own factors join the live ISAM2 graph (a SLAM stack's odometry, GNSS fixes, priors): ``add_between``
    (a ``BetweenFactorPose3``, e.g. an odometry step; it places an end not placed yet), ``add_prior``
    (``PriorFactorPose3``), ``add_position`` (a GNSS fix of a point of a node: ``GPSFactorArm``), each in the input
@@ -27,8 +26,8 @@
 
 The world: with ``anchor`` (the default) the first node's frame, held by a stiff prior, so that ``add_prior`` and
 ``add_position`` are in the first node's frame; without, the caller's own factors fix the world (a prior, or priors
-and positions together: a node they leave free is refused) and ``poses`` are in their frame. A session needs no
-``voxel`` for the back end alone (``add_node`` and the factors); ``add_scan`` does.
+and positions together: a call after which they leave a node free is refused) and ``poses`` are in their frame.
+A session needs no ``voxel`` for the back end alone (``add_node`` and the factors); ``add_scan`` does.
 
 Factors carry each edge's calibrated information, as the batch polish's do (``factor_graph.edge_information``),
 so a session fed every scan ends where batch synchronization of the same registrations does.
@@ -39,6 +38,8 @@ Georeferenced scans (``local_frame``): a scan farther than ``local_frame.FAR_VOX
 registered centred at its median, in float64, with its normals towards its input frame's origin, as ``register``
 does; the edges and ISAM2 live in those centred frames, and ``poses``, ``graph()`` and ``run_result()`` hand
 everything back in the input frames. A node from ``add_node`` has no scan: its frame is its input frame.
+``add_prior``, ``add_between`` and ``add_position`` map the caller's measurements into the centred frames (with
+their information); ``add_factor``, which cannot know what a factor measures, refuses such a scan.
 
 A call refused (``InputError``) leaves the session as it was: its input is checked before anything changes, and a
 back end that gtsam cannot solve (an information too ill-conditioned to fix the pose) is rolled back.
