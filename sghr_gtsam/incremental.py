@@ -38,8 +38,10 @@ Georeferenced scans (``local_frame``): a scan farther than ``local_frame.FAR_VOX
 registered centred at its median, in float64, with its normals towards its input frame's origin, as ``register``
 does; the edges and ISAM2 live in those centred frames, and ``poses``, ``graph()`` and ``run_result()`` hand
 everything back in the input frames. A node from ``add_node`` has no scan: its frame is its input frame.
-``add_prior``, ``add_between`` and ``add_position`` map the caller's measurements into the centred frames (with
-their information); ``add_factor``, which cannot know what a factor measures, refuses such a scan.
+``add_prior``, ``add_between`` and ``add_position`` map the caller's measurements into the centred frames; their
+information is taken about the scan's centre (``centre``), where a rotation σ means what it says: about the input
+frame's origin, thousands of kilometres away, it would bind the translation at the scan to nanoradians (and gtsam
+cannot factor such an information). ``add_factor``, which cannot know what a factor measures, refuses such a scan.
 
 A call refused (``InputError``) leaves the session as it was: its input is checked before anything changes, and a
 back end that gtsam cannot solve (an information too ill-conditioned to fix the pose) is rolled back.
@@ -253,6 +255,11 @@ class Session:
         """The gtsam key of ``node`` (its index in ``names``, or its name): ``gtsam.symbol('x', index)``."""
         return _key(self._node(node, "key"))
 
+    def centre(self, node: int | str) -> np.ndarray:
+        """(3,) where ``node``'s scan was centred in its input frame (module doc): zero near the origin and for a
+        node without a scan. A factor's rotation information acts about this point."""
+        return self._centres[self._node(node, "centre")].copy()
+
     def add_factor(self, factor: gtsam.NonlinearFactor) -> None:
         """Add any gtsam factor over placed nodes' keys (``key``) to the live graph and update the poses. It acts in
         the frames ISAM2 holds, which are the input frames (world: module doc) unless a scan was registered centred
@@ -277,23 +284,23 @@ class Session:
 
     def add_prior(self, node: int | str, pose: np.ndarray, information: np.ndarray) -> None:
         """A ``PriorFactorPose3``: ``node``'s pose (rigid 4×4, the input frame into the world) with its 6×6
-        information (gtsam order [rotation, translation], positive definite). A node not placed yet is placed there."""
+        information (gtsam order [rotation, translation] at the pose, positive definite; a scan registered centred:
+        about its centre, ``centre``). A node not placed yet is placed there."""
         k = self._node(node, "add_prior")
-        P = _rigid(pose, "add_prior: pose")
-        T, info = local_frame.to_centred(P, _information(information, "add_prior"), self._centres[0],
-                                         self._centres[k])
+        info = _information(information, "add_prior")
+        T = translation(-self._centres[0]) @ _rigid(pose, "add_prior: pose") @ translation(self._centres[k])
         factor = gtsam.PriorFactorPose3(_key(k), gtsam.Pose3(T), noise_model(info))
         self._add_factor(factor, (k,), {} if k in self._placed else {k: T}, "add_prior")
 
     def add_between(self, a: int | str, b: int | str, T: np.ndarray, information: np.ndarray) -> None:
         """A ``BetweenFactorPose3`` (an odometry step): ``T`` (rigid 4×4) maps ``b``'s input frame into ``a``'s
-        (``T_ab = T_a⁻¹ T_b``), with its 6×6 information (gtsam order, positive definite). One end may not be placed
-        yet: it is placed from the other."""
+        (``T_ab = T_a⁻¹ T_b``), with its 6×6 information (gtsam order at ``b``, positive definite; a scan registered
+        centred: about its centre, ``centre``). One end may not be placed yet: it is placed from the other."""
         i, j = self._node(a, "add_between"), self._node(b, "add_between")
         if i == j:
             raise InputError(f"add_between: both ends are node {i}")
-        T, info = local_frame.to_centred(_rigid(T, "add_between: T"), _information(information, "add_between"),
-                                         self._centres[i], self._centres[j])
+        info = _information(information, "add_between")
+        T = translation(-self._centres[i]) @ _rigid(T, "add_between: T") @ translation(self._centres[j])
         values = {}
         if i in self._placed and j not in self._placed:
             values[j] = self._estimate(i) @ T

@@ -41,15 +41,6 @@ def _adjoint(c: np.ndarray) -> np.ndarray:
     return A
 
 
-def to_centred(T: np.ndarray, information: np.ndarray, c_i: np.ndarray,
-               c_j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A measurement ``T`` (4×4, input frames: frame j into frame i) and its 6×6 information between frames centred at
-    ``c_i`` and ``c_j``: ``graph_to_input_frame`` undone, ``T' = S(-c_i) T S(c_j)``, ``Ω' = Ad(c_j)ᵀ Ω Ad(c_j)``."""
-    c_i, c_j = np.asarray(c_i, dtype=float), np.asarray(c_j, dtype=float)
-    A = _adjoint(c_j)
-    return translation(-c_i) @ T @ translation(c_j), A.T @ information @ A
-
-
 def graph_to_input_frame(g: PoseGraph, centres: np.ndarray) -> np.ndarray:
     """``g``'s transforms and information, between scans centred at ``centres``, mapped to the input frames in place
     (``T_ij = S(c_i) T_ij' S(-c_j)``); returns each edge's adjoint ``Ad(-c_j)`` (E, 6, 6), with ``ξ' = Ad(c_j) ξ``."""

@@ -485,19 +485,23 @@ def test_the_caller_s_factors_are_checked_and_a_refused_one_leaves_the_session_a
     assert free._factors == []
 
 
-@settings(max_examples=40, deadline=None)
-@given(quaternion=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
-       t=st.lists(st.floats(-100, 100), min_size=3, max_size=3),
-       c=st.lists(st.lists(st.floats(-1e6, 1e6), min_size=3, max_size=3), min_size=2, max_size=2))
-def test_to_centred_undoes_graph_to_input_frame(quaternion, t, c):
-    from sghr_gtsam.local_frame import graph_to_input_frame, to_centred
-    from sghr_gtsam.types import PoseGraph
+def test_the_caller_s_factors_on_georeferenced_scans_are_in_the_input_frames(world):
+    """Scans 4 200 km north, registered centred: a prior, an odometry step and a GNSS fix that agree with the
+    current poses (input frames) move no point of a scan; a stiff prior 3 cm off puts the scan there."""
+    scans = [P + UTM for P in world[:3]]
+    session = _fed(scans)
+    assert np.abs(session.centre(1) - UTM).max() < 10  # registered centred
 
-    centres = np.array(c)
-    T = make_T(Rotation.from_quat(quaternion).as_matrix(), np.array(t))
-    g = PoseGraph(n=2, i=np.array([0]), j=np.array([1]), T=T[None].copy(), weight=np.ones(1),
-                  information=INFO[None].copy())
-    graph_to_input_frame(g, centres)
-    back, info = to_centred(g.T[0], g.information[0], centres[0], centres[1])
-    np.testing.assert_allclose(back, T, rtol=0, atol=1e-9 * (1 + np.abs(centres).max()))
-    np.testing.assert_allclose(info, INFO, rtol=1e-6, atol=1e-6 * np.abs(INFO).max())
+    def moved(poses: np.ndarray, before: np.ndarray) -> float:
+        return max(np.abs(transform_points(T, P) - transform_points(B, P)).max()
+                   for T, B, P in zip(poses, before, scans))
+
+    before = session.poses
+    session.add_between(0, 1, inv_T(before[0]) @ before[1], ODOMETRY)
+    session.add_prior(2, before[2], ODOMETRY)
+    antenna = scans[1][0]  # a point of scan 1, in its input frame
+    session.add_position(1, transform_points(before[1], antenna[None])[0], np.eye(3) * 1e4, point=antenna)
+    assert moved(session.poses, before) < 1e-6
+    target = make_T(np.eye(3), np.array([0.03, 0.0, 0.0])) @ before[2]
+    session.add_prior(2, target, np.diag([1e12] * 6))
+    assert moved(session.poses[2:], target[None]) < 1e-4
