@@ -614,16 +614,23 @@ def test_load_results_reads_a_run_s_folder_back(small_run):
 
 
 def test_load_results_refuses_a_folder_that_is_not_a_run_s(small_run, tmp_path):
+    import json
+    import shutil
+
     from sghr_gtsam.io.results import load_results
 
     _, folder, _ = small_run
     with pytest.raises(InputError, match="edges.csv"):
         load_results(tmp_path)
-    import shutil
-
-    copy = tmp_path / "copy"
-    shutil.copytree(folder / "out", copy)
-    (copy / "edges.csv").write_text("i,j\n0,1\n")
-    with pytest.raises(InputError) as error:
-        load_results(copy)
-    assert "\n" not in str(error.value)
+    report = json.loads((folder / "out" / "report.json").read_text())
+    damaged = [("edges.csv", "i,j\n0,1\n"), ("report.json", '{"scans": ["a"'), ("poses.txt", "a.ply\n1 2\n"),
+               ("graph.g2o", "EDGE_SE3:QUAT 0 1\n"),
+               ("report.json", json.dumps({**report, "unregistered": ["nobody.ply"]})),
+               ("report.json", json.dumps({**report, "pose_covariances": {report["scans"][0]: {"covariance": [1]}}}))]
+    for k, (name, text) in enumerate(damaged):
+        copy = tmp_path / f"copy{k}"
+        shutil.copytree(folder / "out", copy)
+        (copy / name).write_text(text)
+        with pytest.raises(InputError) as error:
+            load_results(copy)
+        assert "\n" not in str(error.value), name

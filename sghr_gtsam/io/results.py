@@ -225,14 +225,20 @@ def load_results(out: str | Path) -> "RunResult":
     scores[i, j] = scores[j, i] = number["overlap_score"]
     pairs = [PairResult(T=T[e], inliers=int(rows[e]["inliers"]), fitness=float("nan"), rmse=float("nan"),
                         information=information[e], seconds=0.0) for e in range(len(rows))]
-    unregistered = list(report.get("unregistered", []))
-    component = np.zeros(n, dtype=np.int64)
-    component[[index[name] for name in unregistered]] = np.arange(1, len(unregistered) + 1)  # parts unknown
+    covariances = np.full((n, 6, 6), np.nan)
+    try:
+        unregistered = list(report.get("unregistered", []))
+        component = np.zeros(n, dtype=np.int64)
+        component[[index[name] for name in unregistered]] = np.arange(1, len(unregistered) + 1)  # parts unknown
+        for name, entry in (report.get("pose_covariances") or {}).items():
+            C = np.array(entry["covariance"], dtype=float)  # JSON null: NaN
+            if C.shape != (6, 6):
+                raise ValueError(f"{name}: a covariance of shape {C.shape}")
+            covariances[index[name]] = C
+    except (ValueError, KeyError, TypeError, IndexError) as e:
+        raise InputError(f"{out}/report.json: not a run's ({type(e).__name__}: {e})") from None
     sync = SyncResult(poses=np.where(np.isfinite(poses), poses, np.eye(4)), weights=number["final_weight"],
                       residual_deg=number["residual_deg"], component=component)
-    covariances = np.full((n, 6, 6), np.nan)
-    for name, entry in (report.get("pose_covariances") or {}).items():
-        covariances[index[name]] = np.array(entry["covariance"], dtype=float)  # JSON null: NaN
     empty = np.zeros((0, 3))
     voxel = float(report["voxel"]) if report.get("voxel") is not None else float("nan")
     features = [ScanFeatures(empty, empty, None, voxel, empty, np.zeros((0, 33), dtype=np.float32))] * n
