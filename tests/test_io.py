@@ -611,6 +611,12 @@ def test_load_results_reads_a_run_s_folder_back(small_run):
     assert [p.inliers for p in loaded.pairs] == [p.inliers for p in result.pairs]
     np.testing.assert_allclose(loaded.covariances[placed], result.covariances[placed], rtol=1e-12, atol=0)
     assert loaded.timings == {k: round(v, 3) for k, v in result.timings.items()}
+    from sghr_gtsam.gtsam_api import to_gtsam
+
+    factors, values = to_gtsam(loaded)  # the same factor graph as the run's own
+    reference, _ = to_gtsam(result)
+    assert factors.size() == reference.size() > 0
+    assert factors.error(values) == pytest.approx(reference.error(to_gtsam(result)[1]), rel=1e-9)
 
 
 def test_load_results_refuses_a_folder_that_is_not_a_run_s(small_run, tmp_path):
