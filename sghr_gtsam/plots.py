@@ -128,14 +128,17 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     n = len(result.names)
     colours = scan_colours(n) / 255.0
 
-    world = result.world_points  # read anew at each pass: no pass holds every scan's points
+    def world(k: int) -> np.ndarray:
+        """Scan k's points in the world, read anew at each pass (no pass holds every scan's points); a scan without
+        points (an incremental session's add_node, a loaded results folder) is its origin."""
+        P = result.world_points(k)
+        return P if len(P) else result.poses[k, :3, 3][None]
+
     axes = _view_axes(world(k) for k in placed)
     centres = np.zeros((n, 2))
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for k in placed:
         xy = world(k) @ axes
-        if not len(xy):  # a node without points (an incremental session's add_node): drawn at its origin
-            xy = (result.poses[k, :3, 3] @ axes)[None]
         centres[k] = xy.mean(0)
         lo, hi = np.minimum(lo, xy.min(0)), np.maximum(hi, xy.max(0))
     raster = _Raster(lo, hi, np.random.default_rng(0))

@@ -617,6 +617,11 @@ def test_load_results_reads_a_run_s_folder_back(small_run):
     reference, _ = to_gtsam(result)
     assert factors.size() == reference.size() > 0
     assert factors.error(values) == pytest.approx(reference.error(to_gtsam(result)[1]), rel=1e-9)
+    from sghr_gtsam.plots import summary_figure
+
+    top = summary_figure(loaded).axes[0]  # no grids in a folder: the graph over the scans' origins
+    (drawn,) = [c for c in top.collections if c.get_label() == "kept"]
+    assert len(drawn.get_segments()) == status.count("kept")
 
 
 def test_load_results_refuses_a_folder_that_is_not_a_run_s(small_run, tmp_path):
