@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import colorsys
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -13,6 +14,28 @@ FLAG_COLOURS = {"unplaced": (255, 40, 40), "single registration": (255, 170, 0),
 REJECTED = (255, 70, 40)
 """Edges synchronization rejected: red-orange, apart from the kept edges' colour for red-green colour blindness
 too (kept edges are light blue on the viewer's dark background and near-black on the picture's white)."""
+EDGE_COLOURS = {"rejected": REJECTED, "failed": (150, 150, 150), "contradicted": FLAG_COLOURS["free space"],
+                "overruled": (255, 215, 0), "unplaced": (110, 200, 80)}
+"""8-bit colour of each ``registration.edges.EDGE_STATUS`` but "kept" (whose colour depends on the background:
+``recording.KEPT``, ``plots.KEPT_COLOUR``): a failed registration grey (no measurement), a contradicted one in the
+violet of scans doubted for free space (the same evidence), an overruled one yellow, one between unplaced scans
+green."""
+
+
+def first_flags(names: Sequence[str], flags: Mapping[str, Sequence[str]]) -> list[str]:
+    """Per scan of ``names``: the first of ``flags`` (flag -> the scans it marks, in report order) that marks it, ""
+    for none: the per-scan label that ``label_colours`` colours."""
+    label = {}
+    for flag, marked in reversed(list(flags.items())):
+        label.update(dict.fromkeys(marked, flag))
+    return [label.get(name, "") for name in names]
+
+
+def label_colours(labels: Sequence[str], table: Mapping[str, tuple[int, int, int]] = FLAG_COLOURS,
+                  other: tuple[int, int, int] = (255, 255, 255)) -> np.ndarray:
+    """(N, 3) uint8: each scan's colour for its label in ``table`` (a flag's, by default), ``other`` for a label the
+    table lacks: how the recording and summary.png colour scans by any per-scan label."""
+    return np.array([table.get(label, other) for label in labels], dtype=np.uint8).reshape(-1, 3)
 
 
 def scan_colours(n: int) -> np.ndarray:

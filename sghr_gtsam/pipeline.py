@@ -34,7 +34,7 @@ from .recording import Recorder
 from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
-from .registration.edges import GUESSED, EdgeSet
+from .registration.edges import GUESSED, EdgeSet, edge_status
 from .registration.overrule import Viewpoints, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
@@ -49,9 +49,11 @@ from .verify import Verdict, Verification, verify
 
 
 class _Timer:
-    def __init__(self, on_stage: Callable[[str], None] | None = None) -> None:
+    def __init__(self, on_stage: Callable[[str], None] | None = None,
+                 on_end: Callable[[str, float], None] | None = None) -> None:
         self.seconds: dict[str, float] = {}
         self._on_stage = on_stage  # told each stage's name as it starts (the recording's steps)
+        self._on_end = on_end  # told each stage's name and seconds as it ends (the recording's data)
 
     @contextmanager
     def stage(self, name: str):
@@ -59,7 +61,10 @@ class _Timer:
             self._on_stage(name)
         t0 = time.perf_counter()
         yield
-        self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+        seconds = time.perf_counter() - t0
+        self.seconds[name] = self.seconds.get(name, 0.0) + seconds
+        if self._on_end:
+            self._on_end(name, seconds)
 
 
 def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
@@ -163,11 +168,17 @@ def _also_recorded(log: Log, recorder: Recorder) -> Log:
     return both
 
 
+def _silent(message: str) -> None:
+    """The API's default ``log``: it prints nothing (the CLI passes its own)."""
+
+
 def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
-             log: Log = print, skipped: dict[str, str] | None = None,
+             log: Log | None = None, skipped: dict[str, str] | None = None,
              scores: np.ndarray | None = None, progress: Progress = QUIET, cache: Cache | None = None,
              store: Store | None = None) -> RunResult:
-    """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe.
+    """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe. ``log``: called
+    with each stage message, a line of text (``log=print`` shows them as the command line does); by default nothing is
+    printed.
 
     ``scores``: an (N, N) symmetric matrix of overlap scores to choose the top-k graph from instead of the
     global features (e.g. ground-truth overlaps or another method's), with their values as ``s`` in ``w⁰``.
@@ -179,10 +190,11 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     time where they are needed, ``RunResult.features`` too.
     """
     config.validate()
+    log = log or _silent
     scores = check_given(scans, scores)
     if recorder:
         log = _also_recorded(log, recorder)
-    timer = _Timer(recorder.begin_stage if recorder else None)
+    timer = _Timer(recorder.begin_stage if recorder else None, recorder.end_stage if recorder else None)
     skipped = dict(skipped or {})
     stats = [s.statistics() for s in scans]  # a scan given without them is read here, one at a time
     scans, stats, scores = usable_scans(scans, stats, scores, skipped, log, config.min_points)
@@ -354,6 +366,8 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     out.densify = densify.as_dict()
     if stages.recorder:
         stages.recorder.log_final(poses, out.flags)
+        stages.recorder.log_parts(poses, out.verdict.parts)
+        stages.recorder.log_edge_status(poses, edge_status(out))
         stages.recorder.log_covariances(poses, out.covariances)
     local_frame.to_input_frame(out, stages.centres)
     return out
@@ -387,13 +401,15 @@ def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]
     return lambda k: fn(shared, tasks[k])
 
 
-def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = print,
+def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log | None = None,
         progress: Progress = QUIET) -> RunResult:
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``, which is replaced as a
     whole when the run completes (``io.atomic.staged_folder``): stopped or failed, it leaves ``out_dir`` as it
     was. ``out_dir`` must be new, empty or an earlier run's results (``InputError`` otherwise). ``progress``
-    observes the long stages (``progress.TerminalProgress`` draws bars)."""
+    observes the long stages (``progress.TerminalProgress`` draws bars). ``log``: called with each stage message
+    (``log=print`` shows them as the command line does); by default nothing is printed."""
     config.validate()
+    log = log or _silent
     started = time.perf_counter()
     out = Path(out_dir)
     check_output_folder(out, Path(scene_dir))
@@ -405,7 +421,11 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log = p
         cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
         store = Store(cache, scratch=stage)  # without a cache, removed before the swap (and with the stage)
         try:
-            recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight) if config.record else None
+            recorder = None
+            if config.record:
+                name = f"{Path(scene_dir).resolve().name} → {out.resolve().name}"  # two runs side by side told apart
+                recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight, name=name)
+                recorder.end_stage("load", timer.seconds["load"])
             try:
                 result = register(scans, config, recorder, log, skipped, progress=progress, cache=cache, store=store)
             finally:

@@ -2,9 +2,13 @@
 written to ``OUT/summary.png`` and the weight history the notebook shows.
 
 ``summary_figure``: left, the registered scans seen along their common axis of least extent (a floor plan for a
-room: the axis of least extent is the vertical one) coloured by scan with a categorical palette, the pose graph
-over them (scan centres; kept edges solid, as wide as their weight; rejected edges dashed red; each flagged scan
-ringed in its first flag's colour, ``palette.FLAG_COLOURS``); right, the histogram of the edges' rotation residuals, kept and rejected apart.
+room: the axis of least extent is the vertical one) coloured by scan with a categorical palette (by part when the
+verification left more than one, ``verify``), the pose graph
+over them (scan centres; kept edges solid, as wide as their weight; rejected, contradicted and overruled edges dashed
+in their status's colour, ``palette.EDGE_COLOURS``; failed registrations and edges between unplaced scans not drawn,
+and every status counted in the legend; each doubtful scan ringed in its reason's colour, ``palette.FLAG_COLOURS``);
+right, the histogram of the edges' rotation residuals, kept and rejected apart. The title wraps onto more lines
+rather than run past the figure's edge.
 Figures are built on ``matplotlib.figure.Figure`` with the Agg canvas, so drawing them never opens a window
 and never touches pyplot's global state; they show inline in Jupyter as PNG (``_repr_png_``), which a bare
 ``Figure`` does not do unless pyplot's inline backend is active.
@@ -13,15 +17,15 @@ and never touches pyplot's global state; they show inline in Jupyter as PNG (``_
 from __future__ import annotations
 
 import io
-from functools import cache
 from collections.abc import Iterable
+from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .io.atomic import atomic_path
-from .palette import FLAG_COLOURS, REJECTED, scan_colours
+from .palette import EDGE_COLOURS, FLAG_COLOURS, REJECTED, first_flags, label_colours, scan_colours
 from .result import DOUBTS
 
 if TYPE_CHECKING:
@@ -35,6 +39,11 @@ RASTER_WIDTH = 400
 at the cost of one image, where a scatter of 60,000 points took 0.8 s to draw."""
 
 KEPT_COLOUR = "#1a1a1a"
+DRAWN = ("rejected", "contradicted", "overruled")
+"""The statuses besides "kept" drawn as dashed lines; the others (a failed registration: no measurement; an edge
+between unplaced scans: no pose to draw it at) are only counted in the legend."""
+TITLE_CHARS = 70
+"""The top view's title wraps at this many characters (at its font size, about the view's width)."""
 
 
 def _hex(rgb: tuple[int, int, int]) -> str:
@@ -112,22 +121,30 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
 
-    if status is None:
-        from .registration.edges import edge_status
+    from .registration.edges import EDGE_STATUS, edge_status
 
+    if status is None:
         status = edge_status(result)
     placed = result.registered
     n = len(result.names)
-    colours = scan_colours(n) / 255.0
+    parts = [] if result.verdict is None else result.verdict.parts
+    if len(parts) > 1:  # a scene in parts: each part in its colour, so that the parts show apart
+        part_of = result.verdict.part_of()
+        colours = scan_colours(len(parts))[[part_of.get(name, 0) for name in result.names]] / 255.0
+    else:
+        colours = scan_colours(n) / 255.0
 
-    world = result.world_points  # read anew at each pass: no pass holds every scan's points
+    def world(k: int) -> np.ndarray:
+        """Scan k's points in the world, read anew at each pass (no pass holds every scan's points); a scan without
+        points (an incremental session's add_node, a loaded results folder) is its origin."""
+        P = result.world_points(k)
+        return P if len(P) else result.poses[k, :3, 3][None]
+
     axes = _view_axes(world(k) for k in placed)
     centres = np.zeros((n, 2))
     lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
     for k in placed:
         xy = world(k) @ axes
-        if not len(xy):  # a node without points (an incremental session's add_node): drawn at its origin
-            xy = (result.poses[k, :3, 3] @ axes)[None]
         centres[k] = xy.mean(0)
         lo, hi = np.minimum(lo, xy.min(0)), np.maximum(hi, xy.max(0))
     raster = _Raster(lo, hi, np.random.default_rng(0))
@@ -140,18 +157,19 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     top, hist = fig.subplots(1, 2, width_ratios=[1.6, 1])
     top.imshow(image, extent=extent, origin="lower", interpolation="nearest")
     g, weights = result.graph, result.sync.weights
-    kept = [e for e in range(g.num_edges) if status[e] == "kept"]
-    rejected = [e for e in range(g.num_edges) if status[e] == "rejected"]
+    by_status = {key: [e for e in range(g.num_edges) if status[e] == key] for key in EDGE_STATUS
+                 if key == "kept" or key in status}
+    kept, rejected = by_status["kept"], by_status.get("rejected", [])
     w_max = max((weights[e] for e in kept), default=1.0)
     segments = np.stack([centres[g.i], centres[g.j]], axis=1)
-    top.add_collection(LineCollection(segments[rejected], colors=REJECTED_COLOUR, linewidths=0.8,
-                                      linestyles=(0, (3, 2)), alpha=0.8, label="rejected"))
+    for key in DRAWN:
+        top.add_collection(LineCollection(segments[by_status.get(key, [])], colors=_hex(EDGE_COLOURS[key]),
+                                          linewidths=0.8, linestyles=(0, (3, 2)), alpha=0.8, label=key))
     top.add_collection(LineCollection(segments[kept], colors=KEPT_COLOUR, alpha=0.85, label="kept",
                                       linewidths=0.6 + 2.4 * weights[kept] / w_max))
     doubts = {flag: result.flags[flag] for flag in DOUBTS if result.flags[flag]}
-    ring: dict[int, str] = {}
-    for flag, scans in reversed(doubts.items()):  # a scan with several flags shows the first, in report order
-        ring.update({result.names.index(s): _hex(FLAG_COLOURS[flag]) for s in scans})
+    marks = first_flags(result.names, doubts)  # a scan with several flags shows the first, in report order
+    ring = {k: _hex(tuple(c)) for k, c in enumerate(label_colours(marks)) if marks[k]}
     top.scatter(centres[placed, 0], centres[placed, 1], s=36, c=colours[placed], zorder=3,
                 edgecolors=[ring.get(k, "black") for k in placed], linewidths=[2.5 if k in ring else 0.8 for k in placed])
     if n <= 40:
@@ -160,10 +178,15 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     top.set_aspect("equal", adjustable="datalim")
     top.set_xticks([])
     top.set_yticks([])
-    top.set_title(" · ".join([f"{len(placed)}/{n} scans placed", f"{len(result.unregistered)} unregistered",
-                              *(f"{len(scans)} {flag}" for flag, scans in doubts.items())]), fontsize=10)
-    legend = [Line2D([], [], color=KEPT_COLOUR, lw=2, label=f"kept edge ({len(kept)}; width = weight)"),
-              Line2D([], [], color=REJECTED_COLOUR, lw=1, ls=(0, (3, 2)), label=f"rejected edge ({len(rejected)})")]
+    title = _wrapped([f"{len(placed)}/{n} scans placed", *([f"{len(parts)} parts (coloured)"] if len(parts) > 1 else []),
+                      f"{len(result.unregistered)} unregistered",
+                      *(f"{len(scans)} {flag}" for flag, scans in doubts.items())])
+    top.set_title(title, fontsize=10)
+    fig.subplots_adjust(top=0.93 - 0.04 * title.count("\n"))
+    legend = [Line2D([], [], color=KEPT_COLOUR, lw=2, label=f"kept edge ({len(kept)}; width = weight)")]
+    legend += [Line2D([], [], color=_hex(EDGE_COLOURS[key]), lw=1, ls=(0, (3, 2)) if key in DRAWN else ":",
+                      label=f"{key} edge ({len(edges)}{'' if key in DRAWN else ', not drawn'})")
+               for key, edges in by_status.items() if key != "kept"]
     legend += [Line2D([], [], marker="o", ls="", mfc="white", mec=_hex(FLAG_COLOURS[flag]), mew=2.5, label=flag)
                for flag in doubts]
     top.legend(handles=legend, loc="upper right", fontsize=8, framealpha=0.8)
@@ -183,6 +206,17 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     if kept + rejected:  # no edge, no legend (matplotlib warns of an empty one)
         hist.legend(fontsize=8)
     return fig
+
+
+def _wrapped(parts: list[str]) -> str:
+    """``parts`` joined by " · ", broken between parts into lines of at most ``TITLE_CHARS`` characters."""
+    lines = [parts[0]]
+    for part in parts[1:]:
+        if len(lines[-1]) + 3 + len(part) > TITLE_CHARS:
+            lines.append(part)
+        else:
+            lines[-1] += " · " + part
+    return "\n".join(lines)
 
 
 def write_summary(path: str | Path, result: "RunResult", status: list[str] | None = None) -> None:

@@ -9,40 +9,60 @@ weight and metric series in tabs, and the text log. Layout of the data:
   stage timeline view reads as a Gantt chart of the run and a message lands on the step of its stage;
 - ``world/scans/<name>``: the voxelised scan in its own frame (static), in its colour from a fixed
   categorical palette (``scan_colours``), with its frame's axes, under a ``Transform3D`` that follows its pose;
-  ``world/scans/<name>/flag`` (last step): a box around a flagged scan, coloured and labelled by its flags
-  (``log_final``: unregistered, unverified, contested, ...);
+  ``world/scans/<name>/flag`` (last step): a box around a doubtful scan, coloured and labelled by its reason
+  (``log_final``: ``result.FLAGS``); ``world/parts/<id>`` (last step, ``log_parts``): a box around each part's scans
+  in the part's colour, labelled with its size and, for a part apart from the world, why its join failed; the graph
+  nodes take their part's colour;
+- ``world``: its ``ViewCoordinates`` (last step, static): the scans' up axis (``up_axis``), so that the viewer
+  opens the scene upright instead of guessing;
 - ``world/edges``: one line per pose-graph edge between scan centres: kept edges in ``KEPT``, their width
   growing with the log of weight ÷ the largest (weights span orders of magnitude), rejected ones thin in
-  ``REJECTED``; labelled ``a.ply–b.ply``;
+  ``REJECTED``; labelled ``a.ply–b.ply``; at the last step every edge in the colour of its status
+  (``log_edge_status``: ``palette.EDGE_COLOURS``), its class (an ``AnnotationContext``) naming the status;
 - ``pose_graph``: the scans as nodes (labels carry the flags) and the registered edges (after ``log_graph``),
   then the kept ones (after each ``log_sync``), for the graph view;
 - ``residuals``: one series per edge named ``a.ply–b.ply``, its rotation residual in degrees; ``weights``: log10
   of its weight ÷ the largest, rejected edges at ``WEIGHT_FLOOR`` (one entity each, not one per edge: logging
   2·E entities every iteration cost 5 s of CPU a synchronization at 390 edges); ``metrics/*``: median
-  residual, kept edges, LM cost; ``log``: stage messages with their seconds; ``overlap_scores``: the matrix;
-- ``world/uncertainty/<name>`` (last step): the 3σ ellipsoid of each scan's position from its pose covariance,
-  magnified ``ELLIPSOID_GAIN``× so that millimetres show at room scale, and ``uncertainty/<name>/*``: the
-  σ of its rotation (degrees) and translation (scene units) along their longest axes.
+  residual, kept edges, LM cost; ``seconds/<stage>``: each pipeline stage's seconds as it ends (``end_stage``);
+  ``log``: stage messages with their seconds; ``overlap_scores``: the matrix;
+- ``world/uncertainty_3sigma_x10/<name>`` (last step): the 3σ ellipsoid of each scan's position from its pose
+  covariance, magnified ``ELLIPSOID_GAIN``× so that millimetres show at room scale (the gain in the entity's name
+  and its label), and ``uncertainty/<name>/*``: the σ of its rotation (degrees) and translation (scene units)
+  along their longest axes.
+
+The recording is named after its run (``Recorder(name=...)``: the scene's folder and the results folder, with the
+start time), its recording id too (with a few random characters), so that two runs open side by side can be told
+apart; its application id stays "sghr_gtsam", under which the viewer keeps a layout the user arranged.
 """
 
 from __future__ import annotations
 
 import os
 import threading
+import time
+import uuid
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from .palette import FLAG_COLOURS, REJECTED, scan_colours
+from .palette import EDGE_COLOURS, REJECTED, first_flags, label_colours, scan_colours
+from .registration.edges import EDGE_STATUS
 from .sync.irls import NEGLIGIBLE, kept_edges
 from .types import IterationRecord, PoseGraph, SyncResult
+
+if TYPE_CHECKING:
+    from .verify import Part
 
 TIMELINE = "step"
 ELLIPSOID_GAIN = 10.0
 """Ellipsoids are drawn this many times their 3σ size (a well-registered scan's is sub-millimetre)."""
+ELLIPSOIDS = f"world/uncertainty_3sigma_x{ELLIPSOID_GAIN:g}"
+"""Where the ellipsoids are: the gain in the name, so that nobody reads them at their drawn size."""
 KEPT = (60, 200, 255)
 """Colour of the edges a synchronization keeps (light blue; the rejected ones: ``palette.REJECTED``)."""
 WEIGHT_FLOOR = float(np.log10(NEGLIGIBLE)) - 1.0
@@ -67,6 +87,32 @@ def edge_radii(w: np.ndarray, kept: np.ndarray) -> np.ndarray:
     return np.where(kept, lo + (hi - lo) * t, lo).astype(np.float32)
 
 
+_VIEWS = {(axis, sign): getattr(rr.ViewCoordinates, f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if sign > 0 else 'DOWN'}")
+          for axis in range(3) for sign in (1, -1)}
+
+
+def _corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(8, 3) the corners of the box from ``lo`` to ``hi``."""
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def up_axis(scatter: np.ndarray, mean: np.ndarray, sensors: np.ndarray) -> tuple[int, int]:
+    """The world axis (0, 1, 2 for x, y, z) and sign that is up for the scans whose points have covariance
+    ``scatter`` (3, 3) about ``mean`` (3,), seen from ``sensors`` (N, 3, the scans' frame origins): the axis nearest
+    the points' direction of least extent (a room's or a site's vertical, the axis summary.png looks down), its
+    sign the side of the points' mean that the sensors are on (scanners and cameras look down on floors and the
+    ground more than up at ceilings: a 3DMatch fragment's camera frame comes out y down, a survey's z up).
+    Axis-aligned because Rerun's ``ViewCoordinates`` are."""
+    _, vectors = np.linalg.eigh(scatter)
+    axis = int(np.argmax(np.abs(vectors[:, 0])))
+    return axis, 1 if np.median(sensors[:, axis]) >= mean[axis] else -1
+
+
+def _run_name(name: str) -> str:
+    """The recording's name and id: ``name`` (the run's) and the time it started, so two runs of a scene differ."""
+    return f"{name or 'sghr_gtsam'} · {time.strftime('%Y-%m-%d %H:%M:%S')}"
+
+
 def blueprint() -> rrb.Blueprint:
     """The layout the recording opens on."""
     series = rrb.Tabs(
@@ -74,6 +120,7 @@ def blueprint() -> rrb.Blueprint:
         rrb.TimeSeriesView(origin="/weights", name="log10 weight ÷ largest"),
         rrb.TimeSeriesView(origin="/metrics", name="metrics"),
         rrb.TimeSeriesView(origin="/uncertainty", name="pose σ"),
+        rrb.TimeSeriesView(origin="/seconds", name="stage seconds"),
         rrb.TensorView(origin="/overlap_scores", name="overlap scores"),
     )
     return rrb.Blueprint(
@@ -133,17 +180,23 @@ class Recorder:
     the ``OSError`` of a write that failed.
 
     ``min_weight``: as ``Config.min_weight``, so that an IRLS edge counts as kept where synchronization
-    keeps it."""
+    keeps it. ``name``: the run's (``pipeline.run``: the scene's folder and the results folder), with the start
+    time the recording's name and id."""
 
-    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3):
-        self.rec = rr.RecordingStream(application_id)
+    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3,
+                 name: str = ""):
+        title = _run_name(name)
+        # the id also tells apart two runs started in the same second
+        self.rec = rr.RecordingStream(application_id, recording_id=f"{title} #{uuid.uuid4().hex[:6]}")
         self._pump = _Pump(path)
         self.rec.save(self._pump.sink, default_blueprint=blueprint())
+        self.rec.send_recording_name(title)
         self.min_weight = min_weight
         self._names: list[str] = []
         self._paths: list[str] = []
         self._centres = np.zeros((0, 3))
         self._boxes: list[tuple[np.ndarray, np.ndarray]] = []  # per scan: its bounding box in its own frame
+        self._moments: list[tuple[int, np.ndarray, np.ndarray]] = []  # per scan: count, mean, covariance (own frame)
         self._colours = np.zeros((0, 3), dtype=np.uint8)
         self._graph: PoseGraph | None = None
         self._labels: list[str] = []
@@ -164,6 +217,10 @@ class Recorder:
             self._stage = stage
             self.rec.log("stage", rr.StateChange(state=stage))
 
+    def end_stage(self, name: str, seconds: float) -> None:
+        """A pipeline stage's seconds, as data (``seconds/<name>``), on the step where it ends."""
+        self.rec.log(f"seconds/{rr.escape_entity_path_part(name)}", rr.Scalars(float(seconds)))
+
     def log_message(self, text: str) -> None:
         self.rec.log("log", rr.TextLog(text))
 
@@ -173,10 +230,12 @@ class Recorder:
         self._names = list(names)
         self._paths = [f"world/scans/{rr.escape_entity_path_part(name)}" for name in names]
         self._colours = scan_colours(len(names))
-        centres, self._boxes = [], []
+        centres, self._boxes, self._moments = [], [], []
         for path, P, colour in zip(self._paths, points, self._colours):
             centres.append(P.mean(0) if len(P) else np.zeros(3))
             self._boxes.append((P.min(0), P.max(0)) if len(P) else (np.zeros(3), np.zeros(3)))
+            Q = P - centres[-1]
+            self._moments.append((len(P), centres[-1], Q.T @ Q / max(len(P), 1)))
             self.rec.log(path, rr.Points3D(P.astype(np.float32), colors=colour, radii=rr.Radius.ui_points(1.5)),
                          static=True)
         self._centres = np.array(centres).reshape(-1, 3)
@@ -262,18 +321,21 @@ class Recorder:
             self.rec.log("weights", rr.Scalars(np.maximum(np.log10(rel), WEIGHT_FLOOR)))
 
     def log_final(self, poses: np.ndarray, flags: dict[str, list[str]]) -> None:
-        """The final poses on a step of their own, and the flagged scans: ``flags`` maps a flag (e.g.
-        ``"unverified"``) to the names of the scans it marks. Each flagged scan gets a box in its frame, in
-        the colour of its first flag (``FLAG_COLOURS``) and labelled with all of them; its graph node too."""
+        """The final poses on a step of their own, and the flagged scans: ``flags`` maps a flag (``result.FLAGS``,
+        e.g. ``"single registration"``) to the names of the scans it marks. Each flagged scan gets a box in its
+        frame, in the colour of its first flag (``FLAG_COLOURS``) and labelled with all of them; its graph node
+        too."""
         self._next_step("final")
         self.log_poses(poses)
         self._send_poses()
+        self._log_view(poses, set(flags.get("unplaced", [])))
         by_scan: dict[str, list[str]] = {}
         for label, names in flags.items():
             for name in names:
                 by_scan.setdefault(name, []).append(label)
             if names:
                 self.rec.log("log", rr.TextLog(f"{label}: " + ", ".join(names), level=rr.TextLogLevel.WARN))
+        colours = label_colours(first_flags(self._names, flags), other=FLAG_OTHER)
         for k, name in enumerate(self._names):
             if name not in by_scan:
                 continue
@@ -281,9 +343,59 @@ class Recorder:
             labels = by_scan[name]
             self.rec.log(f"{self._paths[k]}/flag", rr.Boxes3D(
                 centers=[(lo + hi) / 2], half_sizes=[np.maximum((hi - lo) / 2, 1e-6)],
-                colors=[FLAG_COLOURS.get(labels[0], FLAG_OTHER)], labels=[f"{name}: {', '.join(labels)}"],
+                colors=[colours[k]], labels=[f"{name}: {', '.join(labels)}"],
                 show_labels=True, radii=rr.Radius.ui_points(2.0)))
-        self._log_nodes({name: ", ".join(labels) for name, labels in by_scan.items()})
+        self._marks = {name: ", ".join(labels) for name, labels in by_scan.items()}
+        self._log_nodes(self._marks)
+
+    def log_parts(self, poses: np.ndarray, parts: Sequence[Part]) -> None:
+        """At the current step: a box around each part's placed scans (``verify.Part``), in a categorical colour per
+        part, labelled with its size and why its join failed; the graph nodes in their part's colour."""
+        colours = scan_colours(max(len(parts), 1))
+        part_of = {name: p.id for p in parts for name in p.scans}
+        for p in parts:
+            ks = [self._names.index(name) for name in p.scans]
+            corners = np.concatenate([_corners(*self._boxes[k]) @ poses[k][:3, :3].T + poses[k][:3, 3] for k in ks])
+            lo, hi = corners.min(axis=0), corners.max(axis=0)
+            said = f"part {p.id}: {len(ks)} scan(s)" + (f", apart: {p.join.why}" if p.join else "")
+            self.rec.log(f"world/parts/{p.id}", rr.Boxes3D(centers=[(lo + hi) / 2], half_sizes=[(hi - lo) / 2 + 1e-6],
+                                                           colors=[colours[p.id]], labels=[said],
+                                                           radii=rr.Radius.ui_points(1.0)))
+        self._colours = [colours[part_of[n]] if n in part_of else FLAG_OTHER for n in self._names]
+        self._log_nodes(self._marks)
+
+    def _log_view(self, poses: np.ndarray, unplaced: set[str]) -> None:
+        """The world's ``ViewCoordinates``: ``up_axis`` of the placed scans' points under ``poses``."""
+        placed = [k for k, name in enumerate(self._names) if name not in unplaced and self._moments[k][0]
+                  and np.isfinite(poses[k]).all()]
+        if not placed:
+            return
+        count = np.array([self._moments[k][0] for k in placed], dtype=float)
+        R, t = poses[placed, :3, :3], poses[placed, :3, 3]
+        means = np.einsum("nij,nj->ni", R, np.array([self._moments[k][1] for k in placed])) + t
+        mean = count @ means / count.sum()
+        spread = R @ np.array([self._moments[k][2] for k in placed]) @ np.swapaxes(R, 1, 2)
+        d = means - mean
+        scatter = np.einsum("n,nij->ij", count, spread + d[:, :, None] * d[:, None, :]) / count.sum()
+        self.rec.log("world", _VIEWS[up_axis(scatter, mean, t)], static=True)
+
+    def log_edge_status(self, poses: np.ndarray, status: Sequence[str]) -> None:
+        """Every edge at the current step in the colour of its ``EDGE_STATUS`` key (``palette.EDGE_COLOURS``, kept
+        in ``KEPT``), its class naming the status; kept ones as wide as their weight, the rest thin."""
+        g = self._graph
+        if g is None or len(status) != g.num_edges:
+            return
+        names = list(EDGE_STATUS)
+        colours = {"kept": KEPT, **EDGE_COLOURS}
+        self.rec.log("world/edges", rr.AnnotationContext([(k, s, colours[s]) for k, s in enumerate(names)]),
+                     static=True)
+        centres = np.einsum("nij,nj->ni", poses[:, :3, :3], self._centres) + poses[:, :3, 3]
+        kept = np.array([s == "kept" for s in status], dtype=bool)
+        weights = np.where(kept, g.weight, 0.0)
+        self.rec.log("world/edges", rr.LineStrips3D(
+            np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32),
+            colors=np.array([colours[s] for s in status], dtype=np.uint8).reshape(-1, 3),
+            class_ids=[names.index(s) for s in status], radii=rr.Radius.ui_points(edge_radii(weights, kept))))
 
     def log_covariances(self, poses: np.ndarray, covariances: np.ndarray) -> None:
         """Per scan with a finite covariance (gtsam order, at the pose): its position ellipsoid in the world and
@@ -299,8 +411,8 @@ class Recorder:
             values, vectors = np.linalg.eigh(T[:3, :3] @ C[3:, 3:] @ T[:3, :3].T)
             vectors = vectors * np.sign(np.linalg.det(vectors))
             half = 3.0 * ELLIPSOID_GAIN * np.sqrt(np.maximum(values, 0.0))
-            self.rec.log(f"world/uncertainty/{path}", rr.Ellipsoids3D(
-                centers=[T[:3, 3]], half_sizes=[half],
+            self.rec.log(f"{ELLIPSOIDS}/{path}", rr.Ellipsoids3D(
+                centers=[T[:3, 3]], half_sizes=[half], labels=[f"{name}: 3σ × {ELLIPSOID_GAIN:g}"], show_labels=False,
                 quaternions=[rr.Quaternion(xyzw=_quaternion(vectors))], fill_mode="majorwireframe"))
             self.rec.log(f"uncertainty/{path}/sigma_rotation_deg", rr.Scalars(float(r)))
             self.rec.log(f"uncertainty/{path}/sigma_translation", rr.Scalars(float(t)))

@@ -123,6 +123,16 @@ class Verdict:
                 "status": self.status, "doubts": self.doubts, "loose": self.loose,
                 "robust_variance_factor": None if not np.isfinite(self.variance_factor) else self.variance_factor}
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "Verdict":
+        """The verdict ``as_dict`` wrote (report.json's fields)."""
+        parts = [Part(int(p["id"]), list(p["scans"]), None if p["join"] is None else
+                      Join(int(p["join"]["to"]), [tuple(e) for e in p["join"]["edges"]], str(p["join"]["why"])))
+                 for p in data["parts"]]
+        factor = data.get("robust_variance_factor")
+        return cls(parts, dict(data["status"]), dict(data["doubts"]), dict(data.get("loose") or {}),
+                   float("nan") if factor is None else float(factor))
+
     def summary(self, max_lines: int = 12) -> list[str]:
         """One line per part of two or more scans, then the single scans in one line: at most ``max_lines`` + 2."""
         lines = []

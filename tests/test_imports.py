@@ -63,3 +63,25 @@ def test_every_benchmark_script_imports():
         "    print(spec.name)\n"
     )
     assert seen == [p.stem for p in scripts] and len(seen) > 10
+
+
+def test_the_everyday_names_are_at_the_top_level_and_imported_when_first_used():
+    """``import sghr_gtsam as sg; sg.run(...)``: each name is the one its module defines, and importing the package
+    imports none of them (the pipeline, gtsam: seconds)."""
+    seen = _python(
+        "import sys\n"
+        "import sghr_gtsam as sg\n"
+        "print('sghr_gtsam.pipeline' in sys.modules, 'gtsam' in sys.modules)\n"
+        "from sghr_gtsam.config import Config\n"
+        "from sghr_gtsam.gtsam_api import to_gtsam\n"
+        "from sghr_gtsam.incremental import Session\n"
+        "from sghr_gtsam.io.results import load_results\n"
+        "from sghr_gtsam.pipeline import register, run\n"
+        "from sghr_gtsam.sync import synchronize\n"
+        "print(sg.run is run, sg.register is register, sg.Config is Config, sg.synchronize is synchronize,\n"
+        "      sg.load_results is load_results, sg.to_gtsam is to_gtsam, sg.Session is Session)\n"
+        "print(set(sg.__all__) <= set(dir(sg)), hasattr(sg, 'nothing'))\n"
+        "from sghr_gtsam import local_frame, Config as C\n"
+        "print(local_frame.__name__, C is Config)\n"
+    )
+    assert seen == ["False", "False"] + ["True"] * 7 + ["True", "False", "sghr_gtsam.local_frame", "True"]

@@ -273,7 +273,7 @@ def test_add_scan_after_add_node_registers_against_the_scans(world):
 # --- 5. the session's own checks -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("voxel", ["0.05", None, np.inf, np.nan, True, 0.0, -0.05, [0.05]])
+@pytest.mark.parametrize("voxel", ["0.05", np.inf, np.nan, True, 0.0, -0.05, [0.05]])
 def test_session_refuses_a_voxel_that_is_not_a_positive_finite_number(voxel):
     _refused(Session, _config(), voxel)
 
@@ -309,3 +309,199 @@ def test_a_session_with_a_node_without_points_writes_every_output(world, tmp_pat
     write_results(tmp_path, r, Config(voxel=0.05), time.perf_counter(), merged_cloud(r))
     assert (tmp_path / "summary.png").stat().st_size > 0
     assert read_poses(tmp_path / "poses.txt")[0] == ["a", "b", "fix"]
+
+
+# --- 6. the caller's factors: odometry, priors, GNSS, any gtsam factor ---------------------------------------------
+
+ODOMETRY = np.diag([1e4] * 3 + [1e2] * 3)
+"""An odometry step's information (gtsam order: 0.6° and 10 cm)."""
+
+
+def _truth_poses(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    T = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-3, 3, (n, 3)))
+    return inv_T(T[0])[None] @ T
+
+
+def _noisy(T: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    return T @ make_T(Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix(), rng.normal(0, 0.1, 3))
+
+
+def _batch(n: int, factors: list, initial: np.ndarray, anchor: bool = True) -> np.ndarray:
+    """gtsam's batch LM over ``factors`` (keys ``x0..``) from ``initial``, with the session's anchor prior."""
+    import gtsam
+
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in factors:
+        graph.add(factor)
+    if anchor:
+        graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(),
+                                         gtsam.noiseModel.Isotropic.Precision(6, 1e12)))
+    values = gtsam.Values()
+    for k in range(n):
+        values.insert(gtsam.symbol("x", k), gtsam.Pose3(initial[k]))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setRelativeErrorTol(1e-12)
+    params.setAbsoluteErrorTol(1e-15)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    return np.stack([result.atPose3(gtsam.symbol("x", k)).matrix() for k in range(n)])
+
+
+def _between(a: int, b: int, T: np.ndarray, info: np.ndarray = ODOMETRY):
+    import gtsam
+
+    return gtsam.BetweenFactorPose3(gtsam.symbol("x", a), gtsam.symbol("x", b), gtsam.Pose3(T),
+                                    gtsam.noiseModel.Gaussian.Information(info))
+
+
+def _odometry_session(truth: np.ndarray, rng: np.random.Generator, anchor: bool = True) -> tuple[Session, list]:
+    """Nodes without scans chained by noisy odometry (``add_between``) and closed by one loop factor."""
+    session, factors = Session(Config(), voxel=None, anchor=anchor), []
+    session.add_node("n0", [])
+    for k in range(1, len(truth)):
+        session.add_node(f"n{k}", [])  # no edge: placed by its odometry
+        T = _noisy(inv_T(truth[k - 1]) @ truth[k], rng)
+        session.add_between(k - 1, f"n{k}", T, ODOMETRY)
+        factors.append(_between(k - 1, k, T))
+    T = _noisy(inv_T(truth[-1]) @ truth[0], rng)
+    session.add_between(len(truth) - 1, 0, T, ODOMETRY)
+    factors.append(_between(len(truth) - 1, 0, T))
+    return session, factors
+
+
+def test_a_back_end_only_session_needs_no_voxel_and_add_scan_says_it_does(world):
+    session = Session(Config(), voxel=None)
+    session.add_node("0", [])
+    session.add_node("1", [(0, make_T(np.eye(3), np.array([1.0, 0, 0])), 1.0, INFO)])
+    np.testing.assert_allclose(session.poses[1][:3, 3], [1, 0, 0], atol=1e-9)
+    before = _state(session)
+    assert "voxel" in _refused(session.add_scan, "scan", world[0])
+    _assert_unchanged(session, before)
+    r = session.run_result()  # the writers' RunResult, without a grid
+    assert r.names == ["0", "1"] and np.isfinite(r.poses).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_an_odometry_chain_and_a_loop_through_the_session_match_a_batch_lm_solve(seed):
+    rng = np.random.default_rng(seed)
+    truth = _truth_poses(7, seed)
+    session, factors = _odometry_session(truth, rng)
+    batch = _batch(len(truth), factors, truth)
+    np.testing.assert_allclose(session.poses, batch, rtol=0, atol=1e-6)
+    rot, _ = relative_errors(session.poses, truth)
+    assert 0.1 < rot.max() < 5.0  # the noise reached the poses, and the loop held them near the truth
+
+
+def test_a_prior_moves_the_solution_as_a_batch_solve_does():
+    import gtsam
+
+    rng = np.random.default_rng(3)
+    truth = _truth_poses(6, 3)
+    session, factors = _odometry_session(truth, rng)
+    before = session.poses[3].copy()
+    target = truth[3] @ make_T(np.eye(3), np.array([0.5, 0.0, 0.0]))  # half a metre off in its own x
+    info = np.diag([1e2] * 3 + [1e4] * 3)  # a stiff position, a loose rotation
+    session.add_prior("n3", target, info)
+    factors.append(gtsam.PriorFactorPose3(gtsam.symbol("x", 3), gtsam.Pose3(target),
+                                          gtsam.noiseModel.Gaussian.Information(info)))
+    np.testing.assert_allclose(session.poses, _batch(len(truth), factors, truth), rtol=0, atol=1e-6)
+    after = session.poses[3]
+    assert np.linalg.norm(after[:3, 3] - target[:3, 3]) < 0.5 * np.linalg.norm(before[:3, 3] - target[:3, 3])
+
+
+def test_gnss_positions_and_a_prior_fix_the_world_without_an_anchor():
+    """A SLAM stack's world: no anchor, a prior on the first node where it is in that world, GNSS fixes of an
+    antenna 1 m above each node's origin, odometry between them; as gtsam's batch LM over the same factors."""
+    import gtsam
+
+    rng = np.random.default_rng(4)
+    offset = make_T(Rotation.from_euler("z", 40, degrees=True).as_matrix(), np.array([120.0, -40.0, 3.0]))
+    truth = offset[None] @ _truth_poses(6, 4)
+    session = Session(Config(), voxel=None, anchor=False)
+    session.add_node("n0", [])
+    prior_info = np.diag([1e2] * 3 + [1.0] * 3)  # 6° and 1 m
+    session.add_prior(0, truth[0], prior_info)
+    arm, gnss = np.array([0.0, 0.0, 1.0]), np.eye(3) / 0.02**2
+    factors = [gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(truth[0]),
+                                      gtsam.noiseModel.Gaussian.Information(prior_info))]
+    for k in range(len(truth)):
+        if k:
+            session.add_node(f"n{k}", [])
+            T = _noisy(inv_T(truth[k - 1]) @ truth[k], rng)
+            session.add_between(k - 1, k, T, ODOMETRY)
+            factors.append(_between(k - 1, k, T))
+        fix = transform_points(truth[k], arm[None])[0] + rng.normal(0, 0.02, 3)
+        session.add_position(k, fix, gnss, point=arm)
+        factors.append(gtsam.GPSFactorArm(gtsam.symbol("x", k), fix, arm, gtsam.noiseModel.Gaussian.Information(gnss)))
+    poses = session.poses
+    np.testing.assert_allclose(poses, _batch(len(truth), factors, truth, anchor=False), rtol=0, atol=1e-6)
+    assert np.abs(poses[:, :3, 3] - truth[:, :3, 3]).max() < 0.2  # in the GNSS world, not the first node's
+
+
+def test_add_factor_takes_any_gtsam_factor_and_keeps_it_through_the_robust_stage(scene):
+    """A raw gtsam factor (a translation prior) on a node; then a node whose two edges disagree with no majority,
+    so that the robust stage runs and ISAM2 restarts: the factor is still there, as a batch solve over the kept
+    edges and it shows."""
+    import gtsam
+
+    session = _graph_session(scene, nodes=3)
+    pull = session.poses[2][:3, 3] + [0.3, 0.0, 0.0]
+    factor = gtsam.PoseTranslationPrior3D(session.key("2"), pull, gtsam.noiseModel.Isotropic.Sigma(3, 0.05))
+    session.add_factor(factor)
+    moved = session.poses[2][:3, 3]
+    assert 0.05 < moved[0] - (pull[0] - 0.3) < 0.3
+    wrong = _truth_edge(scene, 0, 3) @ make_T(Rotation.from_euler("z", 30, degrees=True).as_matrix(), np.zeros(3))
+    session.add_node("3", [(0, wrong, 1.0, INFO), (1, _truth_edge(scene, 1, 3), 1.0, INFO)])
+    assert session.robust_runs == 1
+    kept = [e for e in session.edges if e.kept]
+    factors = [_between(e.i, e.j, e.T, e.information) for e in kept] + [factor]
+    np.testing.assert_allclose(session.poses, _batch(4, factors, session.poses), rtol=0, atol=1e-6)
+    assert session.poses[2][0, 3] - _batch(4, factors[:-1], session.poses)[2][0, 3] > 0.05  # without it: back
+
+
+def test_the_caller_s_factors_are_checked_and_a_refused_one_leaves_the_session_as_it_was(scene):
+    import gtsam
+
+    session = _graph_session(scene, nodes=2)
+    session.add_node("waits", [])  # not placed: no edge yet
+    before = _state(session)
+    noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
+    assert "not a node's key" in _refused(session.add_factor,
+                                           gtsam.PriorFactorPose3(gtsam.symbol("y", 0), gtsam.Pose3(), noise))
+    assert "not placed" in _refused(session.add_factor, gtsam.PriorFactorPose3(session.key(2), gtsam.Pose3(), noise))
+    _refused(session.add_factor, "a factor")
+    _refused(session.add_between, 0, 0, np.eye(4), INFO)
+    _refused(session.add_between, 0, "nobody", np.eye(4), INFO)
+    _refused(session.add_between, 0, 1, np.diag([2.0, 2.0, 2.0, 1.0]), INFO)
+    _refused(session.add_prior, 1, np.eye(4), np.diag([1.0] * 5 + [-1.0]))
+    assert "not placed" in _refused(session.add_position, "waits", np.zeros(3), np.eye(3))
+    _refused(session.add_position, 0, np.zeros(2), np.eye(3))
+    _refused(session.add_position, 0, np.zeros(3), -np.eye(3))
+    _assert_unchanged(session, before)
+
+    free = Session(Config(), voxel=None, anchor=False)  # no anchor: a position alone leaves the rotation free
+    free.add_node("0", [])
+    assert "cannot take it" in _refused(free.add_position, 0, np.ones(3), np.eye(3))
+    assert free._factors == []
+
+
+def test_the_caller_s_factors_on_georeferenced_scans_are_in_the_input_frames(world):
+    """Scans 4 200 km north, registered centred: a prior, an odometry step and a GNSS fix that agree with the
+    current poses (input frames) move no point of a scan; a stiff prior 3 cm off puts the scan there."""
+    scans = [P + UTM for P in world[:3]]
+    session = _fed(scans)
+    assert np.abs(session.centre(1) - UTM).max() < 10  # registered centred
+
+    def moved(poses: np.ndarray, before: np.ndarray) -> float:
+        return max(np.abs(transform_points(T, P) - transform_points(B, P)).max()
+                   for T, B, P in zip(poses, before, scans))
+
+    before = session.poses
+    session.add_between(0, 1, inv_T(before[0]) @ before[1], ODOMETRY)
+    session.add_prior(2, before[2], ODOMETRY)
+    antenna = scans[1][0]  # a point of scan 1, in its input frame
+    session.add_position(1, transform_points(before[1], antenna[None])[0], np.eye(3) * 1e4, point=antenna)
+    assert moved(session.poses, before) < 1e-6
+    target = make_T(np.eye(3), np.array([0.03, 0.0, 0.0])) @ before[2]
+    session.add_prior(2, target, np.diag([1e12] * 6))
+    assert moved(session.poses[2:], target[None]) < 1e-4

@@ -545,3 +545,103 @@ def test_g2o_from_a_device_is_refused_not_read_forever(tmp_path):
         read_g2o("/dev/zero")
     with pytest.raises(InputError, match="not a regular file"):
         read_g2o(tmp_path)
+
+
+# --- a results folder read back; the API prints nothing unless given log= -------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    """A generated object of four scans run through the API, everything it printed caught."""
+    import contextlib
+    import io
+
+    from sghr_gtsam.config import Config
+    from sghr_gtsam.pipeline import run
+    from sghr_gtsam.synthetic import make_scene, write_scene
+
+    scene = make_scene(kind="object", n_scans=4, seed=3)
+    folder = tmp_path_factory.mktemp("small_run")
+    write_scene(scene, folder / "scene")
+    printed = io.StringIO()
+    with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+        result = run(folder / "scene", folder / "out", Config(voxel=scene.voxel, workers=1, record=False))
+    return result, folder, printed.getvalue()
+
+
+def test_run_and_register_print_nothing_unless_given_log(small_run):
+    import contextlib
+    import io
+
+    from sghr_gtsam.config import Config
+    from sghr_gtsam.pipeline import load_scene, register
+
+    result, folder, printed = small_run
+    assert printed == "" and result.names
+    scans, _ = load_scene(folder / "scene", Config(), log=lambda message: None)
+    quiet, said = io.StringIO(), []
+    with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+        register(scans, Config(voxel=result.voxel, workers=1))
+        register(scans, Config(voxel=result.voxel, workers=1), log=said.append)
+    assert quiet.getvalue() == "" and any(message.startswith("pairwise:") for message in said)
+
+
+def test_load_results_reads_a_run_s_folder_back(small_run):
+    from sghr_gtsam.gtsam_api import graph_information
+    from sghr_gtsam.io.results import load_results
+    from sghr_gtsam.registration.edges import edge_status
+
+    result, folder, _ = small_run
+    loaded = load_results(folder / "out")
+    assert loaded.names == result.names and loaded.unregistered == result.unregistered
+    assert loaded.flags == result.flags and loaded.skipped == result.skipped and loaded.voxel == result.voxel
+    placed = result.registered
+    assert loaded.registered == placed
+    np.testing.assert_array_equal(loaded.poses[placed], result.poses[placed])  # poses.txt round-trips exactly
+    g, h = result.graph, loaded.graph
+    np.testing.assert_array_equal(h.i, g.i)
+    np.testing.assert_array_equal(h.j, g.j)
+    np.testing.assert_allclose(h.T, g.T, rtol=0, atol=1e-12)
+    status = edge_status(result)
+    assert edge_status(loaded) == status and "kept" in status
+    kept = np.array([s == "kept" for s in status])
+    np.testing.assert_allclose(h.information[kept], graph_information(g, kept)[kept], rtol=1e-12)
+    np.testing.assert_allclose(h.weight, g.weight, rtol=1e-5)
+    np.testing.assert_allclose(loaded.sync.weights, result.sync.weights, rtol=1e-5)
+    assert [p.inliers for p in loaded.pairs] == [p.inliers for p in result.pairs]
+    np.testing.assert_allclose(loaded.covariances[placed], result.covariances[placed], rtol=1e-12, atol=0)
+    assert loaded.timings == {k: round(v, 3) for k, v in result.timings.items()}
+    from sghr_gtsam.gtsam_api import to_gtsam
+
+    factors, values = to_gtsam(loaded)  # the same factor graph as the run's own
+    reference, _ = to_gtsam(result)
+    assert factors.size() == reference.size() > 0
+    assert factors.error(values) == pytest.approx(reference.error(to_gtsam(result)[1]), rel=1e-9)
+    from sghr_gtsam.plots import summary_figure
+
+    top = summary_figure(loaded).axes[0]  # no grids in a folder: the graph over the scans' origins
+    (drawn,) = [c for c in top.collections if c.get_label() == "kept"]
+    assert len(drawn.get_segments()) == status.count("kept")
+
+
+def test_load_results_refuses_a_folder_that_is_not_a_run_s(small_run, tmp_path):
+    import json
+    import shutil
+
+    from sghr_gtsam.io.results import load_results
+
+    _, folder, _ = small_run
+    with pytest.raises(InputError, match="edges.csv"):
+        load_results(tmp_path)
+    report = json.loads((folder / "out" / "report.json").read_text())
+    damaged = [("edges.csv", "i,j\n0,1\n"), ("report.json", '{"scans": ["a"'), ("poses.txt", "a.ply\n1 2\n"),
+               ("graph.g2o", "EDGE_SE3:QUAT 0 1\n"),
+               ("report.json", json.dumps({**report, "unregistered": ["nobody.ply"]})),
+               ("report.json", json.dumps({**report, "pose_covariances": {report["scans"][0]: {"covariance": [1]}}}))]
+    for k, (name, text) in enumerate(damaged):
+        copy = tmp_path / f"copy{k}"
+        shutil.copytree(folder / "out", copy)
+        (copy / name).write_text(text)
+        with pytest.raises(InputError) as error:
+            load_results(copy)
+        assert "\n" not in str(error.value), name

@@ -29,6 +29,8 @@ def test_tour_registers_the_room_and_finds_the_wrong_edges(capsys):
     learned = ns["learned_score"]  # the same room matched on the learned descriptor
     assert learned.within == learned.scans == 8 and learned.unflagged_wrong == []
     assert ns["learned_config"].inlier_bar > ns["config"].inlier_bar
+    assert 0 < ns["moved"] < 0.05  # the odometry factor moved scan 1, weighed against the far stiffer registrations
+    assert len(ns["session"].names) == 3 and ns["session_rot"].max() < 0.5
     assert "unregistered: [] | parts: 1 | doubts: {}" in capsys.readouterr().out
     assert not ns["work"].exists()  # the notebook removes its temporary folder
 

@@ -264,3 +264,90 @@ def test_a_run_draws_every_scan_with_its_axes_and_colour(object_run):
         assert _latest(rows, entity, "TransformAxes3D:axis_length")[0] > 0
         assert _rgb(_latest(rows, entity, "Points3D:colors")[0]) == tuple(colour)
         np.testing.assert_allclose(_pose(rows, entity, None), result.poses[result.names.index(name)], atol=1e-5)
+
+
+# --- what a reviewer reads off the recording: up axis, name, seconds, edge statuses, ellipsoid scale ------------
+
+def _view(axis: int, sign: int) -> list:
+    name = f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if sign > 0 else 'DOWN'}"
+    return getattr(rr.ViewCoordinates, name).as_arrow_array().to_pylist()[0]
+
+
+def _floors(axis: int, sign: int, rng: np.random.Generator, n: int = 3) -> list[np.ndarray]:
+    """``n`` scans of a floor 1.5 m below their sensor (the frame origin) along ``sign`` × ``axis``, 8 m across, with
+    a wall patch above it: what a scanner on a tripod or a camera in a room sees."""
+    scans = []
+    for _ in range(n):
+        P = rng.uniform(-4, 4, (600, 3))
+        P[:, axis] = -1.5 * sign + rng.normal(0, 0.02, 600)
+        wall = rng.uniform(-0.5, 0.5, (100, 3)) + 3.0
+        wall[:, axis] = sign * rng.uniform(-1.5, 1.0, 100)
+        scans.append(np.vstack([P, wall]))
+    return scans
+
+
+@settings(max_examples=12, deadline=None)
+@given(axis=st.integers(0, 2), sign=st.sampled_from([1, -1]), seed=st.integers(0, 2**16))
+def test_the_world_is_viewed_with_the_scans_up_axis(tmp_path_factory, axis, sign, seed):
+    """Scans that look down on a floor along any axis: the recording's view coordinates put that axis up (a
+    3DMatch fragment's camera frame is y down), read back from the file."""
+    rng = np.random.default_rng(seed)
+    scans = _floors(axis, sign, rng)
+    path = tmp_path_factory.mktemp("up") / "up.rrd"
+    recorder = Recorder(path)
+    names = [f"s{k}" for k in range(len(scans))]
+    recorder.log_scans(names, scans)
+    shift = np.eye(4)[None].repeat(len(scans), 0)
+    shift[:, :3, 3] = rng.uniform(-1, 1, (len(scans), 3)) * np.where(np.arange(3) == axis, 0.05, 1.0)
+    recorder.log_final(shift, {})
+    recorder.close()
+    assert _latest(_rows(path), "/world", "ViewCoordinates:xyz")[0] == _view(axis, sign)
+
+
+def test_every_edge_status_has_a_colour_of_its_own_and_a_class_naming_it(flagged, tmp_path):
+    from sghr_gtsam.palette import EDGE_COLOURS
+    from sghr_gtsam.registration.edges import EDGE_STATUS
+
+    colours = {"kept": KEPT, **EDGE_COLOURS}
+    assert set(colours) == set(EDGE_STATUS)
+    rgb = np.array(list(colours.values()), dtype=float)
+    distance = np.linalg.norm(rgb[:, None] - rgb[None], axis=2)
+    assert distance[np.triu_indices(len(rgb), 1)].min() > 60  # contradicted and failed are not rejected's
+    graph, result, names, points, *_ = flagged
+    path = tmp_path / "status.rrd"
+    recorder = Recorder(path)
+    recorder.log_scans(names, points)
+    recorder.log_graph(graph, np.eye(graph.n))
+    statuses = list(EDGE_STATUS)
+    status = [statuses[e % len(statuses)] for e in range(graph.num_edges)]  # every status, several times
+    recorder.log_final(result.poses, {})
+    recorder.log_edge_status(result.poses, status)
+    recorder.close()
+    rows = _rows(path)
+    drawn = [_rgb(c) for c in _latest(rows, "/world/edges", "LineStrips3D:colors")]
+    assert drawn == [tuple(colours[s]) for s in status]
+    assert _latest(rows, "/world/edges", "LineStrips3D:class_ids") == [statuses.index(s) for s in status]
+    (context,) = _latest(rows, "/world/edges", "AnnotationContext:context")
+    assert {c["class_description"]["info"]["label"] for c in context} == set(EDGE_STATUS)
+
+
+def test_a_run_s_recording_is_named_after_it_with_its_stage_seconds_and_scaled_ellipsoids(object_run):
+    result, rows = object_run
+    (name,) = _latest(rows, "/__properties", "RecordingInfo:name")
+    assert name.startswith("scene → out · ")  # the scene's folder, the results folder, then the start time
+    for stage in ("features", "pairwise", "sync"):
+        logged = [r["Scalars:scalars"][0] for r in rows[f"/seconds/{stage}"]]
+        assert sum(logged) == pytest.approx(result.timings[stage], rel=1e-9, abs=1e-9)
+    assert [r["Scalars:scalars"][0] for r in rows["/seconds/load"]] == [pytest.approx(result.timings["load"])]
+    ellipsoids = [e for e in rows if e.startswith("/world/uncertainty_3sigma_x10/")]
+    assert len(ellipsoids) == len(result.registered)
+    assert "3σ × 10" in _latest(rows, ellipsoids[0], "Ellipsoids3D:labels")[0]
+
+
+def test_two_runs_of_one_scene_are_told_apart(tmp_path):
+    ids = []
+    for k in range(2):
+        path = tmp_path / f"{k}.rrd"
+        Recorder(path, name="scene → out").close()
+        ids.append(rr.chunk.RrdReader(path).recordings()[0].recording_id)
+    assert ids[0] != ids[1] and all(i.startswith("scene → out · ") for i in ids)

@@ -96,7 +96,8 @@ def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
     status[kept[0]] = "rejected"
     fig = summary_figure(result, status)
     top = fig.axes[0]
-    rejected, solid = (c for c in top.collections if isinstance(c, LineCollection))
+    rejected, solid = (next(c for c in top.collections if isinstance(c, LineCollection) and c.get_label() == label)
+                       for label in ("rejected", "kept"))
     assert len(rejected.get_segments()) == 1 and len(solid.get_segments()) == len(kept) - 1
     assert rejected.get_linestyle()[0][1] is not None  # dashed
     np.testing.assert_allclose(rejected.get_edgecolor()[0][:3], np.divide(REJECTED, 255), atol=1e-6)
@@ -122,8 +123,46 @@ def test_summary_figure_rings_each_doubtful_scan_in_its_reasons_colour(watched_r
     dots = next(col for col in top.collections if isinstance(col, PathCollection))
     rings = [tuple(np.round(rgba[:3] * 255).astype(int)) for rgba in dots.get_edgecolor()]
     assert rings[1:] == [FLAG_COLOURS["free space"]] * 2 + [FLAG_COLOURS["loose"]]
-    assert [t.get_text() for t in top.get_legend().get_texts()][2:] == ["free space", "loose"]
+    assert [t.get_text() for t in top.get_legend().get_texts() if " edge (" not in t.get_text()] == [
+        "free space", "loose"]
     assert "2 free space · 1 loose" in top.get_title()
+
+
+def test_summary_legend_counts_every_edge_status_and_its_title_stays_in_the_picture(watched_run):
+    """summary.png said "rejected edge (0)" while 11 edges were contradicted or failed and not drawn, and a title
+    listing many flags ran past the picture's left edge."""
+    from dataclasses import replace
+
+    from matplotlib.collections import LineCollection
+
+    from sghr_gtsam.palette import EDGE_COLOURS
+    from sghr_gtsam.registration.edges import edge_status
+
+    result, _, _ = watched_run
+    status = edge_status(result)
+    assert len(status) >= 6
+    status[:5] = ["contradicted", "contradicted", "failed", "overruled", "unplaced"]
+    names = result.names
+    from sghr_gtsam.verify import REASONS
+
+    reasons = list(REASONS)
+    doubts = {name: reasons[k % len(reasons)] for k, name in enumerate(names[1:])}
+    flagged = replace(result, verdict=replace(result.verdict, doubts=doubts))
+    fig = summary_figure(flagged, status)
+    top = fig.axes[0]
+    legend = [t.get_text() for t in top.get_legend().get_texts()]
+    counts = {key: status.count(key) for key in dict.fromkeys(status)}
+    for key, count in counts.items():
+        (entry,) = [t for t in legend if t.startswith(f"{key} edge ({count}")]
+        assert entry.endswith("not drawn)") == (key in ("failed", "unplaced"))
+    for key in ("contradicted", "overruled"):  # drawn dashed, in their own colours
+        lines = next(c for c in top.collections if isinstance(c, LineCollection) and c.get_label() == key)
+        assert len(lines.get_segments()) == counts[key]
+        np.testing.assert_allclose(lines.get_edgecolor()[0][:3], np.divide(EDGE_COLOURS[key], 255), atol=1e-6)
+    fig.canvas.draw()
+    box = top.title.get_window_extent()
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.width and box.y1 <= fig.bbox.height, box
+    assert all(f"{len(names) - 1} {flag}" in top.get_title() for flag in ("unverified", "underdetermined"))
 
 
 @pytest.mark.parametrize("n", [8, 30, 60])

@@ -1,6 +1,6 @@
 """The results folder of a run. File names are fixed because other tools read them:
 poses.txt, poses_kitti.txt, poses_tum.txt, graph.g2o, graph_rejected.g2o, edges.csv, merged.ply, summary.png,
-report.json, config.json, recording.rrd.
+report.json, config.json, recording.rrd. ``load_results`` reads a folder back into a ``RunResult``.
 
 graph.g2o, poses_kitti.txt and poses_tum.txt are what a SLAM stack loads as they are, so they hold the world part
 only (``report.json["parts"][0]``, ``verify``): nothing in them rests on a join that failed verification. graph.g2o
@@ -35,9 +35,10 @@ from ..plots import write_summary
 from ..registration.edges import EDGE_STATUS, edge_status
 from ..result import peak_memory_mb
 from ..types import InputError, PoseGraph
+from ..verify import Verdict
 from .atomic import atomic_write, mounted
-from .g2o import write_g2o
-from .poses import write_kitti, write_poses, write_tum
+from .g2o import read_g2o, write_g2o
+from .poses import read_poses, write_kitti, write_poses, write_tum
 from .scans import write_ply
 
 if TYPE_CHECKING:
@@ -177,6 +178,101 @@ def _strict(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_strict(v) for v in value]
     return value
+
+
+# --- reading a folder back -------------------------------------------------------------------------------
+
+
+def load_results(out: str | Path) -> "RunResult":
+    """A run's results folder ``out`` read back into a ``RunResult``: names, flags, skipped scans, voxel, seconds
+    and the front end's report from report.json; poses from poses.txt (NaN for unregistered scans, which have
+    none); every edge in its ``graph`` order from edges.csv (overlap score, inliers, weights, residual, origin,
+    free-space conflict, overruled), its transform and information from graph.g2o (the kept ones: the information
+    the result rests on) or graph_rejected.g2o; pose covariances where report.json holds them (NaN elsewhere).
+    Not in a folder, so empty or None: the scans' grids (``features``: empty; merged.ply holds the merged cloud),
+    the registrations' fit, the synchronization's history, ``centres``. ``InputError`` for a folder that is not a
+    run's complete results."""
+    from ..features.local import ScanFeatures
+    from ..registration.pairwise import PairResult
+    from ..result import RunResult
+    from ..types import SyncResult
+
+    out = Path(out)
+    missing = [name for name in ("report.json", "poses.txt", "edges.csv", "graph.g2o", "graph_rejected.g2o")
+               if not (out / name).is_file()]
+    if missing:
+        raise InputError(f"{out} is not a run's complete results folder: no {', '.join(missing)}")
+    try:
+        report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+        names = list(report["scans"])
+        index = {name: k for k, name in enumerate(names)}
+        n = len(names)
+        with open(out / "edges.csv", newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+        i = np.array([int(r["i"]) for r in rows], dtype=np.int64)
+        j = np.array([int(r["j"]) for r in rows], dtype=np.int64)
+        status = [r["status"] for r in rows]
+        number = {key: np.array([float(r[key]) for r in rows]) for key in
+                  ("overlap_score", "initial_weight", "final_weight", "residual_deg")}
+        conflict = np.array([float(r["free_space_conflict"] or "nan") for r in rows])
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise InputError(f"{out}: report.json or edges.csv is not a run's ({type(e).__name__}: {e})") from None
+    if (i.size and (min(i.min(), j.min()) < 0 or max(i.max(), j.max()) >= n)) or set(status) - set(EDGE_STATUS):
+        raise InputError(f"{out}/edges.csv: a scan index or status that report.json does not know")
+    listed, poses_listed = read_poses(out / "poses.txt")
+    poses = np.full((n, 4, 4), np.nan)
+    for name, T in zip(listed, poses_listed):
+        if name not in index:
+            raise InputError(f"{out}/poses.txt: scan {name!r} is not in report.json")
+        poses[index[name]] = T
+    T = np.full((len(rows), 4, 4), np.nan)
+    information = np.zeros((len(rows), 6, 6))
+    world = np.zeros(n, dtype=bool)
+    parts = report.get("parts") or [{"scans": [name for name in names if name not in set(report["unregistered"])]}]
+    world[[index[name] for name in parts[0]["scans"] if name in index]] = True
+    kept = np.array([s == "kept" for s in status], dtype=bool) & world[i] & world[j]  # write_graphs' split
+    for file, chosen in (("graph.g2o", kept), ("graph_rejected.g2o", ~kept)):
+        ids, _, g = read_g2o(out / file)
+        ids = np.asarray(ids, dtype=np.int64)
+        at = np.flatnonzero(chosen)
+        if g.num_edges != len(at) or not (np.array_equal(ids[g.i], i[at]) and np.array_equal(ids[g.j], j[at])):
+            raise InputError(f"{out}/{file}: its edges are not the {len(at)} edges.csv lists for it")
+        T[at], information[at] = g.T, g.information
+    graph = PoseGraph(n=n, i=i, j=j, T=T, weight=number["initial_weight"], information=information)
+    scores = np.full((n, n), np.nan)
+    scores[i, j] = scores[j, i] = number["overlap_score"]
+    pairs = [PairResult(T=T[e], inliers=int(rows[e]["inliers"]), fitness=float("nan"), rmse=float("nan"),
+                        information=information[e], seconds=0.0) for e in range(len(rows))]
+    covariances = np.full((n, 6, 6), np.nan)
+    try:
+        unregistered = list(report.get("unregistered", []))
+        component = np.zeros(n, dtype=np.int64)
+        component[[index[name] for name in unregistered]] = np.arange(1, len(unregistered) + 1)  # parts unknown
+        for name, entry in (report.get("pose_covariances") or {}).items():
+            C = np.array(entry["covariance"], dtype=float)  # JSON null: NaN
+            if C.shape != (6, 6):
+                raise ValueError(f"{name}: a covariance of shape {C.shape}")
+            covariances[index[name]] = C
+    except (ValueError, KeyError, TypeError, IndexError) as e:
+        raise InputError(f"{out}/report.json: not a run's ({type(e).__name__}: {e})") from None
+    sync = SyncResult(poses=np.where(np.isfinite(poses), poses, np.eye(4)), weights=number["final_weight"],
+                      residual_deg=number["residual_deg"], component=component)
+    empty = np.zeros((0, 3))
+    voxel = float(report["voxel"]) if report.get("voxel") is not None else float("nan")
+    features = [ScanFeatures(empty, empty, None, voxel, empty, np.zeros((0, 33), dtype=np.float32))] * n
+    result = RunResult(names=names, poses=poses, voxel=voxel, scores=scores, graph=graph, pairs=pairs, sync=sync,
+                       unregistered=unregistered, skipped=dict(report.get("skipped", {})), features=features,
+                       timings=dict(report.get("seconds", {})), global_feature=report.get("global_feature", ""),
+                       edge_origin=[r["origin"] for r in rows], edge_conflict=conflict,
+                       edge_overruled=np.array([s == "overruled" for s in status], dtype=bool),
+                       densify=dict(report.get("front_end") or {}), covariances=covariances,
+                       cache=report.get("cache"))
+    if "parts" in report:
+        try:
+            result.verdict = Verdict.from_dict(report)
+        except (ValueError, KeyError, TypeError) as e:
+            raise InputError(f"{out}/report.json: its parts are not a run's ({type(e).__name__}: {e})") from None
+    return result
 
 
 # --- what may be replaced ------------------------------------------------------------------------------------
