@@ -90,6 +90,7 @@ def flagged(tmp_path_factory):
     flags = {"unplaced": [names[k] for k in np.flatnonzero(result.component != 0)],
              **{reason: [n for n, r in verdict.doubts.items() if r == reason] for reason in set(verdict.doubts.values())}}
     recorder.log_final(result.poses, flags)
+    recorder.log_parts(result.poses, verdict.parts)
     recorder.close()
     return graph, result, names, points, flags, _rows(path), path
 
@@ -140,6 +141,29 @@ def test_series_are_named_by_scan_files(flagged):
     kept = result.weights > 0
     np.testing.assert_allclose(10 ** weights[kept], result.weights[kept] / result.weights.max(), rtol=1e-9)
     assert np.all(weights[~kept] == weights.min())
+
+
+def test_parts_are_boxed_in_their_colours_and_colour_the_graph_nodes(flagged):
+    """Every part of the verification gets a box holding its scans under their final poses, labelled with its size
+    (and why its join failed), in a colour of its own that its scans' graph nodes share."""
+    graph, result, names, points, flags, rows, _ = flagged
+    verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification(), 0.05)
+    assert len(verdict.parts) >= 2  # the scan on one edge is a part of its own
+    colours = {}
+    for p in verdict.parts:
+        box = f"/world/parts/{p.id}"
+        assert _latest(rows, box, "Boxes3D:labels")[0].startswith(f"part {p.id}: {len(p.scans)} scan(s)")
+        centre = np.array(_latest(rows, box, "Boxes3D:centers")[0])
+        half = np.array(_latest(rows, box, "Boxes3D:half_sizes")[0])
+        for name in p.scans:
+            T = result.poses[names.index(name)]
+            world = points[names.index(name)] @ T[:3, :3].T + T[:3, 3]
+            assert np.all(np.abs(world - centre) <= half + 1e-5)
+        colours[p.id] = _rgb(_latest(rows, box, "Boxes3D:colors")[0])
+    assert len(set(colours.values())) == len(verdict.parts)
+    nodes = _latest(rows, "/pose_graph", "GraphNodes:colors")
+    part_of = verdict.part_of()
+    assert all(_rgb(c) == colours[part_of[n]] for n, c in zip(names, nodes) if n in part_of)
 
 
 def test_flagged_scans_are_marked_in_3d_and_in_the_graph(flagged):
