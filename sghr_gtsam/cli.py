@@ -274,7 +274,7 @@ def run(
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
     max_sigma: Optional[float] = typer.Option(None, "--max-sigma", help="Largest σ (scene units) along a direction "
                                               "only the overlap's bounds fix for which a scan is not doubted as "
-                                              "loose." + _default("the voxel")),
+                                              "loose." + _default("the registrations' agreement tolerance")),
     workers: Optional[int] = typer.Option(None, help="Processes for local features, pairwise registration, "
                                           "refinement and loop closure." + _default("every core")),
     ray: Optional[str] = typer.Option(None, "--ray", metavar="ADDRESS",

@@ -35,7 +35,7 @@ from .registration import WORKER_MODULES
 from .registration.batch import register_edges
 from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
 from .registration.edges import GUESSED, EdgeSet, edge_status
-from .registration.overrule import Viewpoints, overruled_edges
+from .registration.overrule import Viewpoints, look_alikes, overruled_edges
 from .registration.refine import PYRAMIDS, scan_pyramid
 from .registration.retry import weak_scans
 from .registration.visibility import contradicted_placements
@@ -388,12 +388,15 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
     if graph.information is not None:  # the covariances' information: free directions bounded by the overlap alone
         information = np.stack([info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)])
         free = np.stack([np.zeros((6, 6)) if p.loose is None else p.loose for p in run.pairs])
-    clash = None
+    clash, alike = None, []
+    if stages.views is not None:  # config.free_space
+        with stages.timer.stage("free_space"):
+            alike = look_alikes(stages.views, graph, run.sync)
     if stages.config.free_space:
         def clash(doubted: np.ndarray) -> np.ndarray:
             return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
     return verify(run.names, graph, kept, run.poses, placed, Verification(max_sigma=stages.config.max_sigma),
-                  stages.voxel, Attribute(stages.features, "points"), information, free, clash, guessed)
+                  Attribute(stages.features, "points"), information, free, clash, guessed, alike)
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:

@@ -19,7 +19,9 @@ standard one:
    placement of a scan or of a group that kept registrations hold together (the linkage groups of
    ``sync.disputes``). When two or more agree on one move of it and outweigh (``w⁰``) the kept registrations
    that hold it there, and moving the scans at their far ends instead would cost as much, the evidence against the
-   join passes the same test as the evidence for it: the join is disputed and the group is a part of its own.
+   join passes the same test as the evidence for it: the join is disputed and the group is a part of its own. So
+   is a group that several dropped registrations place elsewhere where the free space cannot tell the two
+   placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever the weights.
 4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
    that puts one scan's surfaces where another saw empty space is contradicted (``registration.visibility``),
    blamed first on the scans outside the rigid parts.
@@ -70,8 +72,9 @@ STATUSES = ("verified", "doubtful", "unplaced")
 @dataclass(frozen=True)
 class Verification:
     """Parameters of the verification. ``max_sigma``: the largest σ (scene units) of a loose scan's points along
-    its free direction that still counts as placed; None: the voxel, the resolution the run registers at (its
-    descriptors, inlier distances and grids all work at it)."""
+    its free direction that still counts as placed; None: the translation tolerance of the consistency test
+    (``sync.consensus.translation_tolerance``), the error budget within which two registrations count as agreeing:
+    a pose looser than that cannot be told from another placement by the registrations themselves."""
 
     max_sigma: float | None = None
 
@@ -211,7 +214,7 @@ def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, plac
 
 
 def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.ndarray, passed: np.ndarray,
-          disputed: np.ndarray, weight: np.ndarray, names: Sequence[str]) -> Join | None:
+          disputed: np.ndarray, alike: np.ndarray, weight: np.ndarray, names: Sequence[str]) -> Join | None:
     """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none)."""
     a, b = label[i], label[j]
     out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
@@ -221,7 +224,9 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
     best = e[np.argmax(weight[e])]
     to = int(b[best] if a[best] == part else a[best])
     good = e[passed[e]]
-    if disputed[e].any():
+    if alike[e].any():
+        why = "dropped registrations agree on another placement of it that the free space cannot rule out"
+    elif disputed[e].any():
         why = "dropped registrations agree on another placement of it and outweigh these"
     elif len(good) == 0:
         why = "its registrations to the rest do not close their loops within their noise"
@@ -237,9 +242,10 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
 
 
 def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.ndarray, placed: np.ndarray,
-           params: Verification, voxel: float, points: Sequence[np.ndarray] | None = None,
+           params: Verification, points: Sequence[np.ndarray] | None = None,
            information: np.ndarray | None = None, free: np.ndarray | None = None,
-           clash: Callable[[np.ndarray], np.ndarray] | None = None, dependent: np.ndarray | None = None) -> Verdict:
+           clash: Callable[[np.ndarray], np.ndarray] | None = None, dependent: np.ndarray | None = None,
+           look_alike: Sequence[np.ndarray] = ()) -> Verdict:
     """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
     ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
     k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
@@ -248,11 +254,17 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     ``clash``: ``doubted -> (N,) bool``, the scans free-space conflicts are blamed on, the doubted first (None: no
     free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
     started from the poses they would check): they count in what holds a group against a competing placement, not
-    in the loops that verify it."""
+    in the loops that verify it; ``look_alike``: (N,) bool masks of groups that dropped registrations place
+    elsewhere where the free space cannot tell the two placements apart (``registration.overrule.look_alikes``):
+    their joins to the rest are disputed."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
     passed = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
     disputed = _disputed(graph, kept, placed, poses)
+    alike = np.zeros(graph.num_edges, dtype=bool)
+    for group in look_alike:
+        alike |= kept & (group[graph.i] != group[graph.j])
+    disputed |= alike
     passed &= ~disputed
     if dependent is not None:
         passed &= ~dependent
@@ -260,14 +272,15 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
-        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputed, graph.weight, names)
+        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputed, alike, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
     failing = np.zeros(n, dtype=bool)
     for ends in (graph.i, graph.j):
         np.logical_or.at(failing, ends[kept & ~passed], True)
     contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
-    max_sigma = voxel if params.max_sigma is None else params.max_sigma
+    max_sigma = translation_tolerance(replace(graph, weight=kept.astype(float))) if params.max_sigma is None \
+        else params.max_sigma
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
     if points is not None and information is not None and free is not None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import os
 import shutil
 import signal
@@ -842,7 +843,7 @@ def test_scan_files_whose_names_are_not_utf8_are_skipped_and_shown_escaped(tmp_p
     done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
                            "--workers", "1", "--no-record"], capture_output=True, text=True, errors="strict")
     assert done.returncode == 0, done.stderr
-    assert "skipped files    2: 'a\\nb.ply', 'caf\\udce9.ply'" in done.stdout, done.stdout
+    assert re.search(r"skipped files +2: 'a\\nb\.ply', 'caf\\udce9\.ply'", done.stdout), done.stdout
     assert "not a scan, by its name: 'gt_pose\\udce9s.txt'" in done.stdout + done.stderr
     assert (tmp_path / "out" / "poses.txt").read_text().count(".ply") == 2
     (scene / "scan_02.ply").rename(scene / os.fsdecode(b"scan_\xff.ply"))

@@ -120,7 +120,7 @@ def _verdict(kinds: list[tuple[int, int, str]]):
     graph, poses, points, free = _graph(kinds, 3, seed=5)
     names = [f"s{k}" for k in range(3)]
     everyone = np.ones(3, dtype=bool)
-    return verify(names, graph, np.ones(graph.num_edges, dtype=bool), poses, everyone, Verification(), VOXEL,
+    return verify(names, graph, np.ones(graph.num_edges, dtype=bool), poses, everyone, Verification(),
                   [points] * 3, free=free)
 
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.registration.edges import EdgeSet
-from sghr_gtsam.registration.overrule import MAX_FALSE_ALARMS, Viewpoints, overruled_edges
+from sghr_gtsam.registration.overrule import MAX_FALSE_ALARMS, Viewpoints, look_alikes, overruled_edges
 from sghr_gtsam.registration.pairwise import PairResult
 from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T, make_T, transform_points
@@ -129,6 +129,24 @@ def test_a_room_hung_on_one_edge_is_not_handed_to_a_heavier_wrong_registration(b
     assert not overruled[:holding].any() and not overruled[lighter:end].any()
 
 
+@settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(degrees=st.floats(20, 180), sign=st.sampled_from([-1, 1]), distance=st.floats(1.5, 3))
+def test_a_placement_free_space_cannot_rule_out_is_a_look_alike(building, degrees, sign, distance):
+    """The room held turned and moved away from the other scans, while the dropped registrations agree on the right
+    place: its scans are look-alikes, unless it still conflicts enough for the overrule (then that model is not the
+    last). Moved into the other scans' view instead, free space rules the wrong place out: held right, no scan is a
+    look-alike; held wrong, the overrule acts first."""
+    truth, room, views = building.truth, building.room, building.views
+    graph, result = _graph(_moved(truth, room, sign * degrees, -distance * building.towards), truth, room)
+    if overruled_edges(views, graph, result).any():
+        assert not look_alikes(views, graph, result)
+    else:
+        assert any(group[room].all() for group in look_alikes(views, graph, result))
+    into_view = _moved(truth, room, sign * degrees, distance / 2 * building.towards)
+    assert not look_alikes(views, *_graph(truth, into_view, room))
+    assert not look_alikes(views, *_graph(into_view, truth, room))
+
+
 def test_scans_centred_by_the_pipeline_take_no_part(building):
     """A centred scan's origin is no viewpoint: with every scan centred, nothing is judged."""
     truth, room = building.truth, building.room
@@ -136,6 +154,7 @@ def test_scans_centred_by_the_pipeline_take_no_part(building):
     views = Viewpoints([SimpleNamespace(points=P) for P in building.grids], building.voxel, np.ones((N, 3)))
     assert not views.images
     assert not overruled_edges(views, graph, result).any()
+    assert not look_alikes(views, graph, result)
 
 
 def _views_at_truth(scene, pairs: list[tuple[int, int]]):

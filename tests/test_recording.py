@@ -86,7 +86,7 @@ def flagged(tmp_path_factory):
     recorder.log_graph(graph, np.eye(n))
     result = synchronize(graph, on_iteration=recorder.on_iteration)
     recorder.log_sync(result)
-    verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification(), 0.05)
+    verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification())
     flags = {"unplaced": [names[k] for k in np.flatnonzero(result.component != 0)],
              **{reason: [n for n, r in verdict.doubts.items() if r == reason] for reason in set(verdict.doubts.values())}}
     recorder.log_final(result.poses, flags)
@@ -147,7 +147,7 @@ def test_parts_are_boxed_in_their_colours_and_colour_the_graph_nodes(flagged):
     """Every part of the verification gets a box holding its scans under their final poses, labelled with its size
     (and why its join failed), in a colour of its own that its scans' graph nodes share."""
     graph, result, names, points, flags, rows, _ = flagged
-    verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification(), 0.05)
+    verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification())
     assert len(verdict.parts) >= 2  # the scan on one edge is a part of its own
     colours = {}
     for p in verdict.parts:

@@ -302,7 +302,7 @@ def _apart(graph: PoseGraph, result: SyncResult, competing: bool = False) -> np.
     ``competing``, only those it sets apart for a competing placement."""
     names = [str(k) for k in range(graph.n)]
     kept = result.weights > 0
-    verdict = verify(names, graph, kept, result.poses, result.component == 0, Verification(), 0.05)
+    verdict = verify(names, graph, kept, result.poses, result.component == 0, Verification())
     if competing:
         disputed = {n for p in verdict.parts if p.join and "another placement" in p.join.why for n in p.scans}
         return np.array([n in disputed or verdict.doubts.get(n) == "competing placement" for n in names])

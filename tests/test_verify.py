@@ -32,7 +32,7 @@ def _graph(poses: np.ndarray, edges: list[tuple[int, int]], wrong: dict[int, np.
 def _verdict(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray | None = None):
     names = [f"s{k}" for k in range(graph.n)]
     kept = np.ones(graph.num_edges, dtype=bool) if kept is None else kept
-    return verify(names, graph, kept, poses, np.ones(graph.n, dtype=bool), Verification(), 0.05)
+    return verify(names, graph, kept, poses, np.ones(graph.n, dtype=bool), Verification())
 
 
 def _clique(nodes: range) -> list[tuple[int, int]]:

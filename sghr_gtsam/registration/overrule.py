@@ -17,8 +17,8 @@ Fused RGB-D fragments are seen from their first camera but fused over many: thei
 range image's, so the range image here is coarser (``COARSE_BIN_DEG``, ``COARSE_MARGIN_VOXELS``) than the per-pair check's
 (``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``).
 
-Identical rooms give no conflict at either placement: nothing in the scans says which placement is right, and
-verification (``verify``) reports what the loops of registrations hold.
+Identical rooms give no conflict at either placement: nothing in the scans says which placement is right, and such
+a group is reported apart (``look_alikes``, read by ``verify``) rather than trusted where it is.
 
 The same coarse range images judge single registrations that the per-pair check cannot (fused fragments), once the
 first synchronization's loop-checked registrations vouch for the scans' frames (``Viewpoints.vouch``): a frame whose
@@ -58,6 +58,10 @@ every group the linkage forms on the way (a generated 500-scan building: 152 s a
 SAMPLE = 2000
 """Points of a scan, about, whose fraction in another's free space is measured (every n-th point of its grid): a
 fraction's standard error stays below 0.5 / √2000 ≈ 0.011, a tenth of ``CONFLICT``."""
+MIN_LOOK_ALIKE = 3
+"""Dropped registrations that must agree on another placement of a group before ``look_alikes`` calls it one where
+the free space cannot tell (where it can, two agreeing ones compete by weight: ``verify``): structured look-alikes
+come backed by 2-4 (benchmarks/bench_robustness.py, structured outliers), a lone wrong registration by one."""
 MIN_LOOPED = 20
 """Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
 (``Viewpoints.vouch``): one conflict among them is then at most 5 %."""
@@ -172,14 +176,18 @@ class _Trial:
 
     group: np.ndarray  # (N,) bool
     holding: np.ndarray  # (E,) bool: the kept edges leaving it, and the dropped ones ruled out with them
+    agreeing: int  # dropped registrations agreeing on the move
     support: float  # their w⁰ over the holding edges'
     before: int  # scan pairs in conflict (one scan of the group, one outside) where it is
     after: int  # ... and at the move (counted up to ``before`` + 1)
+    seen_before: int  # scan pairs judged (boxes meet, ``MIN_IN_VIEW`` points in view) where it is
+    seen_after: int  # ... and at the move
 
 
-def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[_Trial]:
-    """The groups worth a move for ``overruled_edges``: those with ``SUPPORT`` and ``MIN_GAIN`` conflicts to
-    remove."""
+def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool = False) -> list[_Trial]:
+    """The groups worth a move: for ``overruled_edges``, those with ``SUPPORT`` and ``MIN_GAIN`` conflicts to
+    remove; with ``alike`` (for ``look_alikes``, once a run: a folded building's groups cost up to ``MAX_GROUP`` x
+    ``MAX_PARTNERS`` tests each) also those with ``MIN_LOOK_ALIKE`` registrations for the move."""
     main = result.component == 0
     poses = result.poses
     take = np.array([k for k in sorted(views.images) if main[k]], dtype=np.int64)
@@ -193,21 +201,21 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[_Tr
         order = np.argsort(np.linalg.norm((lo[near] + hi[near]) / 2 - box.mean(axis=0), axis=1), kind="stable")
         return take[near[order[:MAX_PARTNERS]]]
 
-    def conflicts(group: np.ndarray, move: np.ndarray, most: float = np.inf) -> int:
-        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it; counting stops above
-        ``most`` (no move with more conflicts than the group has now is taken)."""
+    def conflicts(group: np.ndarray, move: np.ndarray, most: float = np.inf) -> tuple[int, int]:
+        """Conflicting pairs of one scan of ``group`` (moved by ``move``) and one outside it, and pairs judged;
+        counting stops above ``most`` (no move with more conflicts than the group has now is taken)."""
         outside = ~group[take]
-        count = 0
+        count, seen = 0, 0
         for a in take[group[take]]:
             for b in partners(views.box(a, move @ poses[a]), outside):
                 key = (int(a), int(b), move.tobytes())
                 if key not in judged:
                     judged[key] = views.conflict(a, b, move @ poses[a], poses[b])
                 if np.isfinite(judged[key]):
-                    count += int(judged[key])
+                    count, seen = count + int(judged[key]), seen + 1
                 if count > most:
-                    return count
-        return count
+                    return count, seen
+        return count, seen
 
     kept = result.weights > 0
     i, j, w = graph.i, graph.j, graph.weight
@@ -224,14 +232,15 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[_Tr
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
         support = w[agreeing].sum() / held if held > 0 else np.inf
-        if support < SUPPORT:
+        many = alike and len(agreeing) >= MIN_LOOK_ALIKE
+        if support < SUPPORT and not many:
             continue
-        before = conflicts(group, np.eye(4))
-        if before < MIN_GAIN:
+        before, seen_before = conflicts(group, np.eye(4))
+        if before < MIN_GAIN and not many:
             continue
-        after = conflicts(group, move, most=before)
+        after, seen_after = conflicts(group, move, most=before)
         holding = leaving & kept
-        if holding.sum() == 1:
+        if not alike and holding.sum() == 1:
             # Hung on one kept edge, the group would go to its heaviest dropped family once that edge is overruled,
             # right or not (measured on real fused fragments): every family with SUPPORT is tried, the cleanest move is
             # kept, and the families the free space rules out as firmly as the group's place go with the edge.
@@ -242,13 +251,13 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[_Tr
                 weight = w[family].sum()
                 if weight < SUPPORT * held:
                     continue
-                count = conflicts(group, family_move, most=before)
+                count, seen = conflicts(group, family_move, most=before)
                 tried.append((family, count))
                 if count < after:
-                    agreeing, move, support, after = family, family_move, weight / held, count
+                    agreeing, move, support, after, seen_after = family, family_move, weight / held, count, seen
             for family, count in tried:
                 holding[family] |= count > RATIO * before
-        trials.append(_Trial(group, holding, support, before, after))
+        trials.append(_Trial(group, holding, len(agreeing), support, before, after, seen_before, seen_after))
     return trials
 
 
@@ -274,3 +283,15 @@ def _overruled(trials: list[_Trial], graph: PoseGraph) -> np.ndarray:
             taken |= t.group
             out |= t.holding
     return out
+
+
+def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[np.ndarray]:
+    """(N,) bool masks: the groups that ``MIN_LOOK_ALIKE`` or more dropped registrations agree on placing elsewhere,
+    where the scans' free space (``views``) finds no more conflicts than where it is, judged on some scan pairs and
+    on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot
+    tell apart (identical rooms), of which synchronization took the one with more weight. None while
+    ``overruled_edges`` has edges to overrule: that model is not the last."""
+    if overruled_edges(views, graph, result).any():  # its conflicts are kept for the trials below (``judged``)
+        return []
+    return [t.group for t in _trials(views, graph, result, alike=True)
+            if t.agreeing >= MIN_LOOK_ALIKE and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0]
