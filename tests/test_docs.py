@@ -17,7 +17,20 @@ def python_blocks(page: Path) -> list[str]:
 
 
 def test_the_gtsam_page_has_snippets():
-    assert len(python_blocks(DOCS / "gtsam.md")) >= 5
+    blocks = python_blocks(DOCS / "gtsam.md")
+    assert len(blocks) >= 5
+    code = "\n".join(blocks)  # the public API a SLAM stack uses is shown running, not only described
+    for call in ("sg.run(", "sg.to_gtsam(", "sg.load_results(", "sg.synchronize(", "sg.Session(", ".add_scan(",
+                 ".add_node(", ".add_between(", ".add_prior(", ".add_position(", ".add_factor(", ".key("):
+        assert call in code, call
+
+
+def test_the_pages_name_only_top_level_names_that_exist():
+    import sghr_gtsam
+
+    pages = [DOCS.parent / "README.md", *sorted(DOCS.glob("*.md"))]
+    used = {name for page in pages for name in re.findall(r"\bsg\.(\w+)", page.read_text())}
+    assert used and used <= set(sghr_gtsam.__all__), used - set(sghr_gtsam.__all__)
 
 
 def test_the_gtsam_page_runs(data_dir, tmp_path, monkeypatch):
