@@ -149,8 +149,8 @@ def graph_information(graph: PoseGraph, edges: np.ndarray, noise: str = "informa
 
 
 def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *, keys: Keys = None,
-             noise: str = "information", kernel: str = "none",
-             edges: np.ndarray | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+             noise: str = "information", kernel: str = "none", edges: np.ndarray | None = None,
+             calibrated: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The factor graph and initial values of a run (``RunResult``: its kept edges among registered scans, its
     final poses) or of a ``PoseGraph`` with ``poses`` (N, 4, 4) (default ``edges``: those with weight > 0).
 
@@ -159,6 +159,10 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
     edge (and, for a run, every registered scan). ``edges``: a boolean mask over the graph's edges. A
     ``PoseGraph`` is checked (``sync.checked_graph``; information finite, symmetric, positive semi-definite) and
     the poses of the values must be rigid: ``InputError`` otherwise. (A run's graph is the pipeline's own.)
+    A run's factors carry its ``calibrated_information`` (as large as its errors, so that factors of one's own with
+    honest σ weigh what they should beside them; its poses, solved with the information as measured, are then
+    near the optimum but not at it); ``calibrated=False``: the information as measured, the one the poses were
+    solved with and ``graph.g2o`` holds.
     """
     if isinstance(source, PoseGraph):
         graph, chosen, nodes = _selected(source, edges)
@@ -167,6 +171,8 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
         chosen, nodes = _edges_of(source)
         if edges is not None:
             chosen &= _mask(edges, graph.num_edges)
+        if calibrated:
+            graph, noise = replace(graph, information=calibrated_information(source, noise=noise)), "information"
     return _factor_graph(graph, _poses(poses, graph.n, nodes), chosen, nodes, keys, noise, kernel)
 
 
@@ -248,10 +254,10 @@ def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Valu
 
 def variance_factor(result: "RunResult", *, noise: str = "information") -> float:
     """The a posteriori variance factor ``σ̂₀² = Σ_e r_eᵀ Ω_e r_e / (6 (E − N + 1))`` of a run's kept edges at its
-    poses (E edges among N registered scans; ``r_e`` the edge's residual): 1 when the edges' residuals are as
-    large as their information says, above 1 when the loops of the graph show them overconfident. NaN
-    without redundancy (a tree of edges)."""
-    return _variance_factor(*to_gtsam(result, noise=noise), len(result.registered))
+    poses (E edges among N registered scans; ``r_e`` the edge's residual, ``Ω_e`` the information the poses were
+    solved with): 1 when the edges' residuals are as large as their information says, above 1 when the loops of
+    the graph show them overconfident. NaN without redundancy (a tree of edges)."""
+    return _variance_factor(*to_gtsam(result, noise=noise, calibrated=False), len(result.registered))
 
 
 def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, nodes: int) -> float:
@@ -260,32 +266,62 @@ def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
+def calibrated_information(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
+                           grid: bool = True) -> np.ndarray:
+    """(E, 6, 6) information of a run's edges that its errors bear out (zero on the edges its poses do not rest
+    on): what ``to_gtsam(result)`` hands gtsam and ``pose_covariances`` marginalizes.
+
+    Each edge's information as measured (``noise``), with the directions its geometry leaves free bounded by the
+    overlap alone (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, its
+    dependence on its grid added to its covariance (``PairResult.grid``). Then two corrections, neither fitted:
+    - divided by the variance factor of the graph's loops when that is above 1 (``variance_factor``): the edges'
+      own errors, as large as the loops show them;
+    - times ``1 / d``, ``d`` the number of kept edges of whichever of its two scans has more: the edges of one scan
+      share that scan's errors (its sampling, its shape), with a correlation nothing measures (a loop passes a scan
+      on two of its edges, where the errors they share cancel). Covariance intersection is the fusion that stays
+      consistent whatever that correlation: estimates combined with information weights summing to one, so every
+      scan's edges together count as one, not as d independent ones.
+    On simulated scenes (independent range noise) the second makes σ about √d too large; on real scans it is what
+    covers their errors (``benchmarks/bench_covariance.py --real``)."""
+    result = _reported(result, stiffen, grid)
+    chosen, nodes = _edges_of(result)
+    factor = _variance_factor(*to_gtsam(result, noise=noise, calibrated=False), len(nodes))
+    g = result.graph
+    ends = np.r_[g.i[chosen], g.j[chosen]]
+    degree = np.bincount(ends, minlength=g.n)
+    weight = np.zeros(g.num_edges)
+    weight[chosen] = 1.0 / np.maximum(degree[g.i[chosen]], degree[g.j[chosen]])
+    if factor > 1.0:
+        weight /= factor
+    return graph_information(g, chosen, noise) * weight[:, None, None]
+
+
 def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
                      grid: bool = True) -> np.ndarray:
-    """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
-    edges' information with the directions their geometry leaves free bounded by the overlap alone
-    (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, each refined edge's
-    dependence on its grid added to its covariance (``PairResult.grid``), scaled by the variance factor when the
-    graph's loops show that information overconfident (``max(1, σ̂₀²)``: real scans have systematic errors that
-    per-point noise does not see); NaN for unregistered scans."""
+    """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros): the marginals of
+    the kept edges' ``calibrated_information`` (``noise``, ``stiffen`` and ``grid`` as there); NaN for
+    unregistered scans."""
+    information = calibrated_information(result, noise=noise, stiffen=stiffen, grid=grid)
+    factors, values = to_gtsam(replace(result, graph=replace(result.graph, information=information)),
+                               calibrated=False)
+    nodes = result.registered
+    out = np.full((len(result.names), 6, 6), np.nan)
+    anchor = int(np.flatnonzero(result.sync.component == 0)[0])
+    factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
+                                       _anchor_prior(information)))
+    out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])
+    out[anchor] = 0.0
+    return out
+
+
+def _reported(result: "RunResult", stiffen: float, grid: bool) -> "RunResult":
+    """``result`` with each edge's ``_reported_information`` in its graph."""
     if result.graph.information is not None and any(p.bounded is not None or (grid and p.grid is not None)
                                                      for p in result.pairs):
         information = np.stack([_reported_information(p, info, stiffen, grid)
                                 for p, info in zip(result.pairs, result.graph.information)])
         result = replace(result, graph=replace(result.graph, information=information))
-    factors, values = to_gtsam(result, noise=noise)
-    nodes = result.registered
-    factor = _variance_factor(factors, values, len(nodes))
-    out = np.full((len(result.names), 6, 6), np.nan)
-    anchor = int(np.flatnonzero(result.sync.component == 0)[0])
-    information = graph_information(result.graph, _edges_of(result)[0], noise)
-    factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
-                                       _anchor_prior(information)))
-    out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])
-    if factor > 1.0:
-        out[nodes] *= factor
-    out[anchor] = 0.0
-    return out
+    return result
 
 
 def _reported_information(pair: "PairResult", information: np.ndarray, stiffen: float, grid: bool) -> np.ndarray:
