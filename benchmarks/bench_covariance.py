@@ -173,7 +173,10 @@ def real(names: list[str], data: Path, out_root: Path, workers: int | None, reus
             references["refit"] = _refit(data / folder, result.names, gt, refit_voxel, out_root / f"{scene}-refit")
         C = pose_covariances(result)
         anchor = int(np.flatnonzero(result.sync.component == 0)[0])
-        scenes[scene] = {"variance_factor": variance_factor(result), "underdetermined": result.underdetermined,
+        chosen = result.sync.weights > 0
+        degree = np.bincount(np.r_[result.graph.i[chosen], result.graph.j[chosen]]).max()
+        scenes[scene] = {"variance_factor": variance_factor(result), "most_edges_at_a_scan": int(degree),
+                         "underdetermined": result.underdetermined,
                          "poses": result.poses.tolist(), "names": result.names}
         for ref, truth in references.items():
             rows = coverage_rows(result.poses, truth, C, result.registered, anchor)
@@ -181,15 +184,15 @@ def real(names: list[str], data: Path, out_root: Path, workers: int | None, reus
                 r["scan"] = result.names[r["scan"]]
             scenes[scene][ref] = {"summary": summary(rows), "scans": rows}
     print(f"| scene | against | scans | within {WITHIN:g}σ | median σ/error rot | median σ/error trans "
-          f"| mean NEES | median NEES | gross (> {GROSS_DEG:g}°) | variance factor |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          f"| mean NEES | median NEES | gross (> {GROSS_DEG:g}°) | variance factor | most edges at a scan |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for scene, r in scenes.items():
         for ref in ("gt", "refit"):
             if ref in r:
                 s = r[ref]["summary"]
                 print(f"| {scene} | {ref} | {s['scans']} | {s['covered']:.0%} | {s['median_ratio_rot']:.2f} | "
                       f"{s['median_ratio_trans']:.2f} | {s['mean_nees']:.1f} | {s['median_nees']:.1f} | "
-                      f"{s['gross']} | {r['variance_factor']:.1f} |")
+                      f"{s['gross']} | {r['variance_factor']:.1f} | {r['most_edges_at_a_scan']} |")
     return scenes
 
 

@@ -266,42 +266,43 @@ def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
-def calibrated_information(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
-                           grid: bool = True) -> np.ndarray:
-    """(E, 6, 6) information of a run's edges that its errors bear out (zero on the edges its poses do not rest
-    on): what ``to_gtsam(result)`` hands gtsam and ``pose_covariances`` marginalizes.
+def calibrated_information(result: "RunResult", *, noise: str = "information") -> np.ndarray:
+    """(E, 6, 6) information of a run's edges scaled to what its errors bear out (zero on the edges its poses do
+    not rest on): what ``to_gtsam(result)`` hands gtsam. The information the poses were solved with (``noise``)
+    times ``calibration``'s one number, so that its optimum stays the run's poses."""
+    chosen = _edges_of(result)[0]
+    return graph_information(result.graph, chosen, noise) * calibration(result, noise=noise)
 
-    Each edge's information as measured (``noise``), with the directions its geometry leaves free bounded by the
-    overlap alone (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, its
-    dependence on its grid added to its covariance (``PairResult.grid``). Then two corrections, neither fitted:
-    - divided by the variance factor of the graph's loops when that is above 1 (``variance_factor``): the edges'
-      own errors, as large as the loops show them;
-    - times ``1 / d``, ``d`` the number of kept edges of whichever of its two scans has more: the edges of one scan
-      share that scan's errors (its sampling, its shape), with a correlation nothing measures (a loop passes a scan
-      on two of its edges, where the errors they share cancel). Covariance intersection is the fusion that stays
-      consistent whatever that correlation: estimates combined with information weights summing to one, so every
-      scan's edges together count as one, not as d independent ones.
-    On simulated scenes (independent range noise) the second makes σ about √d too large; on real scans it is what
-    covers their errors (``benchmarks/bench_covariance.py --real``)."""
-    result = _reported(result, stiffen, grid)
+
+def calibration(result: "RunResult", *, noise: str = "information") -> float:
+    """The one factor, at most 1, that makes a run's edge information (as in its graph, ``noise``) as large as its
+    errors: ``1 / (max(1, σ̂₀²) · d)``. Neither number is fitted to any scene:
+    - ``σ̂₀²``, the variance factor of the graph's loops (``variance_factor``): the edges' own errors, as large as
+      the loops show them;
+    - ``d``, the largest number of kept edges at one scan: the edges of a scan share that scan's errors (its
+      sampling, its shape) with a correlation nothing measures (a loop passes a scan on two of its edges, where the
+      errors they share cancel). Covariance intersection is the fusion that stays consistent whatever that
+      correlation: the information of the estimates combined with weights summing to at most one. ``1 / d`` is the
+      largest weight, one for all edges (so that the optimum does not move), whose sum is at most one at every scan.
+    On simulated scenes (independent range noise) ``d`` makes σ a few times too large; on real scans it is what
+    covers their errors (``benchmarks/bench_covariance.py --real``). 1 without kept edges."""
     chosen, nodes = _edges_of(result)
+    if not chosen.any():
+        return 1.0
     factor = _variance_factor(*to_gtsam(result, noise=noise, calibrated=False), len(nodes))
-    g = result.graph
-    ends = np.r_[g.i[chosen], g.j[chosen]]
-    degree = np.bincount(ends, minlength=g.n)
-    weight = np.zeros(g.num_edges)
-    weight[chosen] = 1.0 / np.maximum(degree[g.i[chosen]], degree[g.j[chosen]])
-    if factor > 1.0:
-        weight /= factor
-    return graph_information(g, chosen, noise) * weight[:, None, None]
+    degree = np.bincount(np.r_[result.graph.i[chosen], result.graph.j[chosen]]).max()
+    return 1.0 / (max(factor, 1.0) * degree) if np.isfinite(factor) else 1.0 / degree
 
 
 def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
                      grid: bool = True) -> np.ndarray:
-    """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros): the marginals of
-    the kept edges' ``calibrated_information`` (``noise``, ``stiffen`` and ``grid`` as there); NaN for
-    unregistered scans."""
-    information = calibrated_information(result, noise=noise, stiffen=stiffen, grid=grid)
+    """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
+    edges' information with the directions their geometry leaves free bounded by the overlap alone
+    (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, each refined edge's
+    dependence on its grid added to its covariance (``PairResult.grid``), scaled by its ``calibration``; NaN for
+    unregistered scans. Without bounds and grid terms, the marginals of ``to_gtsam(result)``."""
+    result = _reported(result, stiffen, grid)
+    information = calibrated_information(result, noise=noise)
     factors, values = to_gtsam(replace(result, graph=replace(result.graph, information=information)),
                                calibrated=False)
     nodes = result.registered
