@@ -3,16 +3,17 @@ can extend, re-optimize and query for covariances.
 
 - ``to_gtsam(result)`` (or ``to_gtsam(graph, poses)``): one ``BetweenFactorPose3`` per edge the result rests
   on, keys of the caller's choosing (default ``gtsam.symbol('x', k)`` for scan ``k`` of ``result.names``),
-  the edges' own information (``"information"``, calibrated from each registration's residuals, see
+  the edges' own information (``"information"``, from each registration's residuals, see
   ``registration.information``) or SE-Sync's isotropic precisions (``"isotropic"``), and a robust kernel
-  (``KERNELS``). No prior: the caller anchors the graph (a prior, GNSS, odometry).
+  (``KERNELS``); a run's information scaled by its ``calibration`` to what its errors bear out, so that factors
+  of one's own with honest σ stand beside it. No prior: the caller anchors the graph (a prior, GNSS, odometry).
 - ``optimize(factors, values, kernel=...)``: the project's polish (Levenberg–Marquardt with the same
   stopping rule and ordering), or gtsam GNC with a truncated-least-squares loss for ``kernel="tls"``.
 - ``marginal_covariances(factors, values, keys)``: 6×6 covariances from ``gtsam.Marginals``, in gtsam's
   tangent order [rotation, translation] at each pose (right perturbation ``T exp(ξ)``).
 - ``pose_covariances(result)``: the same for a run, with the world scan (the first of the largest part) held
-  fixed and the ``variance_factor`` of the graph's loops applied; what the results folder and the recording
-  show.
+  fixed and the run's ``calibration`` applied (the ``variance_factor`` of the graph's loops and the edges a scan
+  shares its errors with); what the results folder and the recording show.
 """
 
 from __future__ import annotations
@@ -159,10 +160,10 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
     edge (and, for a run, every registered scan). ``edges``: a boolean mask over the graph's edges. A
     ``PoseGraph`` is checked (``sync.checked_graph``; information finite, symmetric, positive semi-definite) and
     the poses of the values must be rigid: ``InputError`` otherwise. (A run's graph is the pipeline's own.)
-    A run's factors carry its ``calibrated_information`` (as large as its errors, so that factors of one's own with
-    honest σ weigh what they should beside them; its poses, solved with the information as measured, are then
-    near the optimum but not at it); ``calibrated=False``: the information as measured, the one the poses were
-    solved with and ``graph.g2o`` holds.
+    A run's factors carry its ``calibrated_information``: the information its poses were solved with, scaled by one
+    number to what its errors bear out, so that factors of one's own with honest σ weigh what they should beside
+    them and its poses stay the optimum; ``calibrated=False``: the information as measured, the scale
+    ``graph.g2o`` holds.
     """
     if isinstance(source, PoseGraph):
         graph, chosen, nodes = _selected(source, edges)
