@@ -267,15 +267,15 @@ def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
-def calibrated_information(result: "RunResult", *, noise: str = "information") -> np.ndarray:
+def calibrated_information(result: "RunResult", *, noise: str = "information", shared: bool = True) -> np.ndarray:
     """(E, 6, 6) information of a run's edges scaled to what its errors bear out (zero on the edges its poses do
     not rest on): what ``to_gtsam(result)`` hands gtsam. The information the poses were solved with (``noise``)
-    times ``calibration``'s one number, so that its optimum stays the run's poses."""
+    times ``calibration``'s one number (``shared`` as there), so that its optimum stays the run's poses."""
     chosen = _edges_of(result)[0]
-    return graph_information(result.graph, chosen, noise) * calibration(result, noise=noise)
+    return graph_information(result.graph, chosen, noise) * calibration(result, noise=noise, shared=shared)
 
 
-def calibration(result: "RunResult", *, noise: str = "information") -> float:
+def calibration(result: "RunResult", *, noise: str = "information", shared: bool = True) -> float:
     """The one factor, at most 1, that makes a run's edge information (as in its graph, ``noise``) as large as its
     errors: ``1 / (max(1, σ̂₀²) · d)``. Neither number is fitted to any scene:
     - ``σ̂₀²``, the variance factor of the graph's loops (``variance_factor``): the edges' own errors, as large as
@@ -286,24 +286,27 @@ def calibration(result: "RunResult", *, noise: str = "information") -> float:
       correlation: the information of the estimates combined with weights summing to at most one. ``1 / d`` is the
       largest weight, one for all edges (so that the optimum does not move), whose sum is at most one at every scan.
     On simulated scenes (independent range noise) ``d`` makes σ a few times too large; on real scans it is what
-    covers their errors (``benchmarks/bench_covariance.py --real``). 1 without kept edges."""
+    covers their errors (``benchmarks/bench_covariance.py --real``). ``shared=False``: ``d = 1``, the variance
+    factor alone (the covariances of the geometry that ``information.underdetermined`` judges). 1 without kept
+    edges."""
     chosen, nodes = _edges_of(result)
     if not chosen.any():
         return 1.0
     factor = _variance_factor(*to_gtsam(result, noise=noise, calibrated=False), len(nodes))
-    degree = np.bincount(np.r_[result.graph.i[chosen], result.graph.j[chosen]]).max()
+    degree = np.bincount(np.r_[result.graph.i[chosen], result.graph.j[chosen]]).max() if shared else 1
     return 1.0 / (max(factor, 1.0) * degree) if np.isfinite(factor) else 1.0 / degree
 
 
 def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
-                     grid: bool = True) -> np.ndarray:
+                     grid: bool = True, shared: bool = True) -> np.ndarray:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
     edges' information with the directions their geometry leaves free bounded by the overlap alone
     (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, each refined edge's
-    dependence on its grid added to its covariance (``PairResult.grid``), scaled by its ``calibration``; NaN for
-    unregistered scans. Without bounds and grid terms, the marginals of ``to_gtsam(result)``."""
+    dependence on its grid added to its covariance (``PairResult.grid``), scaled by its ``calibration``
+    (``shared`` as there); NaN for unregistered scans. Without bounds and grid terms, the marginals of
+    ``to_gtsam(result)``."""
     result = _reported(result, stiffen, grid)
-    information = calibrated_information(result, noise=noise)
+    information = calibrated_information(result, noise=noise, shared=shared)
     factors, values = to_gtsam(replace(result, graph=replace(result.graph, information=information)),
                                calibrated=False)
     nodes = result.registered

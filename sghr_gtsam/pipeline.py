@@ -412,16 +412,16 @@ def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]
 def _underdetermined(run: RunResult, anchor: int) -> list[str]:
     """The registered scans (but the world one) whose pose is not fixed in some direction
     (``information.underdetermined``; the stiffened covariances only when a kept edge leaves a direction free).
-    Judged on the covariances of the geometry alone, without the edges' grid terms (``PairResult.grid``): those
-    size the errors, they do not tell which directions the scans fix."""
+    Judged on the covariances of the geometry alone, without the edges' grid terms (``PairResult.grid``) and the
+    errors a scan shares with its edges (``gtsam_api.calibration``): those size the errors, they do not tell which
+    directions the scans fix."""
     others = [k for k in run.registered if k != anchor]
     kept = [p for p, w in zip(run.pairs, run.sync.weights) if w > 0]
     covariances, stiffened = run.covariances, None
     try:
-        if any(p.grid is not None for p in kept):
-            covariances = pose_covariances(run, grid=False)
+        covariances = pose_covariances(run, grid=False, shared=False)
         if run.graph.information is not None and any(p.free for p in kept):
-            stiffened = pose_covariances(run, stiffen=STIFFEN, grid=False)
+            stiffened = pose_covariances(run, stiffen=STIFFEN, grid=False, shared=False)
     except RuntimeError:  # indeterminate (see above): the spreads alone decide
         pass
     flagged = underdetermined(covariances, Attribute(run.features, "points"), run.voxel, others, stiffened)

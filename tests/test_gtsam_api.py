@@ -18,6 +18,7 @@ from sghr_gtsam.gtsam_api import (
     KERNELS,
     _reported_information,
     calibrated_information,
+    calibration,
     marginal_covariances,
     noise_model,
     optimize,
@@ -218,7 +219,9 @@ def test_results_folder_loads_in_gtsam_and_stays(object_run):
 
 def test_run_covariances_are_written_and_match_the_errors(object_run):
     scene, result, out = object_run
-    report = json.loads((out / "report.json").read_text())["pose_covariances"]
+    written = json.loads((out / "report.json").read_text())
+    assert written["calibration"] == pytest.approx(calibration(result), rel=1e-5)
+    report = written["pose_covariances"]
     assert set(report) == {result.names[k] for k in result.registered}
     C = pose_covariances(result)
     np.testing.assert_allclose(np.array(report[result.names[2]]["covariance"]), C[2])

@@ -4,7 +4,8 @@ report.json, config.json, recording.rrd.
 
 graph.g2o is what a SLAM stack loads as it is: one vertex per registered scan (id = the scan's index in
 ``report.json["scans"]``, mapped to its name in ``report.json["g2o_vertices"]``) at its final pose, and the
-edges the result rests on (kept by synchronization, both ends registered) with their calibrated information.
+edges the result rests on (kept by synchronization, both ends registered) with their information as measured
+(``report.json["calibration"]`` times it is what the run's errors bear out: ``gtsam_api.calibration``).
 graph_rejected.g2o holds the other registered pairs as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to
 be optimized). edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
 
@@ -27,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
+from ..gtsam_api import calibration, graph_information, pose_covariances, sigmas, variance_factor
 from ..plots import write_summary
 from ..registration.edges import EDGE_STATUS, edge_status
 from ..result import peak_memory_mb
@@ -143,6 +144,9 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "edge_status": {key: status.count(key) for key in EDGE_STATUS},
         "g2o_vertices": {str(k): result.names[k] for k in keep},
         "variance_factor": round(factor, 4),
+        # graph.g2o holds the information as measured (what data_tools.resync synchronizes again); times this, the
+        # information to_gtsam hands gtsam (gtsam_api.calibration)
+        "calibration": float(f"{calibration(result):.6g}"),
         "pose_covariances": covariance_report(result),
         "seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
