@@ -46,22 +46,6 @@ GROSS_DEG = 5.0
 RESULTS = Path(__file__).resolve().parent / "results" / "covariance.json"
 
 
-def scan_nees(poses: np.ndarray, gt: np.ndarray, covariances: np.ndarray, registered: list[int],
-              anchor: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per registered scan other than ``anchor``: NEES, rotation error (deg) and translation error."""
-    est = inv_T(poses[anchor])[None] @ poses
-    true = inv_T(gt[anchor])[None] @ gt
-    nees, rot, trans = [], [], []
-    for k in registered:
-        if k == anchor:
-            continue
-        xi = gtsam.Pose3.Logmap(gtsam.Pose3(est[k]).between(gtsam.Pose3(true[k])))
-        nees.append(float(xi @ np.linalg.solve(covariances[k], xi)))
-        rot.append(np.degrees(np.linalg.norm(xi[:3])))
-        trans.append(float(np.linalg.norm(true[k][:3, 3] - est[k][:3, 3])))
-    return np.array(nees), np.array(rot), np.array(trans)
-
-
 def band(m: int) -> tuple[float, float]:
     return chi2.ppf(0.025, 6 * m) / m, chi2.ppf(0.975, 6 * m) / m
 
@@ -69,28 +53,31 @@ def band(m: int) -> tuple[float, float]:
 def simulated(scenes: int, first_seed: int, n_scans: int) -> None:
     from sghr_gtsam.synthetic import make_scene
 
-    rows: dict[str, list[np.ndarray]] = {"room": [], "object": []}
-    gross = {"room": 0, "object": 0}
+    rows: dict[str, list[dict]] = {"room": [], "object": []}
+    gross, count = {"room": 0, "object": 0}, {"room": 0, "object": 0}
     for s in range(first_seed, first_seed + scenes):
         kind = "room" if s % 2 == 0 else "object"
+        count[kind] += 1
         scene = make_scene(kind=kind, n_scans=n_scans, seed=s)
         result = register([Scan(n, P) for n, P in zip(scene.names, scene.scans)],
                           Config(record=False, seed=s, voxel=scene.voxel, workers=1), log=lambda m: None)
-        C = pose_covariances(result)
         anchor = int(np.flatnonzero(result.sync.component == 0)[0])
-        nees, rot, _ = scan_nees(result.poses, scene.poses, C, result.registered, anchor)
-        gross[kind] += int(np.count_nonzero(rot > GROSS_DEG))
-        rows[kind].append(nees[rot <= GROSS_DEG])
-        print(f"seed {s} {kind}: {len(nees)} scans, NEES mean {np.mean(nees):.2f}", file=sys.stderr, flush=True)
+        scans = coverage_rows(result.poses, scene.poses, pose_covariances(result), result.registered, anchor)
+        gross[kind] += sum(r["rot"] > GROSS_DEG for r in scans)
+        rows[kind] += [r for r in scans if r["rot"] <= GROSS_DEG]
+        print(f"seed {s} {kind}: {len(scans)} scans, NEES mean {np.mean([r['nees'] for r in scans]):.2f}",
+              file=sys.stderr, flush=True)
     print(f"| scenes | scans | gross (> {GROSS_DEG:g}°) | mean NEES | median NEES | 95 % band of the mean "
-          f"| scans with NEES < χ²₆(0.95) |")
-    print("|---|---|---|---|---|---|---|")
+          f"| scans with NEES < χ²₆(0.95) | within {WITHIN:g}σ | median σ/error rot | median σ/error trans |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for label, kinds in (("rooms", ["room"]), ("objects", ["object"]), ("all", ["room", "object"])):
-        x = np.concatenate([a for k in kinds for a in rows[k]]) if any(rows[k] for k in kinds) else np.zeros(0)
+        kept = [r for k in kinds for r in rows[k]]
+        x = np.array([r["nees"] for r in kept])
         lo, hi = band(len(x))
-        count = sum(len(rows[k]) for k in kinds)
-        print(f"| {label} ({count}) | {len(x)} | {sum(gross[k] for k in kinds)} | {x.mean():.2f} | "
-              f"{np.median(x):.2f} | [{lo:.2f}, {hi:.2f}] | {np.mean(x < chi2.ppf(0.95, 6)):.0%} |")
+        t = summary(kept)
+        print(f"| {label} ({sum(count[k] for k in kinds)}) | {len(x)} | {sum(gross[k] for k in kinds)} | "
+              f"{x.mean():.2f} | {np.median(x):.2f} | [{lo:.2f}, {hi:.2f}] | {np.mean(x < chi2.ppf(0.95, 6)):.0%} | "
+              f"{t['covered']:.0%} | {t['median_ratio_rot']:.2f} | {t['median_ratio_trans']:.2f} |")
 
 
 REAL = {  # scene: folder, GT poses, voxel of the GT re-fit (None: no re-fit, the GT is the best there is)
