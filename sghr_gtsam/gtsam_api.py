@@ -3,16 +3,17 @@ can extend, re-optimize and query for covariances.
 
 - ``to_gtsam(result)`` (or ``to_gtsam(graph, poses)``): one ``BetweenFactorPose3`` per edge the result rests
   on, keys of the caller's choosing (default ``gtsam.symbol('x', k)`` for scan ``k`` of ``result.names``),
-  the edges' own information (``"information"``, calibrated from each registration's residuals, see
+  the edges' own information (``"information"``, from each registration's residuals, see
   ``registration.information``) or SE-Sync's isotropic precisions (``"isotropic"``), and a robust kernel
-  (``KERNELS``). No prior: the caller anchors the graph (a prior, GNSS, odometry).
+  (``KERNELS``); a run's information scaled by its ``calibration`` to what its errors bear out, so that factors
+  of one's own with honest σ stand beside it. No prior: the caller anchors the graph (a prior, GNSS, odometry).
 - ``optimize(factors, values, kernel=...)``: the project's polish (Levenberg–Marquardt with the same
   stopping rule and ordering), or gtsam GNC with a truncated-least-squares loss for ``kernel="tls"``.
 - ``marginal_covariances(factors, values, keys)``: 6×6 covariances from ``gtsam.Marginals``, in gtsam's
   tangent order [rotation, translation] at each pose (right perturbation ``T exp(ξ)``).
 - ``pose_covariances(result)``: the same for a run, with the world scan (the first of the largest part) held
-  fixed and the ``variance_factor`` of the graph's loops applied; what the results folder and the recording
-  show.
+  fixed and the run's ``calibration`` applied (the ``variance_factor`` of the graph's loops and the edges a scan
+  shares its errors with); what the results folder and the recording show.
 """
 
 from __future__ import annotations
@@ -149,8 +150,8 @@ def graph_information(graph: PoseGraph, edges: np.ndarray, noise: str = "informa
 
 
 def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *, keys: Keys = None,
-             noise: str = "information", kernel: str = "none",
-             edges: np.ndarray | None = None) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+             noise: str = "information", kernel: str = "none", edges: np.ndarray | None = None,
+             calibrated: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The factor graph and initial values of a run (``RunResult``: its kept edges among registered scans, its
     final poses) or of a ``PoseGraph`` with ``poses`` (N, 4, 4) (default ``edges``: those with weight > 0).
 
@@ -159,6 +160,10 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
     edge (and, for a run, every registered scan). ``edges``: a boolean mask over the graph's edges. A
     ``PoseGraph`` is checked (``sync.checked_graph``; information finite, symmetric, positive semi-definite) and
     the poses of the values must be rigid: ``InputError`` otherwise. (A run's graph is the pipeline's own.)
+    A run's factors carry its ``calibrated_information``: the information its poses were solved with, scaled by one
+    number to what its errors bear out, so that factors of one's own with honest σ weigh what they should beside
+    them and its poses stay the optimum; ``calibrated=False``: the information as measured, the scale
+    ``graph.g2o`` holds.
     """
     if isinstance(source, PoseGraph):
         graph, chosen, nodes = _selected(source, edges)
@@ -167,6 +172,8 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
         chosen, nodes = _edges_of(source)
         if edges is not None:
             chosen &= _mask(edges, graph.num_edges)
+        if calibrated:
+            graph, noise = replace(graph, information=calibrated_information(source, noise=noise)), "information"
     return _factor_graph(graph, _poses(poses, graph.n, nodes), chosen, nodes, keys, noise, kernel)
 
 
@@ -248,10 +255,10 @@ def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Valu
 
 def variance_factor(result: "RunResult", *, noise: str = "information") -> float:
     """The a posteriori variance factor ``σ̂₀² = Σ_e r_eᵀ Ω_e r_e / (6 (E − N + 1))`` of a run's kept edges at its
-    poses (E edges among N registered scans; ``r_e`` the edge's residual): 1 when the edges' residuals are as
-    large as their information says, above 1 when the loops of the graph show them overconfident. NaN
-    without redundancy (a tree of edges)."""
-    return _variance_factor(*to_gtsam(result, noise=noise), len(result.registered))
+    poses (E edges among N registered scans; ``r_e`` the edge's residual, ``Ω_e`` the information the poses were
+    solved with): 1 when the edges' residuals are as large as their information says, above 1 when the loops of
+    the graph show them overconfident. NaN without redundancy (a tree of edges)."""
+    return _variance_factor(*to_gtsam(result, noise=noise, calibrated=False), len(result.registered))
 
 
 def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, nodes: int) -> float:
@@ -260,39 +267,72 @@ def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
-def pose_covariances(result: "RunResult", *, noise: str = "information", stiffen: float = 1.0,
-                     grid: bool = True) -> np.ndarray:
+def calibrated_information(result: "RunResult", *, noise: str = "information", shared: bool = True) -> np.ndarray:
+    """(E, 6, 6) information of a run's edges scaled to what its errors bear out (zero on the edges its poses do
+    not rest on): what ``to_gtsam(result)`` hands gtsam. The information the poses were solved with (``noise``)
+    times ``calibration``'s one number (``shared`` as there), so that its optimum stays the run's poses."""
+    chosen = _edges_of(result)[0]
+    return graph_information(result.graph, chosen, noise) * calibration(result, noise=noise, shared=shared)
+
+
+def calibration(result: "RunResult", *, noise: str = "information", shared: bool = True) -> float:
+    """The one factor, at most 1, that makes a run's edge information (as in its graph, ``noise``) as large as its
+    errors: ``1 / (max(1, σ̂₀²) · d)``. Neither number is fitted to any scene:
+    - ``σ̂₀²``, the variance factor of the graph's loops (``variance_factor``): the edges' own errors, as large as
+      the loops show them;
+    - ``d``, the largest number of kept edges at one scan: the edges of a scan share that scan's errors (its
+      sampling, its shape) with a correlation nothing measures (a loop passes a scan on two of its edges, where the
+      errors they share cancel). Covariance intersection is the fusion that stays consistent whatever that
+      correlation: the information of the estimates combined with weights summing to at most one. ``1 / d`` is the
+      largest weight, one for all edges (so that the optimum does not move), whose sum is at most one at every scan.
+    On simulated scenes (independent range noise) ``d`` makes σ a few times too large; on real scans it is what
+    covers their errors (``benchmarks/bench_covariance.py --real``). ``shared=False``: ``d = 1``, the variance
+    factor alone. 1 without kept edges."""
+    chosen, nodes = _edges_of(result)
+    if not chosen.any():
+        return 1.0
+    factor = _variance_factor(*to_gtsam(result, noise=noise, calibrated=False), len(nodes))
+    degree = np.bincount(np.r_[result.graph.i[chosen], result.graph.j[chosen]]).max() if shared else 1
+    return 1.0 / (max(factor, 1.0) * degree) if np.isfinite(factor) else 1.0 / degree
+
+
+def pose_covariances(result: "RunResult", *, noise: str = "information", grid: bool = True,
+                     shared: bool = True) -> np.ndarray:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
     edges' information with the directions their geometry leaves free bounded by the overlap alone
-    (``PairResult.bounded``; those bounds ``stiffen`` times stiffer) and, with ``grid``, each refined edge's
-    dependence on its grid added to its covariance (``PairResult.grid``), scaled by the variance factor when the
-    graph's loops show that information overconfident (``max(1, σ̂₀²)``: real scans have systematic errors that
-    per-point noise does not see); NaN for unregistered scans."""
-    if result.graph.information is not None and any(p.bounded is not None or (grid and p.grid is not None)
-                                                     for p in result.pairs):
-        information = np.stack([_reported_information(p, info, stiffen, grid)
-                                for p, info in zip(result.pairs, result.graph.information)])
-        result = replace(result, graph=replace(result.graph, information=information))
-    factors, values = to_gtsam(result, noise=noise)
+    (``PairResult.bounded``) and, with ``grid``, each refined edge's
+    dependence on its grid added to its covariance (``PairResult.grid``), scaled by its ``calibration``
+    (``shared`` as there); NaN for unregistered scans. Without bounds and grid terms, the marginals of
+    ``to_gtsam(result)``."""
+    result = _reported(result, grid)
+    information = calibrated_information(result, noise=noise, shared=shared)
+    factors, values = to_gtsam(replace(result, graph=replace(result.graph, information=information)),
+                               calibrated=False)
     nodes = result.registered
-    factor = _variance_factor(factors, values, len(nodes))
     out = np.full((len(result.names), 6, 6), np.nan)
     anchor = int(np.flatnonzero(result.sync.component == 0)[0])
-    information = graph_information(result.graph, _edges_of(result)[0], noise)
     factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
                                        _anchor_prior(information)))
     out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])
-    if factor > 1.0:
-        out[nodes] *= factor
     out[anchor] = 0.0
     return out
 
 
-def _reported_information(pair: "PairResult", information: np.ndarray, stiffen: float, grid: bool) -> np.ndarray:
-    """The information ``pose_covariances`` gives an edge: ``bounded`` (free directions ``stiffen`` times stiffer)
+def _reported(result: "RunResult", grid: bool) -> "RunResult":
+    """``result`` with each edge's ``_reported_information`` in its graph."""
+    if result.graph.information is not None and any(p.bounded is not None or (grid and p.grid is not None)
+                                                     for p in result.pairs):
+        information = np.stack([_reported_information(p, info, grid)
+                                for p, info in zip(result.pairs, result.graph.information)])
+        result = replace(result, graph=replace(result.graph, information=information))
+    return result
+
+
+def _reported_information(pair: "PairResult", information: np.ndarray, grid: bool) -> np.ndarray:
+    """The information ``pose_covariances`` gives an edge: ``bounded`` (free directions bounded by the overlap)
     or its ``information`` in the graph (a pair without any has a placeholder there), and with ``grid`` the inverse
     of its covariance plus ``grid gridᵀ`` (Sherman-Morrison)."""
-    info = information if pair.bounded is None else pair.bounded + (stiffen - 1.0) * pair.loose
+    info = information if pair.bounded is None else pair.bounded
     if grid and pair.grid is not None:
         w = info @ pair.grid
         info = info - np.outer(w, w) / (1.0 + pair.grid @ w)

@@ -17,6 +17,8 @@ from sghr_gtsam.factor_graph import graph_error
 from sghr_gtsam.gtsam_api import (
     KERNELS,
     _reported_information,
+    calibrated_information,
+    calibration,
     marginal_covariances,
     noise_model,
     optimize,
@@ -29,9 +31,10 @@ from sghr_gtsam.incremental import Session
 from sghr_gtsam.pipeline import register, run
 from sghr_gtsam.registration.information import plane_information
 from sghr_gtsam.registration.pairwise import PairResult
+from sghr_gtsam.result import RunResult
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.synthetic import make_scene, write_scene
-from sghr_gtsam.types import InputError, PoseGraph
+from sghr_gtsam.types import InputError, PoseGraph, SyncResult
 
 SIGMA = np.r_[np.full(3, np.radians(1.0)), np.full(3, 0.02)]  # 1° and 2 cm per edge
 
@@ -159,7 +162,7 @@ def test_reported_information_adds_the_grid_term_to_the_covariance(seed, scale, 
     A = rng.normal(size=(6, 6))
     information = A @ A.T + 6 * np.eye(6)
     pair = PairResult(np.eye(4), 10, 0.5, 0.01, information, 0.0, grid=scale * rng.normal(size=6))
-    got = _reported_information(pair, information, 1.0, with_grid)
+    got = _reported_information(pair, information, with_grid)
     want = np.linalg.inv(np.linalg.inv(information) + np.outer(pair.grid, pair.grid)) if with_grid else information
     np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(information).max())
 
@@ -216,7 +219,9 @@ def test_results_folder_loads_in_gtsam_and_stays(object_run):
 
 def test_run_covariances_are_written_and_match_the_errors(object_run):
     scene, result, out = object_run
-    report = json.loads((out / "report.json").read_text())["pose_covariances"]
+    written = json.loads((out / "report.json").read_text())
+    assert written["calibration"] == pytest.approx(calibration(result), rel=1e-5)
+    report = written["pose_covariances"]
     assert set(report) == {result.names[k] for k in result.registered}
     C = pose_covariances(result)
     np.testing.assert_allclose(np.array(report[result.names[2]]["covariance"]), C[2])
@@ -233,6 +238,77 @@ def test_to_gtsam_of_a_run_uses_the_kept_edges_and_registered_scans(object_run):
     factors, values = to_gtsam(result)
     assert values.size() == len(result.registered)
     assert factors.size() == int(np.sum(result.sync.weights > 0))
+
+
+def _shared_error_run(seed: int, n: int = 8) -> tuple[RunResult, np.ndarray]:
+    """A run whose errors have the structure of real scans': every scan's edges share that scan's error (its
+    sampling, its shape: the scan sits at ``T_k exp(b_k)``, ``b_k`` as large as one edge's stated noise), which no
+    loop sees, and each edge's own error is 4x (in variance) what its information states, which the loops do see.
+    Every pair within 2 steps along a ring; poses solved by LM from the truth, scan 0 the world."""
+    truth = _truth(n, seed)
+    rng = np.random.default_rng(seed + 100)
+    shared = [gtsam.Pose3(truth[k]) * gtsam.Pose3.Expmap(rng.normal(0, SIGMA)) for k in range(n)]
+    i, j = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if min(b - a, n - b + a) <= 2]).T
+    T = np.stack([(shared[a].between(shared[b]) * gtsam.Pose3.Expmap(rng.normal(0, 2 * SIGMA))).matrix()
+                  for a, b in zip(i, j)])
+    graph = PoseGraph(n=n, i=i, j=j, T=T, weight=np.ones(len(i)),
+                      information=np.repeat(np.diag(SIGMA**-2)[None], len(i), 0))
+    factors, values = to_gtsam(graph, truth)
+    _anchor(factors, gtsam.symbol("x", 0), truth[0])
+    solved = optimize(factors, values)
+    poses = np.stack([_matrix(solved, gtsam.symbol("x", k)) for k in range(n)])
+    sync = SyncResult(poses=poses, weights=np.ones(len(i)), residual_deg=np.zeros(len(i)), component=np.zeros(n, int))
+    pairs = [PairResult(T[e], 0, 0.0, 0.0, graph.information[e], 0.0) for e in range(len(i))]
+    return RunResult(names=[f"s{k}" for k in range(n)], poses=poses, voxel=0.01, scores=np.zeros((n, n)),
+                     graph=graph, pairs=pairs, sync=sync, unregistered=[], skipped={}, features=[]), truth
+
+
+def test_pose_covariances_cover_errors_a_scan_shares_with_its_edges():
+    """Errors shared by a scan's edges, which no loop shows (the real scans' failure: bunny NEES 39, 22 % of its
+    scans within 3σ at 18b90a6): each scan's rotation and translation errors within 3σ along their own direction
+    for at least 90 % of the scans, and σ no more than 5x the error at the median. The variance factor of the
+    loops alone covered 44 %."""
+    covered, ratios = [], []
+    for seed in range(30):
+        result, truth = _shared_error_run(seed)
+        C = pose_covariances(result)
+        for k in range(1, result.graph.n):
+            xi = gtsam.Pose3.Logmap(gtsam.Pose3(result.poses[k]).between(gtsam.Pose3(truth[k])))
+            sigma = [np.sqrt(v @ C[k][b, b] @ v / (v @ v)) for b in (slice(0, 3), slice(3, 6)) for v in [xi[b]]]
+            error = [np.linalg.norm(xi[:3]), np.linalg.norm(xi[3:])]
+            covered.append(all(e <= 3 * s for e, s in zip(error, sigma)))
+            ratios.append(sigma[0] / error[0])
+    assert np.mean(covered) >= 0.9 and np.median(ratios) <= 5, (np.mean(covered), np.median(ratios))
+
+
+def test_to_gtsam_of_a_run_hands_the_calibrated_information():
+    """A run's factors carry ``calibrated_information``: the poses' marginals with the world scan fixed are
+    ``pose_covariances``, and ``calibrated=False`` gives the information the poses were solved with."""
+    result, _ = _shared_error_run(0)
+    factors, values = to_gtsam(result)
+    _anchor(factors, gtsam.symbol("x", 0), result.poses[0])
+    keys = [gtsam.symbol("x", k) for k in range(1, result.graph.n)]
+    expected = pose_covariances(result)[1:]  # its world scan held by the pipeline's stiff prior, not an exact one
+    np.testing.assert_allclose(marginal_covariances(factors, values, keys), expected,
+                               atol=1e-2 * np.abs(expected).max())
+    raw = to_gtsam(result, calibrated=False)[0]
+    np.testing.assert_allclose(raw.at(0).noiseModel().R().T @ raw.at(0).noiseModel().R(), result.graph.information[0])
+    information = calibrated_information(result)
+    assert np.all(np.linalg.eigvalsh(result.graph.information - information) > 0)  # looser on every edge
+
+
+def test_a_robust_kernel_on_a_runs_factors_keeps_its_good_poses():
+    """Cauchy on ``to_gtsam(result)``'s factors, re-solved from the run's poses, moves no pose by 0.1σ: its edges'
+    residuals are what their information says (with the information as measured it moved them up to 0.47σ)."""
+    for seed in range(3):
+        result, _ = _shared_error_run(seed)
+        factors, values = to_gtsam(result, kernel="cauchy")
+        _anchor(factors, gtsam.symbol("x", 0), result.poses[0])
+        solved = optimize(factors, values)
+        moved = relative_errors(np.stack([_matrix(solved, gtsam.symbol("x", k)) for k in range(result.graph.n)]),
+                                result.poses)
+        sigma = sigmas(pose_covariances(result))
+        assert all(np.all(m[1:] < 0.1 * s[1:]) for m, s in zip(moved, sigma)), (moved, sigma)
 
 
 # --- real scenes (slow) --------------------------------------------------------------------------------

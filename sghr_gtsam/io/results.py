@@ -6,10 +6,11 @@ graph.g2o, poses_kitti.txt and poses_tum.txt are what a SLAM stack loads as they
 only (``report.json["parts"][0]``, ``verify``): nothing in them rests on a join that failed verification. graph.g2o
 has one vertex per scan of that part (id = the scan's index in ``report.json["scans"]``, mapped to its name in
 ``report.json["g2o_vertices"]``) at its final pose, and the edges the result rests on inside it (kept by
-synchronization) with their calibrated information. graph_rejected.g2o holds the other registered pairs (the
-other parts' edges and their joins among them) as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to be
-optimized). poses.txt has every placed scan, the other parts where their best join puts them (report.json says
-which). edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
+synchronization) with their information as measured (``report.json["calibration"]`` times it is what the run's
+errors bear out: ``gtsam_api.calibration``). graph_rejected.g2o holds the other registered pairs (the other parts'
+edges and their joins among them) as ``EDGE_SE3:QUAT`` lines only (no vertices: not meant to be optimized).
+poses.txt has every placed scan, the other parts where their best join puts them (report.json says which).
+edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
 
 The folder is replaced as a whole (``io.atomic.staged_folder``): a run writes into a temporary folder beside it and swaps it
 in at the end, so a run stopped at any point (SIGINT, SIGTERM, SIGKILL, a failure) leaves the previous results
@@ -30,7 +31,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..gtsam_api import graph_information, pose_covariances, sigmas, variance_factor
+from ..gtsam_api import calibration, graph_information, pose_covariances, sigmas, variance_factor
 from ..plots import write_summary
 from ..registration.edges import EDGE_STATUS, edge_status
 from ..result import peak_memory_mb
@@ -158,6 +159,9 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "edge_status": {key: status.count(key) for key in EDGE_STATUS},
         "g2o_vertices": {str(k): result.names[k] for k in world},
         "variance_factor": round(factor, 4),
+        # graph.g2o holds the information as measured (what data_tools.resync synchronizes again); times this, the
+        # information to_gtsam hands gtsam (gtsam_api.calibration)
+        "calibration": float(f"{calibration(result):.6g}"),
         "pose_covariances": covariance_report(result),
         "seconds": {k: round(v, 3) for k, v in result.timings.items()},
         "peak_memory_mb": round(peak_memory_mb(), 1),
