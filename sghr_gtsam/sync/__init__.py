@@ -148,11 +148,12 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         else:
             poses = solve_poses(graph, used)
     support = held = None
+    iterative = (polish != "none" or method == "lm") and _iterative(graph)
     if polish == "robust" and method != "lm":
         poses, kept = _robust_placement(graph, poses, keep_history)
         weights = graph.weight
     elif polish == "loops" and method != "lm":
-        poses, kept, support = _loop_placement(graph, poses, keep_history)
+        poses, kept, support = _loop_placement(graph, poses, keep_history, iterative)
         weights = graph.weight
     if polish != "none" or method == "lm":
         from ..factor_graph import edge_information, polish as lm_polish
@@ -164,6 +165,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
             component = connected_components(graph.n, graph.i, graph.j, kept)
             information = edge_information(graph, np.where(kept, graph.weight, 0.0))
             return lm_polish(graph, P, information, component, weights=np.where(kept, weights, 0.0),
+                             iterative=iterative,
                              relative_tol=1e-9 if method == "lm" else 1e-6,
                              on_iteration=keep_history if record else None).poses
 
@@ -184,6 +186,15 @@ def _chordal(graph: PoseGraph) -> np.ndarray:
     isotropic precisions (SE-Sync's κ, τ, raised to ``LM_START_FLOOR`` of the largest)."""
     kappa, tau = (np.maximum(p, LM_START_FLOOR * p.max()) for p in sesync_precisions(graph.information))
     return solve_poses(graph, graph.weight * kappa, w_trans=graph.weight * tau)
+
+
+def _iterative(graph: PoseGraph) -> bool:
+    """Whether the LM polishes of ``graph`` solve by conjugate gradients (``factor_graph.DIRECT_FLOPS``): judged
+    on its usable edges, a superset of those any polish uses."""
+    from ..factor_graph import DIRECT_FLOPS, direct_cost
+
+    usable = usable_edges(graph.weight)
+    return direct_cost(graph.n, graph.i[usable], graph.j[usable]) > DIRECT_FLOPS
 
 
 def _canonical(graph: PoseGraph) -> tuple[PoseGraph, np.ndarray]:
@@ -254,8 +265,8 @@ def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.nd
     return kept & ~refit & (part[graph.i] != part[graph.j]) & ~_far(graph, poses)
 
 
-def _loop_placement(graph: PoseGraph, poses: np.ndarray,
-                    keep_history: Callable[[IterationRecord], None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[[IterationRecord], None],
+                    iterative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop polish before its last LM (``sync.cycles``): the poses, the (E,) mask of the edges
     consistent with them and every edge's loop support.
 
@@ -288,7 +299,8 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     def place(P: np.ndarray, votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kept = consistent_edges(usable, P)
         component = connected_components(graph.n, graph.i, graph.j, kept)
-        P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component).poses
+        P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component,
+                      iterative=iterative).poses
         P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
         return P, consistent_edges(usable, P)
 
