@@ -57,32 +57,13 @@ noise level), so that noise-free graphs, whose error is ~1e-26, do not iterate o
 
 
 DIRECT_FLOPS = 3e9
-"""Above this estimated cost of one direct solve of LM's linear system (``direct_cost``), ``polish`` solves it by
+"""Above this estimated cost of one direct solve of LM's linear system (``sync.fill.direct_cost``), ``polish`` solves it by
 conjugate gradients, block-Jacobi preconditioned, instead. Loop closures between far-apart poses leave an
 elimination no small separators (the fill of uniformly random ones grows as N³): 1,000 poses with 4,000 random
 closures (1.3e10 flops) took 7-19 s per LM iteration by Cholesky on a busy 2-core machine, 0.1 s by PCG, to the
 same error (benchmarks/bench_sync_scaling.py). Where separators stay small, as along a trajectory, the direct solve
 is fast and exact: the pose-graph benchmarks need at most 6e8 (sphere_bignoise_vertex3), bench_sync_speed's scenes
 1.2e9 (5,000 scans over a floor), and keep it; its 5,000 scans filling a cube (2.3e10) do not."""
-
-
-def direct_cost(n: int, i: np.ndarray, j: np.ndarray) -> float:
-    """Estimated flops of one direct (multifrontal Cholesky, COLAMD order) solve of LM's linear system over the
-    edges ``(i, j)`` between ``n`` poses, from gtsam's symbolic elimination (milliseconds where the fill is
-    small, seconds at 20,000 poses with 100,000 random edges): a clique of ``f`` frontal and ``s`` separator poses
-    costs ``F³/3 + F²S + FS²`` with ``F = 6f``, ``S = 6s``."""
-    if not len(i):
-        return 0.0
-    symbolic = gtsam.SymbolicFactorGraph()
-    for a, b in zip(i.tolist(), j.tolist()):
-        symbolic.push_factor(a, b)
-    tree = symbolic.eliminateMultifrontal(gtsam.Ordering.ColamdSymbolicFactorGraph(symbolic))
-    cliques = {}
-    for key in np.unique(np.r_[i, j]).tolist():
-        conditional = tree[key].conditional()
-        cliques[conditional.firstFrontalKey()] = (conditional.nrFrontals(), conditional.nrParents())
-    f, s = 6.0 * np.array(list(cliques.values()), dtype=float).T
-    return float(np.sum(f**3 / 3 + f**2 * s + f * s**2))
 
 
 def edge_information(graph: PoseGraph, weights: np.ndarray, *, rot_sigma_deg: float = ROT_SIGMA_DEG,

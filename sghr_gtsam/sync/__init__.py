@@ -191,7 +191,8 @@ def _chordal(graph: PoseGraph) -> np.ndarray:
 def _iterative(graph: PoseGraph) -> bool:
     """Whether the LM polishes of ``graph`` solve by conjugate gradients (``factor_graph.DIRECT_FLOPS``): judged
     on its usable edges, a superset of those any polish uses."""
-    from ..factor_graph import DIRECT_FLOPS, direct_cost
+    from ..factor_graph import DIRECT_FLOPS
+    from .fill import direct_cost
 
     usable = usable_edges(graph.weight)
     return direct_cost(graph.n, graph.i[usable], graph.j[usable]) > DIRECT_FLOPS
