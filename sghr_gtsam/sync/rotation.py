@@ -134,7 +134,7 @@ FILL_CHECK_SIZE = 2000
 """Matrices smaller than this are always factorized: their fill cannot cost much, and the estimate is skipped."""
 _CG_TOL = 1e-10
 _CG_ITERS = 5000
-_heavy_patterns: dict[tuple, bool] = {}  # pattern key -> fill too large; IRLS factorizes one pattern many times
+_last_judged: list[tuple[int, int, bool]] = []  # (size, stored entries, too costly) of the last matrix judged
 
 
 def factor_spd(A: sp.spmatrix):
@@ -148,15 +148,22 @@ def factor_spd(A: sp.spmatrix):
 
 
 def _heavy(A: sp.csc_matrix) -> bool:
-    """Whether a direct factorization of ``A`` costs more than ``FACTOR_FLOPS`` (remembered by sparsity pattern)."""
-    key = (A.shape[0], hash(A.indptr.tobytes()), hash(A.indices.tobytes()))
-    if key not in _heavy_patterns:
-        from .fill import direct_cost
+    """Whether a direct factorization of ``A`` costs more than ``FACTOR_FLOPS``. The estimate takes seconds on the
+    largest graphs and IRLS factorizes one graph's Laplacian many times, its edges reweighted and some dropped: a
+    matrix of the same size with stored entries within ``_SAME_GRAPH`` of the last one judged gets its answer."""
+    size, entries = A.shape[0], A.nnz
+    if _last_judged and _last_judged[0][0] == size and abs(entries - _last_judged[0][1]) <= _SAME_GRAPH * entries:
+        return _last_judged[0][2]
+    from .fill import direct_cost
 
-        upper = sp.triu(A, 1).tocoo()
-        _heavy_patterns.clear()  # one pattern at a time: a graph's
-        _heavy_patterns[key] = direct_cost(A.shape[0], upper.row, upper.col, dof=1) > FACTOR_FLOPS
-    return _heavy_patterns[key]
+    upper = sp.triu(A, 1).tocoo()
+    heavy = direct_cost(size, upper.row, upper.col, dof=1) > FACTOR_FLOPS
+    _last_judged[:] = [(size, entries, heavy)]
+    return heavy
+
+
+_SAME_GRAPH = 0.1
+"""``_heavy``: matrices of one size whose stored entries differ by at most this fraction are one graph's."""
 
 
 class _ConjugateGradients:
