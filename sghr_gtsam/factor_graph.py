@@ -57,8 +57,8 @@ noise level), so that noise-free graphs, whose error is ~1e-26, do not iterate o
 
 
 DIRECT_FLOPS = 3e9
-"""Above this estimated cost of one direct solve of LM's linear system (``sync.fill.direct_cost``), ``polish`` solves it by
-conjugate gradients, block-Jacobi preconditioned, instead. Loop closures between far-apart poses leave an
+"""Above this estimated cost of one direct solve of LM's linear system (``sync.fill.direct_cost``), ``polish``
+solves it by conjugate gradients, block-Jacobi preconditioned, instead. Loop closures between far-apart poses leave an
 elimination no small separators (the fill of uniformly random ones grows as N³): 1,000 poses with 4,000 random
 closures (1.3e10 flops) took 7-19 s per LM iteration by Cholesky on a busy 2-core machine, 0.1 s by PCG, to the
 same error (benchmarks/bench_sync_scaling.py). Where separators stay small, as along a trajectory, the direct solve
