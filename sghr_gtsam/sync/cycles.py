@@ -48,8 +48,15 @@ from scipy.special import chdtri
 from ..se3 import inv_T, rotation_angle
 from ..types import PoseGraph
 from .bridges import blocks as block_labels
-from .consensus import (MARGIN, MAX_DEG, consistent_edges, edge_residuals, mahalanobis, translation_tolerance,
-                        within_noise)
+from .consensus import (
+    MARGIN,
+    MAX_DEG,
+    consistent_edges,
+    edge_residuals,
+    mahalanobis,
+    translation_tolerance,
+    within_noise,
+)
 
 
 def triangles(graph: PoseGraph) -> np.ndarray:
