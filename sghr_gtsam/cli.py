@@ -388,7 +388,8 @@ def demo(
 @app.command()
 def sync(
     graph_file: Path = typer.Argument(..., help="A 3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."),
-    out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
+    out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids) with the "
+                             "edges it rests on; the dropped edges go beside it, to OUT's name with _rejected."),
     method: str = typer.Option(_DEFAULT.method, help=_METHOD_HELP + " Or a baseline: " + ", ".join(_BASELINE_NAMES)
                                + ".", show_default=True),
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods).", show_default=True),
