@@ -160,6 +160,22 @@ def corrupt(gt: SceneGT, ratio: float, kind: str, seed: int, noisy_overlap: bool
     return graph, P.copy(), is_outlier
 
 
+def add_random_outliers(graph: PoseGraph, count: int, seed: int) -> tuple[PoseGraph, np.ndarray]:
+    """``graph`` (a pose-graph benchmark's) with ``count`` more edges of the ``random`` kind between random pairs of
+    distinct nodes, each with the weight and information of a random edge of ``graph``; and the (E,) mask of the
+    added ones (the last ``count`` edges)."""
+    rng = np.random.default_rng(seed)
+    i = rng.integers(0, graph.n, count)
+    j = (i + rng.integers(1, graph.n, count)) % graph.n
+    like = rng.integers(0, graph.num_edges, count)
+    T = make_T(Rotation.random(count, random_state=rng).as_matrix(),
+               rng.uniform(-RANDOM_TRANSLATION, RANDOM_TRANSLATION, (count, 3)))
+    info = None if graph.information is None else np.concatenate([graph.information, graph.information[like]])
+    out = PoseGraph(n=graph.n, i=np.r_[graph.i, i], j=np.r_[graph.j, j], T=np.concatenate([graph.T, T]),
+                    weight=np.r_[graph.weight, graph.weight[like]], information=info)
+    return out, np.r_[np.zeros(graph.num_edges, dtype=bool), np.ones(count, dtype=bool)]
+
+
 def _perturbations(rng: np.random.Generator, E: int) -> np.ndarray:
     """(E, 4, 4) registration errors: scan j rotated about its centre, then shifted."""
     R = Rotation.from_rotvec(rng.normal(0.0, ROT_SIGMA, (E, 3))).as_matrix()

@@ -9,6 +9,7 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn, Optional
 
@@ -395,7 +396,8 @@ def demo(
 @app.command()
 def sync(
     graph_file: Path = typer.Argument(..., help="A 3D g2o pose graph (VERTEX_SE3:QUAT, EDGE_SE3:QUAT)."),
-    out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids)."),
+    out: Path = typer.Option(..., "--out", help="Where to write the optimized g2o graph (same vertex ids) with the "
+                             "edges it rests on; the dropped edges go beside it, to OUT's name with _rejected."),
     method: str = typer.Option(_DEFAULT.method, help=_METHOD_HELP + " Or a baseline: " + ", ".join(_BASELINE_NAMES)
                                + ".", show_default=True),
     iters: int = typer.Option(_DEFAULT.iters, help="IRLS iterations M (reweighting methods).", show_default=True),
@@ -405,7 +407,8 @@ def sync(
     kernel: str = typer.Option(_DEFAULT.kernel, help="Robust kernel of a final gtsam pass over the kept edges: "
                                "none (no pass), huber, cauchy or tls (GNC).", show_default=True),
 ) -> None:
-    """Synchronize a pose graph read from a g2o file and write the optimized vertices and the edges."""
+    """Synchronize a pose graph read from a g2o file; write the optimized vertices with the edges they rest on to
+    OUT, and the dropped edges beside it (OUT's name with "_rejected": edges only, as a run's graph_rejected.g2o)."""
     with _loading():
         import numpy as np
 
@@ -417,9 +420,13 @@ def sync(
         check_choice("--noise", noise, NOISE_MODELS)
         check_choice("--kernel", kernel, KERNELS)
         check_choice("--method", method, _METHOD_NAMES + _BASELINE_NAMES)
-        ids, given, graph = read_g2o(graph_file, positive_definite=True)
+        rejected = _rejected_path(out)
+        _refuse_overwriting(graph_file, out, rejected)
+        ids, given, graph = read_g2o(graph_file, positive_definite=True, indefinite=noise == "isotropic")
+        given_information = graph.information
         if noise == "isotropic":
-            graph.information = isotropic_information(graph.information)
+            _warn_indefinite(graph_file, graph.information)
+            graph = replace(graph, information=isotropic_information(graph.information))
         try:
             checked = checked_graph(graph)
         except InputError as e:  # said of the file: its line, not the graph's edge index
@@ -430,15 +437,20 @@ def sync(
             result = BASELINES[method](checked)
         else:
             result = synchronize(graph, method=method, iters=iters, polish=polish)
+        kept = result.weights > 0
         if kernel != "none":
-            result.poses = repolish(graph, result.poses, result.weights > 0, result.component, kernel=kernel)
+            result.poses = repolish(graph, result.poses, kept, result.component, kernel=kernel)
         index = {v: k for k, v in enumerate(ids)}
         poses, free = _in_input_frame(result.poses, result.component, given,
                                       [index[v] for v in fixed_ids(graph_file) if v in index])
-        write_g2o(out, ids, poses, graph)
+        # What the result rests on, with the input's own information (not the isotropic one a solve used).
+        given_graph = replace(graph, information=given_information)
+        write_g2o(rejected, ids, None, _edges(given_graph, ~kept), indefinite=True)
+        write_g2o(out, ids, poses, _edges(given_graph, kept), indefinite=True)
         parts = int(result.component.max()) + 1
-        typer.echo(f"{graph.n} poses, {graph.num_edges} edges, {parts} connected part(s); "
-                   f"SE-Sync objective {sesync_objective(poses, graph):.6g} -> {out}")
+        typer.echo(f"{graph.n} poses, {graph.num_edges} edges: {int(kept.sum())} kept -> {out}, "
+                   f"{int((~kept).sum())} dropped -> {rejected}; {parts} connected part(s); SE-Sync objective over "
+                   f"the kept edges {sesync_objective(poses, _edges(graph, kept)):.6g}")
         apart = [ids[k] for k in np.flatnonzero(result.component > 0)]
         if apart:
             shown = " ".join(map(str, apart[:10])) + (" ..." if len(apart) > 10 else "")
@@ -454,6 +466,50 @@ def sync(
                        f"through one node): {shown}", err=True)
 
     _guard(work)
+
+
+def _rejected_path(out: Path) -> Path:
+    """Where ``sync --out OUT`` writes the edges it dropped: OUT's name with ``_rejected`` before its suffix."""
+    return out.with_name(f"{out.stem}_rejected{out.suffix}")
+
+
+def _refuse_overwriting(graph_file: Path, *outputs: Path) -> None:
+    """A one-line ``InputError`` if an output is the input file itself (the same path, or a link to it)."""
+    for path in outputs:
+        try:
+            same = os.path.samefile(graph_file, path)
+        except OSError:  # either does not exist (a missing input is the reader's to say)
+            same = False
+        if same:
+            raise InputError(f"{path} is the input file {graph_file}: choose another --out")
+
+
+def _warn_indefinite(graph_file: Path, information) -> None:
+    """For ``--noise isotropic``: a one-line ``InputError`` naming the first edge whose rotation or translation block
+    is not positive definite (SE-Sync's precisions need both), and a warning naming those whose whole information
+    is not, which the isotropic precisions do not use."""
+    import numpy as np
+
+    from .io.g2o import edge_line, isotropic_ready, not_definite
+
+    unusable = np.flatnonzero(~isotropic_ready(information))
+    if len(unusable):
+        raise InputError(f"{graph_file}: line {edge_line(graph_file, int(unusable[0]))}: information's rotation or "
+                         f"translation block is not positive definite, which --noise isotropic needs")
+    odd = np.flatnonzero(not_definite(information))
+    if len(odd):
+        lines = [str(edge_line(graph_file, int(e))) for e in odd[:10]]
+        more = f" and {len(odd) - 10} more" if len(odd) > 10 else ""
+        typer.echo(f"warning: {graph_file}: information matrix not positive definite on line(s) {' '.join(lines)}"
+                   f"{more}: used through its blocks' isotropic precisions (--noise isotropic), written out as given",
+                   err=True)
+
+
+def _edges(graph, chosen):
+    """``graph`` (a ``PoseGraph``) with only the ``chosen`` (E,) edges."""
+    info = None if graph.information is None else graph.information[chosen]
+    return replace(graph, i=graph.i[chosen], j=graph.j[chosen], T=graph.T[chosen], weight=graph.weight[chosen],
+                   information=info)
 
 
 def _in_file(message: str, path: Path) -> str:

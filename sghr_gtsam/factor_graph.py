@@ -47,9 +47,23 @@ _METIS_NODES = 500
 """From this many poses, a connected graph is eliminated in METIS order: 1.2-2× faster LM iterations than
 COLAMD at 5000 scans (measured). gtsam's METIS ordering crashes on some disconnected graphs, hence only
 connected ones."""
+_PCG_ITERS = 1000
+_PCG_TOL = 1e-10
+"""Conjugate gradients (``iterative``) stop at this residual relative to the right-hand side: LM's own stopping
+rule (``relative_tol`` of the error, 1e-9 for method "lm") needs steps at least that exact."""
 _ABSOLUTE_TOL = 1e-12
 """LM also stops when the error decreases by less than this per factor (an error is ~3 per edge at the
 noise level), so that noise-free graphs, whose error is ~1e-26, do not iterate on rounding noise."""
+
+
+DIRECT_FLOPS = 3e9
+"""Above this estimated cost of one direct solve of LM's linear system (``sync.fill.direct_cost``), ``polish``
+solves it by conjugate gradients, block-Jacobi preconditioned, instead. Loop closures between far-apart poses leave an
+elimination no small separators (the fill of uniformly random ones grows as N³): 1,000 poses with 4,000 random
+closures (1.3e10 flops) took 7-19 s per LM iteration by Cholesky on a busy 2-core machine, 0.1 s by PCG, to the
+same error (benchmarks/bench_sync_scaling.py). Where separators stay small, as along a trajectory, the direct solve
+is fast and exact: the pose-graph benchmarks need at most 6e8 (sphere_bignoise_vertex3), bench_sync_speed's scenes
+1.2e9 (5,000 scans over a floor), and keep it; its 5,000 scans filling a cube (2.3e10) do not."""
 
 
 def edge_information(graph: PoseGraph, weights: np.ndarray, *, rot_sigma_deg: float = ROT_SIGMA_DEG,
@@ -123,13 +137,14 @@ def anchor_prior(peak: float) -> gtsam.noiseModel.Isotropic:
 
 def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, component: np.ndarray, *,
            weights: np.ndarray | None = None, max_iters: int = 100, relative_tol: float = 1e-6,
-           on_iteration: Callable[[IterationRecord], None] | None = None) -> PolishResult:
+           iterative: bool = False, on_iteration: Callable[[IterationRecord], None] | None = None) -> PolishResult:
     """Levenberg–Marquardt from ``poses`` over the edges with nonzero ``information`` (see module doc).
 
     ``component``: (N,) part labels; the first node of each part gets the anchor prior. One
     ``IterationRecord`` (stage ``"lm"``, ``cost`` = gtsam error) per LM iteration; ``weights`` is only copied
     into the records. Stops when an iteration decreases the error by less than ``relative_tol`` of it (or by
-    a negligible absolute amount).
+    a negligible absolute amount). ``iterative``: LM's linear systems solved by conjugate gradients
+    (``DIRECT_FLOPS``), not by Cholesky.
     """
     # gtsam's LM damps by an absolute λ (1e-5 to start) and stops on an absolute change of the error: information
     # far below 1 (other units: all of it 1e-12 of a metre graph's) left it at its start. Scaled by a power of two
@@ -142,7 +157,13 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
     for a in anchors:
         factors.add(gtsam.PriorFactorPose3(int(a), gtsam.Pose3(poses[a]), prior))
     params = gtsam.LevenbergMarquardtParams()
-    if len(anchors) == 1 and graph.n >= _METIS_NODES:
+    if iterative:
+        params.setLinearSolverType("ITERATIVE")
+        pcg = gtsam.PCGSolverParameters()
+        pcg.preconditioner = gtsam.BlockJacobiPreconditionerParameters()
+        pcg.maxIterations, pcg.epsilon_rel, pcg.epsilon_abs = _PCG_ITERS, _PCG_TOL, 0.0
+        params.setIterativeParams(pcg)
+    elif len(anchors) == 1 and graph.n >= _METIS_NODES:
         params.setOrderingType("METIS")
     optimizer = gtsam.LevenbergMarquardtOptimizer(factors, _values(poses), params)
     record_weights = np.zeros(graph.num_edges) if weights is None else weights
@@ -166,10 +187,9 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
             break
         previous = error
     # The stiff but finite priors leave the anchors a hair off their start: re-anchor every part exactly.
-    current = current.copy()
-    for c, a in enumerate(anchors):
-        members = component == c
-        current[members] = poses[a] @ inv_T(current[a]) @ current[members]
+    # (one product for every node: a loop over the parts took minutes where 100,000 poses had no edge)
+    a = anchors[component]
+    current = poses[a] @ inv_T(current[a]) @ current
     return PolishResult(poses=current, initial_error=float(initial), final_error=float(error),
                         converged=converged, history=history)
 

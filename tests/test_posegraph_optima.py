@@ -96,6 +96,70 @@ def test_real_g2o_files_round_trip(data_dir, tmp_path, path):
     np.testing.assert_array_equal(graph2.information, graph.information)
 
 
+def _first_poses(graph: PoseGraph, n: int) -> PoseGraph:
+    """The subgraph of ``graph``'s first ``n`` nodes (a benchmark graph's trajectory order: a connected part)."""
+    m = (graph.i < n) & (graph.j < n)
+    return replace(graph, n=n, i=graph.i[m], j=graph.j[m], T=graph.T[m], weight=graph.weight[m],
+                   information=graph.information[m])
+
+
+@pytest.mark.data
+def test_a_graph_whose_noise_explains_its_residuals_keeps_its_edges(data_dir):
+    """sphere_bignoise_vertex3's residuals at the least-squares optimum are ~15° against a stated 0.9° (ξᵀΩξ ~270
+    on every edge) and it has no outliers: the default dropped its noise's tail (2 % of the edges of its first 300
+    poses; 364 of 8,647 and 8 parts on the whole graph) where least squares over every edge fits them."""
+    _, _, graph = read_g2o(data_dir / "posegraph" / "sphere_bignoise_vertex3.g2o", positive_definite=True)
+    graph = _first_poses(graph, 300)
+    lm = sesync_objective(synchronize(graph, method="lm").poses, graph)
+    result = synchronize(graph)
+    dropped = int((result.weights == 0).sum())
+    print(f"{dropped} of {graph.num_edges} edges dropped, LM objective {lm:.6g}")
+    assert result.component.max() == 0 and dropped <= 0.005 * graph.num_edges
+    assert sesync_objective(result.poses, graph) == pytest.approx(lm, rel=1e-4)
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("noise", ["information", "isotropic"])
+def test_sync_writes_only_the_edges_its_result_rests_on(data_dir, tmp_path, noise):
+    """`sync` on sphere2500's first 500 poses with 50 random outlier edges: OUT holds the clean edges only, with the
+    input's information, the outliers are in OUT_rejected; gtsam.readG2o + LM moves OUT's poses by < 0.1°, and with
+    ``--noise isotropic`` they are at the clean SE-Sync optimum. It wrote every edge back, outliers included, and LM
+    on OUT turned poses by up to 180°."""
+    import gtsam
+    from typer.testing import CliRunner
+
+    from data_tools.outlier_graphs import add_random_outliers
+    from sghr_gtsam.cli import app
+    from sghr_gtsam.se3 import relative_errors
+
+    ids, given, graph = read_g2o(data_dir / "posegraph" / "sphere2500.g2o")
+    clean = _first_poses(graph, 500)
+    ids, given = ids[:500], given[:500]
+    noisy, outlier = add_random_outliers(clean, 50, seed=0)
+    write_g2o(tmp_path / "in.g2o", ids, given, noisy)
+    r = CliRunner().invoke(app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "out.g2o"),
+                                 "--noise", noise])
+    assert r.exit_code == 0, r.output
+    assert f"{clean.num_edges} kept" in r.output and "50 dropped" in r.output, r.output
+    _, poses, kept = read_g2o(tmp_path / "out.g2o")
+    _, _, rejected = read_g2o(tmp_path / "out_rejected.g2o")
+    np.testing.assert_allclose(kept.T, clean.T, atol=1e-12)  # in file order: the clean edges, then the outliers
+    np.testing.assert_allclose(rejected.T, noisy.T[outlier], atol=1e-12)
+    np.testing.assert_array_equal(kept.information, clean.information)  # the input's, not the isotropic one
+    if noise == "isotropic":
+        iso = replace(clean, information=isotropic_information(clean.information))
+        optimum = sesync_objective(synchronize(iso, method="lm").poses, iso)
+        print(f"objective {sesync_objective(poses, iso):.10g}, clean optimum {optimum:.10g}")
+        assert sesync_objective(poses, iso) == pytest.approx(optimum, abs=1e-3)
+        return
+    factors, initial = gtsam.readG2o(str(tmp_path / "out.g2o"), True)
+    factors.add(gtsam.PriorFactorPose3(0, initial.atPose3(0), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    moved = gtsam.LevenbergMarquardtOptimizer(factors, initial).optimize()
+    rot, _ = relative_errors(np.stack([moved.atPose3(k).matrix() for k in range(500)]), poses)
+    print(f"gtsam LM on OUT moved its poses by {rot.max():.2e}°")
+    assert rot.max() <= 0.1
+
+
 # --- without data ----------------------------------------------------------------------------------------
 
 

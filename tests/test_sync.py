@@ -624,3 +624,42 @@ def test_the_answer_does_not_depend_on_the_scale_of_the_information(seed, expone
     graph.information = graph.information * 2.0**exponent
     rot, trans = relative_errors(gauge_free(synchronize(graph, method="history").poses), gauge_free(reference))
     assert rot.max() < 1e-4 and trans.max() < 1e-7, (rot.max(), trans.max())
+
+
+def _random_closures(n: int, edges: int, seed: int = 0) -> tuple[PoseGraph, np.ndarray]:
+    """A noise-free chain of ``n`` poses with loop closures between uniformly random pairs, ``edges`` in all, with
+    information: an expander, whose direct elimination fills in (benchmarks/bench_sync_scaling.py)."""
+    rng = np.random.default_rng(seed)
+    truth = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-20, 20, (n, 3)))
+    extra = rng.integers(0, n, (2, edges - (n - 1)))
+    extra = extra[:, extra[0] != extra[1]]
+    i, j = np.r_[np.arange(n - 1), extra[0]], np.r_[np.arange(1, n), extra[1]]
+    information = np.tile(np.diag([1e4] * 3 + [1e3] * 3), (len(i), 1, 1))
+    return PoseGraph(n=n, i=i, j=j, T=inv_T(truth[i]) @ truth[j], weight=np.ones(len(i)),
+                     information=information), truth
+
+
+@pytest.mark.parametrize("method", ["history", "lm"])
+def test_random_loop_closures_are_solved_by_conjugate_gradients(method):
+    """Random closures leave LM's Cholesky no small separators: 1,000 poses with 5,000 edges took 7-19 s per LM
+    iteration (the whole `sync` 1-3 minutes), 4,000 with 20,000 over 5 minutes, 20,000 with 100,000 ran out of
+    memory. Such graphs go to conjugate gradients (and are recovered exactly)."""
+    from sghr_gtsam.sync import _iterative
+
+    graph, truth = _random_closures(800, 4000)
+    assert _iterative(graph)
+    assert not _iterative(random_graph(0, 300, extra=2)[0])  # a sparse elimination keeps the direct solve
+    rot, trans = max_errors(synchronize(graph, method=method).poses, truth)
+    assert rot < 1e-5 and trans < 1e-5
+
+
+def test_factor_spd_solves_a_costly_fill_by_conjugate_gradients():
+    """The scalar Laplacian of 4,000 poses with 20,000 random edges: SuperLU took 2 s (20,000 with 100,000: minutes
+    and gigabytes, once per IRLS iteration that needs it); conjugate gradients solve it to 1e-10."""
+    graph, _ = _random_closures(4000, 20000)
+    L = rotation.scalar_laplacian(graph.n, graph.i, graph.j, np.ones(graph.num_edges), shift=1e-3)
+    solver = rotation.factor_spd(L)
+    assert isinstance(solver, rotation._ConjugateGradients)
+    b = np.random.default_rng(1).normal(size=(graph.n, 3))
+    x = solver.solve(b)
+    assert np.linalg.norm(L @ x - b) <= 1e-9 * np.linalg.norm(b)

@@ -26,11 +26,13 @@ def _poses(x: np.ndarray, where: list[str]) -> np.ndarray:
     """Rows ``x y z qx qy qz qw`` as 4×4 transforms; ``where[k]`` names row k's line for errors."""
     x = x.reshape(-1, 7)
     finite = np.all(np.isfinite(x), axis=1)
-    # A quaternion is a direction: scaled by its largest entry first, 1e300 does not overflow its norm.
+    # A quaternion is a direction: any finite non-zero one is normalised, 1e-200 as 1e300 (each scaled by its
+    # largest entry first, so that neither its norm's square underflows nor overflows).
     q = np.where(finite[:, None], x[:, 3:], 1.0)
-    q = q / np.maximum(np.abs(q).max(axis=1, keepdims=True), np.finfo(float).tiny)
+    largest = np.abs(q).max(axis=1, keepdims=True)
+    q = q / np.where(largest > 0, largest, 1.0)
     norm = np.linalg.norm(q, axis=1)
-    bad = ~finite | (np.abs(x[:, 3:]).max(axis=1) < 1e-12)
+    bad = ~finite | (norm == 0)
     if bad.any():
         raise InputError(f"{where[np.flatnonzero(bad)[0]]}: pose is not finite or its quaternion is zero")
     return make_T(Rotation.from_quat(q / norm[:, None]).as_matrix().reshape(-1, 3, 3), x[:, :3])
@@ -43,8 +45,8 @@ def _lowest_eigenvalues(omega: np.ndarray) -> np.ndarray:
     return np.linalg.eigvalsh(omega / np.where(scale > 0, scale, 1.0)[:, None, None])[:, 0]
 
 
-def _not_definite(omega: np.ndarray) -> np.ndarray:
-    """(E,) bool: each symmetric (E, 6, 6) matrix not positive definite, judged on its correlations
+def not_definite(omega: np.ndarray) -> np.ndarray:
+    """(E,) bool: each symmetric (E, k, k) matrix not positive definite, judged on its correlations
     (``Ω_ij / √(Ω_ii Ω_jj)``): rotations in radians beside translations in micrometres span 1e16 and are definite."""
     d = np.diagonal(omega, axis1=1, axis2=2)
     positive = (d > 0).all(axis=1)
@@ -52,10 +54,16 @@ def _not_definite(omega: np.ndarray) -> np.ndarray:
     return ~positive | (np.linalg.eigvalsh(omega * s[:, :, None] * s[:, None, :])[:, 0] <= 1e-12)
 
 
-def check_information(information: np.ndarray, edges: int | None = None) -> np.ndarray:
+def isotropic_ready(omega: np.ndarray) -> np.ndarray:
+    """(E,) bool: information matrices (E, 6, 6) whose rotation and translation blocks are both positive definite,
+    all that SE-Sync's isotropic precisions (``sesync_precisions``) need of them, even where the whole is not."""
+    return ~not_definite(omega[:, :3, :3]) & ~not_definite(omega[:, 3:, 3:])
+
+
+def check_information(information: np.ndarray, edges: int | None = None, semidefinite: bool = True) -> np.ndarray:
     """``information`` as floats, one (6, 6) matrix or with ``edges`` (edges, 6, 6), or a one-line ``InputError``
-    unless each matrix is finite, symmetric and positive semi-definite (zero: a failed registration, no
-    measurement)."""
+    unless each matrix is finite, symmetric and (``semidefinite``) positive semi-definite (zero: a failed
+    registration, no measurement)."""
     shape = (6, 6) if edges is None else (edges, 6, 6)
     try:
         info = np.asarray(information, dtype=float)
@@ -73,7 +81,8 @@ def check_information(information: np.ndarray, edges: int | None = None) -> np.n
     refuse(~np.isfinite(stack).all(axis=(1, 2)), "finite")
     scale = np.abs(stack).max(axis=(1, 2))
     refuse(np.abs(stack - np.swapaxes(stack, 1, 2)).max(axis=(1, 2)) > 1e-9 * scale, "symmetric")
-    refuse(_lowest_eigenvalues(stack) < -1e-9, "positive semi-definite")
+    if semidefinite:
+        refuse(_lowest_eigenvalues(stack) < -1e-9, "positive semi-definite")
     return info
 
 
@@ -111,7 +120,8 @@ def _text(path: Path) -> str:
         return raw.decode("latin-1")
 
 
-def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[int], np.ndarray | None, PoseGraph]:
+def read_g2o(path: str | Path, positive_definite: bool = False,
+             indefinite: bool = False) -> tuple[list[int], np.ndarray | None, PoseGraph]:
     """Vertex ids (file order), their poses (N, 4, 4) and the edges as a ``PoseGraph`` (weight 1). A file without
     vertex lines (a run's graph_rejected.g2o: edges only, its scans may have no pose) gives the sorted ids its
     edges name, poses None, and an empty graph when it has no edges either; with ``positive_definite`` (a graph to
@@ -121,7 +131,8 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
     well-formed vertex or edge (finite values, a non-zero quaternion, a symmetric positive semi-definite information
     matrix, positive definite with ``positive_definite``, between two different vertices that are defined) raises
     ``InputError`` naming the line. Repeated edges are kept. (The zero information of a failed registration in
-    a run's graph_rejected.g2o is semi-definite.)
+    a run's graph_rejected.g2o is semi-definite.) With ``indefinite`` the information is not judged at all (the
+    caller judges it by what its noise model needs: ``isotropic_ready``).
     """
     path = Path(path)
     lines = _text(path).split("\n")  # not splitlines: a form feed or \x1c inside a line does not end it for g2o
@@ -155,7 +166,10 @@ def read_g2o(path: str | Path, positive_definite: bool = False) -> tuple[list[in
     omega = np.zeros((E, 6, 6))
     omega[:, _UPPER[0], _UPPER[1]] = values[:, 7:]
     omega = omega + np.swapaxes(np.triu(omega, 1), 1, 2)
-    bad = _not_definite(omega) if positive_definite else _lowest_eigenvalues(omega) < -1e-9
+    if indefinite:
+        bad = np.zeros(E, dtype=bool)
+    else:
+        bad = not_definite(omega) if positive_definite else _lowest_eigenvalues(omega) < -1e-9
     if bad.any():
         raise InputError(f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
                          f"{'definite' if positive_definite else 'semi-definite'}")
@@ -203,7 +217,8 @@ def _pose_fields(T: np.ndarray) -> list[str]:
     return [" ".join(map(repr, row)) for row in values.tolist()]
 
 
-def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph: PoseGraph) -> None:
+def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph: PoseGraph,
+              indefinite: bool = False) -> None:
     """Write vertices ``ids`` at ``poses`` and the measured edges, atomically; ``poses=None``: edges only
     (node ``k`` of ``graph`` written as ``ids[k]``).
 
@@ -211,7 +226,8 @@ def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph:
     with ``repr`` so that reading the file back gives the same values. What ``read_g2o`` would refuse is refused
     before anything is written (``InputError``): ids that are not distinct integers, poses or edge transforms that
     are not finite rigid transforms, an edge that is not between two different nodes, information that is not
-    finite, symmetric and positive semi-definite.
+    finite, symmetric and positive semi-definite (any symmetric one with ``indefinite``: an input's information
+    written back as it was given).
     """
     ids = list(ids)
     odd = [v for v in ids if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer))]
@@ -247,7 +263,7 @@ def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph:
             raise InputError(f"write_g2o: without information, the weights must be {E} finite values >= 0")
         info = weight[:, None, None] * np.eye(6)
     else:
-        info = check_information(graph.information, E)
+        info = check_information(graph.information, E, semidefinite=not indefinite)
     back = np.argsort(_G2O_TO_GTSAM)
     upper = info[:, back][:, :, back][:, _UPPER[0], _UPPER[1]]
     with atomic_write(path) as f:

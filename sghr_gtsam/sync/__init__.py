@@ -23,7 +23,8 @@ from ..se3 import inv_T, non_rigid, project_to_so3
 from ..types import InputError, IterationRecord, PoseGraph, SyncResult
 from .bridges import biconnected_core, blocks
 from .consensus import MAX_DEG, consensus_placement, consistent_edges, edge_residuals, translation_tolerance
-from .cycles import credibility, cut_moves, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support
+from .cycles import (credibility, cut_moves, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support,
+                     within_shown_noise)
 from .irls import REWEIGHTS, irls, solve_poses, usable_edges
 from .rotation import connected_components, rotation_residuals
 
@@ -142,17 +143,16 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         kept = usable_edges(weights)  # initial weights: nothing reweighted them yet
         used = np.where(kept, weights, 0.0)
         if method == "lm" and graph.information is not None:
-            # The chordal initial estimate weights each edge by its isotropic precisions (SE-Sync's κ, τ).
-            kappa, tau = (np.maximum(p, LM_START_FLOOR * p.max()) for p in sesync_precisions(graph.information))
-            poses = solve_poses(graph, used * kappa, w_trans=used * tau)
+            poses = _chordal(replace(graph, weight=used))
         else:
             poses = solve_poses(graph, used)
     support = held = None
+    iterative = (polish != "none" or method == "lm") and _iterative(graph)
     if polish == "robust" and method != "lm":
         poses, kept = _robust_placement(graph, poses, keep_history)
         weights = graph.weight
     elif polish == "loops" and method != "lm":
-        poses, kept, support = _loop_placement(graph, poses, keep_history)
+        poses, kept, support = _loop_placement(graph, poses, keep_history, iterative)
         weights = graph.weight
     if polish != "none" or method == "lm":
         from ..factor_graph import edge_information, polish as lm_polish
@@ -164,6 +164,7 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
             component = connected_components(graph.n, graph.i, graph.j, kept)
             information = edge_information(graph, np.where(kept, graph.weight, 0.0))
             return lm_polish(graph, P, information, component, weights=np.where(kept, weights, 0.0),
+                             iterative=iterative,
                              relative_tol=1e-9 if method == "lm" else 1e-6,
                              on_iteration=keep_history if record else None).poses
 
@@ -177,6 +178,23 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
     return SyncResult(poses=poses, weights=weights[back], residual_deg=np.degrees(residual)[back], component=component,
                       history=history, loop_support=None if support is None else support[back],
                       held=None if held is None else held[back])
+
+
+def _chordal(graph: PoseGraph) -> np.ndarray:
+    """The chordal initial estimate of ``graph`` with information: each edge weighted by its weight times its
+    isotropic precisions (SE-Sync's κ, τ, raised to ``LM_START_FLOOR`` of the largest)."""
+    kappa, tau = (np.maximum(p, LM_START_FLOOR * p.max()) for p in sesync_precisions(graph.information))
+    return solve_poses(graph, graph.weight * kappa, w_trans=graph.weight * tau)
+
+
+def _iterative(graph: PoseGraph) -> bool:
+    """Whether the LM polishes of ``graph`` solve by conjugate gradients (``factor_graph.DIRECT_FLOPS``): judged
+    on its usable edges, a superset of those any polish uses."""
+    from ..factor_graph import DIRECT_FLOPS
+    from .fill import direct_cost
+
+    usable = usable_edges(graph.weight)
+    return direct_cost(graph.n, graph.i[usable], graph.j[usable]) > DIRECT_FLOPS
 
 
 def _canonical(graph: PoseGraph) -> tuple[PoseGraph, np.ndarray]:
@@ -206,18 +224,25 @@ def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
     for registrations good to a few degrees, so on a clean graph with large noise (gtsam's grids: σ ≈ 11°
     on every edge) they leave edges out that the optimum over all of them fits within their noise. With
     the edges' own information (the only noise model an edge can be re-admitted by), every usable edge is
-    tried from the current poses too; the larger consistent set wins, and that set is solved again. Edges that
+    tried from the current poses too, and in the first round from the chordal start of method ``"lm"``: a graph
+    whose noise exceeds the placement's tolerances falls apart there into parts, each anchored at its own first
+    node, a start from which least squares over every edge finds a local minimum only (a benchmark graph with
+    15° residuals: 8 parts left). The larger consistent set wins, widened to the noise the graph shows at its
+    poses (``within_shown_noise``), and that set is solved again. Edges that
     alone join two parts stay kept (``_holding``); the last mask is returned with the poses and the kept edges."""
     usable_graph = _usable(graph)
     usable = usable_graph.weight > 0
     held = np.zeros(graph.num_edges, dtype=bool)
-    for _ in range(REFIT_ROUNDS - 1):
+    for k in range(REFIT_ROUNDS - 1):
         refit = kept_edges_at(usable_graph, poses)
         if graph.information is not None and not np.array_equal(refit, usable):
-            trial = solve(poses, usable, record=False)
-            widest = kept_edges_at(usable_graph, trial)
-            if widest.sum() > refit.sum():
-                poses, refit = trial, widest
+            starts = [poses, _chordal(usable_graph)] if k == 0 else [poses]
+            for start in starts:
+                trial = solve(start, usable, record=False)
+                widest = kept_edges_at(usable_graph, trial)
+                if widest.sum() > refit.sum():
+                    poses, refit = trial, widest
+        refit = within_shown_noise(usable_graph, poses, refit)
         held = _holding(usable_graph, poses, kept, refit)
         refit |= held
         if np.array_equal(refit, kept):
@@ -240,8 +265,8 @@ def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.nd
     return kept & ~refit & (part[graph.i] != part[graph.j]) & ~_far(graph, poses)
 
 
-def _loop_placement(graph: PoseGraph, poses: np.ndarray,
-                    keep_history: Callable[[IterationRecord], None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[[IterationRecord], None],
+                    iterative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop polish before its last LM (``sync.cycles``): the poses, the (E,) mask of the edges
     consistent with them and every edge's loop support.
 
@@ -274,7 +299,8 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray,
     def place(P: np.ndarray, votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kept = consistent_edges(usable, P)
         component = connected_components(graph.n, graph.i, graph.j, kept)
-        P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component).poses
+        P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component,
+                      iterative=iterative).poses
         P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
         return P, consistent_edges(usable, P)
 

@@ -73,12 +73,17 @@ NOISE_QUANTILE = 0.999
 """An edge is within its own noise when ``ξᵀ Ω ξ`` is below this quantile of χ²₆ (``ξ`` its residual)."""
 
 
-def within_noise(E: np.ndarray, information: np.ndarray) -> np.ndarray:
-    """(E,) bool: residual transforms ``E`` (E, 4, 4) whose ``ξ = [rotation vector, translation]`` (gtsam's
-    order, the first-order log) has ``ξᵀ Ω ξ ≤ χ²₆(NOISE_QUANTILE)``."""
+def mahalanobis(E: np.ndarray, information: np.ndarray) -> np.ndarray:
+    """(E,) ``ξᵀ Ω ξ`` of residual transforms ``E`` (E, 4, 4), ``ξ = [rotation vector, translation]`` (gtsam's
+    order, the first-order log): χ²₆-distributed where ``Ω`` states the edge's noise."""
     xi = np.hstack([Rotation.from_matrix(E[:, :3, :3]).as_rotvec(), E[:, :3, 3]])
+    return np.einsum("ea,eab,eb->e", xi, information, xi)
+
+
+def within_noise(E: np.ndarray, information: np.ndarray) -> np.ndarray:
+    """(E,) bool: residual transforms ``E`` (E, 4, 4) with ``ξᵀ Ω ξ ≤ χ²₆(NOISE_QUANTILE)`` (``mahalanobis``)."""
     # χ²₆ quantile from scipy.special: scipy.stats costs about 1 s to import and nothing else on a run needs it.
-    return np.einsum("ea,eab,eb->e", xi, information, xi) <= chdtri(6, 1.0 - NOISE_QUANTILE)
+    return mahalanobis(E, information) <= chdtri(6, 1.0 - NOISE_QUANTILE)
 
 
 def consensus_placement(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,

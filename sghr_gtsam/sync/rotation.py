@@ -126,11 +126,61 @@ def connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w:
     return sp.csc_matrix((K @ w, indices, indptr), shape=(3 * n, 3 * n))
 
 
+FACTOR_FLOPS = 1e9
+"""``factor_spd`` solves by conjugate gradients where a direct factorization would cost more than this
+(``sync.fill.direct_cost``): 4,000 poses with 16,000 random loop closures took 2 s per factorization of their
+scalar Laplacian, 20,000 with 80,000 would take minutes each and gigabytes (benchmarks/bench_sync_scaling.py)."""
+FILL_CHECK_SIZE = 2000
+"""Matrices smaller than this are always factorized: their fill cannot cost much, and the estimate is skipped."""
+_CG_TOL = 1e-10
+_CG_ITERS = 5000
+_last_judged: list[tuple[int, int, bool]] = []  # (size, stored entries, too costly) of the last matrix judged
+
+
 def factor_spd(A: sp.spmatrix):
-    """Sparse LU of a symmetric positive definite matrix: a symmetric fill-reducing order and no pivoting,
-    2-4× faster than SuperLU's defaults on 3-D neighbourhood graphs."""
-    return splu(sp.csc_matrix(A), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                options={"SymmetricMode": True})
+    """A solver of a symmetric positive definite matrix (``.solve(B)``): sparse LU with a symmetric fill-reducing
+    order and no pivoting (2-4× faster than SuperLU's defaults on 3-D neighbourhood graphs), or, where its fill
+    would be too costly (``FACTOR_FLOPS``), Jacobi-preconditioned conjugate gradients."""
+    A = sp.csc_matrix(A)
+    if A.shape[0] >= FILL_CHECK_SIZE and _heavy(A):
+        return _ConjugateGradients(A)
+    return splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+
+
+def _heavy(A: sp.csc_matrix) -> bool:
+    """Whether a direct factorization of ``A`` costs more than ``FACTOR_FLOPS``. The estimate takes seconds on the
+    largest graphs and IRLS factorizes one graph's Laplacian many times, its edges reweighted and some dropped: a
+    matrix of the same size with stored entries within ``_SAME_GRAPH`` of the last one judged gets its answer."""
+    size, entries = A.shape[0], A.nnz
+    if _last_judged and _last_judged[0][0] == size and abs(entries - _last_judged[0][1]) <= _SAME_GRAPH * entries:
+        return _last_judged[0][2]
+    from .fill import direct_cost
+
+    upper = sp.triu(A, 1).tocoo()
+    heavy = direct_cost(size, upper.row, upper.col, dof=1) > FACTOR_FLOPS
+    _last_judged[:] = [(size, entries, heavy)]
+    return heavy
+
+
+_SAME_GRAPH = 0.1
+"""``_heavy``: matrices of one size whose stored entries differ by at most this fraction are one graph's."""
+
+
+class _ConjugateGradients:
+    """``factor_spd``'s solver where factorizing costs too much: conjugate gradients, column by column."""
+
+    def __init__(self, A: sp.csc_matrix):
+        self.A = A.tocsr()
+        self.M = sp.diags(1.0 / A.diagonal())
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        from scipy.sparse.linalg import cg
+
+        columns = B.reshape(B.shape[0], -1)
+        out = np.empty_like(columns, dtype=float)
+        for c in range(columns.shape[1]):
+            out[:, c] = cg(self.A, columns[:, c], M=self.M, rtol=_CG_TOL, atol=0.0, maxiter=_CG_ITERS)[0]
+        return out.reshape(B.shape)
 
 
 def scalar_laplacian(n: int, i: np.ndarray, j: np.ndarray, w: np.ndarray, shift: float = 0.0) -> sp.csc_matrix:
