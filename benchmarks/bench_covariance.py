@@ -3,7 +3,7 @@ real errors by the reported σ on the real scenes.
 
     python benchmarks/bench_covariance.py --scenes 60 --first-seed 1000
     python benchmarks/bench_covariance.py --real [bunny kitchen home_at hotel_uc studyroom] [--workers 1]
-        [--data ../shared/data] [--out DIR] [--reuse] [--json benchmarks/results/covariance.json]
+        [--data ../shared/data] [--out DIR] [--reuse]
 
 Real: each scene run by ``pipeline.run`` (results and cache in ``--out``/scene, kept for the next call; ``--reuse``
 takes the runs an earlier call pickled there, for a change of the covariances alone), then
@@ -25,7 +25,6 @@ Gross misregistrations (> 5°) are counted apart: no Gaussian covariance describ
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 from pathlib import Path
@@ -40,10 +39,10 @@ from sghr_gtsam.pipeline import Scan, register, run
 from sghr_gtsam.se3 import inv_T
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
+from benchmarks._results import save  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 
 GROSS_DEG = 5.0
-RESULTS = Path(__file__).resolve().parent / "results" / "covariance.json"
 
 
 def band(m: int) -> tuple[float, float]:
@@ -180,31 +179,28 @@ def real(names: list[str], data: Path, out_root: Path, workers: int | None, reus
             for r in rows:
                 r["scan"] = result.names[r["scan"]]
             scenes[scene][ref] = {"summary": summary(rows), "scans": rows}
-    print(f"| scene | against | scans | within {WITHIN:g}σ | median σ/error rot | median σ/error trans "
-          f"| mean NEES | median NEES | gross (> {GROSS_DEG:g}°) | variance factor | most edges at a scan |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| " + " | ".join(COLUMNS) + " |")
+    print("|---" * len(COLUMNS) + "|")
+    for row in table(scenes):
+        print("| " + " | ".join(map(str, row)) + " |")
+    return scenes
+
+
+COLUMNS = ["scene", "against", "scans", f"within {WITHIN:g}σ", "median σ/error rot", "median σ/error trans", "mean NEES",
+           "median NEES", f"gross (> {GROSS_DEG:g}°)", "variance factor", "most edges at a scan"]
+
+
+def table(scenes: dict) -> list[list]:
+    """The real scenes' coverage table, a row per scene and reference (GT as shipped, GT re-fitted to the scans)."""
+    rows = []
     for scene, r in scenes.items():
         for ref in ("gt", "refit"):
             if ref in r:
                 s = r[ref]["summary"]
-                print(f"| {scene} | {ref} | {s['scans']} | {s['covered']:.0%} | {s['median_ratio_rot']:.2f} | "
-                      f"{s['median_ratio_trans']:.2f} | {s['mean_nees']:.1f} | {s['median_nees']:.1f} | "
-                      f"{s['gross']} | {r['variance_factor']:.1f} | {r['most_edges_at_a_scan']} |")
-    return scenes
-
-
-def _provenance() -> dict:
-    import os
-    import platform
-    import subprocess
-
-    root = Path(__file__).resolve().parents[1]
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True).stdout.strip()
-    dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                                capture_output=True, text=True).stdout.strip())
-    return {"command": " ".join(["python", *sys.argv]), "commit": commit + (" (modified)" if dirty else ""),
-            "machine": f"{platform.node()} {platform.machine()}, {os.cpu_count()} cores, "
-                       f"load average {os.getloadavg()[0]:.1f}"}
+                rows.append([scene, ref, s["scans"], f"{s['covered']:.0%}", round(s["median_ratio_rot"], 2),
+                             round(s["median_ratio_trans"], 2), round(s["mean_nees"], 1), round(s["median_nees"], 1),
+                             s["gross"], round(r["variance_factor"], 1), r["most_edges_at_a_scan"]])
+    return rows
 
 
 def main() -> None:
@@ -219,16 +215,15 @@ def main() -> None:
                         help="the real runs' results and caches, kept for the next call")
     parser.add_argument("--workers", type=int, help="Config.workers of the real runs")
     parser.add_argument("--reuse", action="store_true", help="the real runs of an earlier call, not run again")
-    parser.add_argument("--json", type=Path, default=RESULTS, help="where the real scenes' table goes")
     args = parser.parse_args()
     if args.real is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         scenes = real(args.real or list(REAL), args.data, args.out, args.workers, args.reuse)
-        from sghr_gtsam.io.atomic import atomic_write
-
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_write(args.json) as f:
-            json.dump({**_provenance(), "within_sigma": WITHIN, "scenes": scenes}, f, indent=1)
+        save("covariance", table(scenes), COLUMNS, section="Covariances",
+             title="Pose covariances against the real scans' errors",
+             notes=f"A scan is covered when its rotation and translation errors relative to the world scan are each "
+                   f"within {WITHIN:g}σ along their own direction; `refit`: the GT re-fitted to the scans "
+                   f"(data_tools.refit_gt), `gt`: as shipped.")
     else:
         simulated(args.scenes, args.first_seed, args.scans)
 

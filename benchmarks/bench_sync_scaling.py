@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
@@ -35,6 +34,7 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks._results import save  # noqa: E402
 from sghr_gtsam.io.g2o import write_g2o  # noqa: E402
 from sghr_gtsam.se3 import inv_T, make_T  # noqa: E402
 from sghr_gtsam.types import PoseGraph  # noqa: E402
@@ -43,7 +43,8 @@ SIZES = ("500:2500", "1000:5000", "2000:10000", "4000:20000", "10000:50000", "20
 ISOLATED = (8000, 24000, 100000)
 ROT_NOISE_DEG = 1.0
 TRANS_NOISE = 0.02
-OUT = ROOT / "benchmarks" / "results" / "sync_scaling.json"
+NOTES = ("A random walk with uniformly random loop closures (`random`), and a 1,000-pose graph with vertices without "
+         "edges making up the rest (`isolated`); seconds are wall-clock, with the load average in the machine line.")
 
 
 def random_graph(n: int, edges: int, seed: int = 0) -> tuple[np.ndarray, PoseGraph]:
@@ -115,25 +116,12 @@ def _row(kind: str, n: int, edges: int, timeout: float) -> dict:
         return {"graph": kind, "poses": n, "edges": graph.num_edges, **run_sync(path, timeout)}
 
 
-def _commit() -> str:
-    done = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=ROOT)
-    dirty = subprocess.run(["git", "status", "--porcelain", "sghr_gtsam"], capture_output=True, text=True, cwd=ROOT)
-    return done.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
-
-
-def _machine() -> dict:
-    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    return {"cpus": os.cpu_count(), "memory_gb": round(memory, 1), "platform": platform.platform(),
-            "python": platform.python_version(), "load_average_at_start": [round(x, 2) for x in os.getloadavg()]}
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="*", default=list(SIZES), help="POSES:EDGES of the random graphs")
     parser.add_argument("--isolated", nargs="*", type=int, default=list(ISOLATED),
                         help="poses of the rows with vertices without edges")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds before a run is stopped")
-    parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args()
     plan = [("random", *map(int, size.split(":"))) for size in args.sizes]
     plan += [("isolated", n, 5000) for n in args.isolated]
@@ -144,12 +132,10 @@ def main() -> None:
         rows.append(row)
         print(f"{row['graph']:<10}{row['poses']:>8}{row['edges']:>9}{row['seconds']:>10.1f}{row['peak_mb']:>10.0f}  "
               f"{row['outcome']}" + (f": {row['last_line']}" if row["outcome"] != "done" else ""), flush=True)
-    record = {"command": " ".join([Path(sys.executable).name, *sys.argv]), "commit": _commit(),
-              "machine": _machine(), "note": "wall-clock seconds on a machine shared with other jobs",
-              "rows": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(record, indent=2) + "\n")
-    print(f"-> {args.out}")
+    columns = ["graph", "poses", "edges", "seconds", "peak MB", "outcome"]
+    cells = [[r["graph"], r["poses"], r["edges"], round(r["seconds"], 2), round(r["peak_mb"], 1), r["outcome"]]
+             for r in rows]
+    print(f"-> {save('sync_scaling', cells, columns, section='Scale and speed', title='`sync` on large g2o graphs', notes=NOTES)}")
 
 
 if __name__ == "__main__":
