@@ -8,7 +8,8 @@ import signal
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn, Optional
 
@@ -65,8 +66,44 @@ class _Stopped(BaseException):
         self.signum = signum
 
 
+@dataclass
+class _Ending:
+    """How the command ends: the results folder it completed (``complete``, its line on a stop after it), and from
+    when nothing is left to unwind (``returned``: a stop ends the process at once, ``_end_now``), with ``code``."""
+
+    complete: Path | None = None
+    returned: bool = False
+    code: int = 0
+
+
+_ENDING = _Ending()
+
+
 def _stop(signum: int, frame: object) -> None:
+    if _ENDING.returned:
+        _end_now(signum)
     raise _Stopped(signum)
+
+
+def _end_now(signum: int) -> NoReturn:
+    """A stop once the command has returned, while the interpreter shuts down (threads joined, exit handlers run):
+    raised there, it is "ignored" with a traceback and the exit code stays 0. Its one line, and exit at once."""
+    message = f"error: {stopped(signal.Signals(signum).name, _ENDING.complete and str(_ENDING.complete))}\n"
+    with suppress(Exception):
+        sys.stdout.flush()
+    with suppress(Exception):
+        os.write(2, message.encode(errors="replace"))
+    os._exit(128 + signum)
+
+
+def skip_teardown() -> None:
+    """The last exit handler (``__main__`` registers it first): exit with the command's code without the
+    interpreter's teardown, during which the signals' handlers are gone (a Ctrl-C there ended a finished run
+    with 130 and no line); exit handlers registered after it have run."""
+    with suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(_ENDING.code)
 
 
 @contextmanager
@@ -119,8 +156,14 @@ def _main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
             raise _Stopped(signum)
         app(prog_name=prog_name)
     except _Stopped as e:  # outside typer: its Exit would not end the process here
-        typer.echo(f"error: {stopped(signal.Signals(e.signum).name)}", err=True)
-        sys.exit(128 + e.signum)
+        _ENDING.returned, _ENDING.code = True, 128 + e.signum
+        typer.echo(f"error: {stopped(signal.Signals(e.signum).name, _ENDING.complete and str(_ENDING.complete))}",
+                   err=True)
+        sys.exit(_ENDING.code)
+    except SystemExit as e:  # typer's end, always
+        _ENDING.returned = True
+        _ENDING.code = e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+        raise
 
 
 def _written(out: Path | None, started: float) -> bool:
@@ -294,6 +337,7 @@ def run(
     out = out or Path("results") / scene_dir.resolve().name
     started = time.time()
     result = _observed(run_pipeline, quiet, scene_dir, out, cfg, started)
+    _ENDING.complete = out
     with _guarded(out, started):
         _close(result, out, cfg.record)
 
@@ -361,6 +405,7 @@ def demo(
     scene_dir = _guard(generate)
     started = time.time()
     result = _observed(run_pipeline, quiet, scene_dir, out / "results", cfg, started)
+    _ENDING.complete = out / "results"
     with _guarded(out / "results", started):
         gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
         gt = gt[[gt_names.index(n) for n in result.names]]

@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -128,6 +129,16 @@ BAD_FILES = {
     "symlink loop": ("bad.ply", lambda p: os.symlink(p.name, p), "leads nowhere"),
     "broken symlink": ("bad.ply", lambda p: os.symlink("nowhere.ply", p), "leads nowhere"),
     "one stray point at 1e9 m": ("bad.npy", _stray(_good_scan(2)), "stray point"),
+    # nothing that is not a regular file is opened: a link to a FIFO hung the run for ever (the memory check opened
+    # it), a plain FIFO was left out without a word, a link to /dev/zero "leads nowhere"
+    "named pipe": ("bad.ply", os.mkfifo, "a named pipe (FIFO)"),
+    "symlink to a named pipe": ("bad.ply", lambda p: os.mkfifo(p.with_name("pipe")) or os.symlink("pipe", p),
+                                "a symbolic link to a named pipe (FIFO)"),
+    "symlink to /dev/zero": ("bad.ply", lambda p: os.symlink("/dev/zero", p),
+                             "a symbolic link to a character device (/dev/zero)"),
+    # UTM-like coordinates stored as float32: rounded to steps of 1 m, they registered nothing, and the error asked
+    # only whether the scans overlap
+    "float32 at 1e7 m": ("bad.ply", _binary_ply(_good_scan(2) + [1e7, 2e6, 0]), "where float32 rounds to steps of 1,"),
 }
 
 
@@ -153,11 +164,38 @@ def test_bad_scan_is_named_with_its_reason(case, tmp_path):
     np.save(scene / "good.npy", _good_scan(0))
     _write_bad(scene / name, content)
     out = _old_result(tmp_path / "out")
-    code, lines = _cli("run", scene, "--out", out, "--workers", "1")
+    with _at_most(60):  # a run that opens a pipe waits for ever
+        code, lines = _cli("run", scene, "--out", out, "--workers", "1")
     assert code == 2
     assert lines[-1].startswith("error: ") and f"skipped {name}" in lines[-1] and reason in lines[-1], lines[-1]
     assert [line for line in lines if line.startswith("error:")] == lines[-1:]
     assert _untouched(out)
+
+
+@contextlib.contextmanager
+def _at_most(seconds: float):
+    """The block, failed (not hung) when it takes longer than ``seconds``: SIGALRM, sent to the main thread itself
+    (sent to the process, another thread may take it and a blocking open goes on waiting) every second from then on
+    (code that swallows the error may open the pipe again)."""
+    def hung(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    done = threading.Event()
+
+    def alarm() -> None:
+        if not done.wait(seconds):
+            while not done.wait(1.0):
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGALRM)
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    thread = threading.Thread(target=alarm, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        signal.signal(signal.SIGALRM, previous)
 
 
 def _scene_with_scan(tmp_path: Path) -> Path:
@@ -476,6 +514,46 @@ def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, cod
         assert err.strip().splitlines() == [f"error: stopped by {name}: nothing written, earlier results left as "
                                             f"they were"], err
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
+
+
+_STOP_LATE = """
+import atexit, os, signal, sys, time
+import sghr_gtsam.__main__ as command
+from sghr_gtsam import cli
+
+app, when = cli.app, sys.argv[1]
+
+def stopped_late(*args, **kwargs):  # the stop as the command returns, or as Python shuts down
+    try:
+        app(*args, **kwargs)
+    finally:
+        if when == "returning":
+            signal.raise_signal(signal.{signal})
+        else:
+            atexit.register(lambda: (os.kill(os.getpid(), signal.{signal}), time.sleep(5)))
+
+cli.app = stopped_late
+sys.argv = [sys.argv[0], "run", *sys.argv[2:]]
+command.main("sghr-gtsam")
+"""
+
+
+@pytest.mark.parametrize("when", ["returning", "shutting down"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_after_the_results_are_swapped_in_says_they_are_complete(small_room, tmp_path, when, signum):
+    """A Ctrl-C right after the summary: as the command returned it said "nothing written" of complete results, and
+    while Python shut down it printed "Exception ignored in: <module 'threading'> ... _Stopped: 2" and exited 0 (or
+    ended with 130/143 and no line once Python had put the default handlers back)."""
+    name = signal.Signals(signum).name
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, "-c", _STOP_LATE.replace("{signal}", name), when, str(small_room),
+                           "--out", str(out), "--workers", "1", "--no-record", "--quiet"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 128 + signum, done.stderr
+    assert done.stderr.splitlines() == [f"error: stopped by {name} after the results were written: {out} is "
+                                        f"complete"], done.stderr
+    assert (out / "report.json").is_file()
 
 
 def test_a_scan_given_twice_gets_finite_covariances_and_strict_json(small_room, tmp_path):
