@@ -358,6 +358,32 @@ def _scene_kind(kind: str, scans: int) -> str:
     return kind
 
 
+def _check_demo_folders(out: Path) -> None:
+    """``InputError`` unless ``out/scene`` and ``out/results``, which the demo replaces, are new, empty or its own
+    earlier output: a scene ``synthetic.written_scene`` recognises (its gt_poses.txt and the scans it names, nothing
+    else), and beside it a run's results (``io.results.check_output_folder``)."""
+    from .io.results import check_output_folder
+    from .synthetic import written_scene
+
+    scene, results = out / "scene", out / "results"
+    ours = written_scene(scene)
+    if os.path.lexists(scene) and not ours and not _empty_folder(scene):
+        raise InputError(f"--out {out}: {scene} holds files the demo did not write (it writes generated scans and "
+                         f"gt_poses.txt, and replaces that folder as a whole); choose a new or empty --out")
+    if os.path.lexists(results) and not _empty_folder(results):
+        if not ours:
+            raise InputError(f"--out {out}: {results} is not the demo's (no scene it generated beside it), and the "
+                             f"demo replaces it as a whole; choose a new or empty --out")
+        check_output_folder(results, scene)
+
+
+def _empty_folder(path: Path) -> bool:
+    try:
+        return path.is_dir() and not any(path.iterdir())
+    except OSError:
+        return False
+
+
 @app.command()
 def demo(
     out: Path = typer.Option(Path("results/demo"), "--out", help="Where the generated scene and the results go."),
@@ -392,6 +418,7 @@ def demo(
                              f"their pairs: ~13 GB at {_MOST_SCANS:,}); got {scans:,}")
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out} is an existing file, not a folder")
+        _check_demo_folders(out)
         scene_kind = _scene_kind(kind, scans)
         try:
             scene = make_scene(kind=scene_kind, n_scans=scans, seed=seed)

@@ -711,6 +711,42 @@ def test_demo_with_one_scan_or_a_file_as_out_is_one_line_error(tmp_path):
     assert not (tmp_path / "d").exists() and (tmp_path / "file").read_text() == "x"
 
 
+def _tree(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): p.read_text() if p.is_file() else "/" for p in sorted(folder.rglob("*"))}
+
+
+def test_demo_replaces_nothing_it_did_not_write(tmp_path):
+    """`demo --out d` replaced d/scene with the user's scan and folder in it, without a word; with d/results
+    holding the user's file it refused, but only after d/scene was replaced. Now it refuses before touching
+    anything; its own earlier scene (gt_poses.txt and the scans it names) and results beside it it replaces."""
+    d = tmp_path / "d"
+    (d / "scene" / "sub").mkdir(parents=True)
+    (d / "scene" / "my_scan.xyz").write_text("1 2 3\n")
+    (d / "scene" / "sub" / "notes.md").write_text("n")
+    before = _tree(d)
+    code, lines = _cli("demo", "--out", d, "--scans", "3", "--workers", "1")
+    assert code == 2 and lines == [f"error: --out {d}: {d / 'scene'} holds files the demo did not write (it writes "
+                                   f"generated scans and gt_poses.txt, and replaces that folder as a whole); choose a "
+                                   f"new or empty --out"], lines
+    assert _tree(d) == before
+
+    e = tmp_path / "e"
+    (e / "results").mkdir(parents=True)
+    (e / "results" / "thesis.tex").write_text("mine")
+    code, lines = _cli("demo", "--out", e, "--scans", "3", "--workers", "1")
+    assert code == 2 and lines[-1].startswith(f"error: --out {e}: {e / 'results'} is not the demo's"), lines
+    assert _tree(e) == {"results": "/", "results/thesis.tex": "mine"}
+
+    from sghr_gtsam.cli import _check_demo_folders
+
+    write_scene(make_scene(kind="room", n_scans=3, seed=0), d / "ours" / "scene")
+    _old_result(d / "ours" / "results")
+    _check_demo_folders(d / "ours")  # its own earlier output: replaced
+    (d / "ours" / "scene" / "extra.ply").write_text("a user's scan")
+    with pytest.raises(InputError, match="holds files the demo did not write"):
+        _check_demo_folders(d / "ours")
+
+
 def test_demo_with_an_absurd_scan_count_is_refused_before_any_work(tmp_path):
     """`demo --scans 100000000` ran until stopped (generating a building of 1e8 scans)."""
     done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "demo", "--scans", "100000000", "--out",
