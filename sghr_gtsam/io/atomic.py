@@ -160,7 +160,7 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
         if not out.exists():
             os.rename(stage, out)
         else:
-            if carry and (out / carry).is_dir() and not (stage / carry).exists():
+            if carry and os.path.lexists(out / carry) and not os.path.lexists(stage / carry):  # a file too
                 os.rename(out / carry, stage / carry)
                 carried = True
             if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
@@ -172,7 +172,7 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
         with contextlib.suppress(OSError):  # put back what moved: the old results, then their cache
             if not out.exists() and old.exists():
                 os.rename(old, out)
-            if carried and not (out / carry).exists():
+            if carried and not os.path.lexists(out / carry):
                 os.rename(stage / carry, out / carry)
         if e.errno in (errno.EBUSY, errno.EXDEV):
             raise InputError(mounted(out, carry) or f"cannot swap the results into {out}: {e.filename} is a mount "
@@ -182,11 +182,16 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
     fsync_dir(out.parent)
 
 
-def _remove_empty(out: Path, carry: str | None, created: bool) -> None:
-    """After a failed run: the folders of ``out``'s ``carry`` that hold nothing, and ``out`` itself if the run created
-    it and left it empty (a first run that failed before storing anything leaves no ``OUT/cache/features``).
-    Entries a failed run stored stay, for the next run to resume from."""
-    folders = [Path(d) for d, _, _ in os.walk(out / carry, topdown=False)] if carry else []
+def _folders(top: Path) -> set[str]:
+    return {d for d, _, _ in os.walk(top)}
+
+
+def _remove_empty(out: Path, carry: str | None, created: bool, existed: set[str]) -> None:
+    """After a failed run: the folders of ``out``'s ``carry`` that hold nothing and were not there before it
+    (``existed``: a ``carry`` linked to a user's folder keeps its empty sub-folders), and ``out`` itself if the run
+    created it and left it empty (a first run that failed before storing anything leaves no
+    ``OUT/cache/features``). Entries a failed run stored stay, for the next run to resume from."""
+    folders = [Path(d) for d, _, _ in os.walk(out / carry, topdown=False) if d not in existed] if carry else []
     for folder in folders + ([out] if created else []):
         try:
             folder.rmdir()
@@ -204,6 +209,7 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     replaced, the link stays."""
     out = Path(os.path.realpath(out))
     created = not out.exists()
+    existed = _folders(out / carry) if carry else set()
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         _remove_stale(out, carry)
@@ -220,5 +226,5 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
         _swap_in(stage, out, carry)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
-        _remove_empty(out, carry, created)
+        _remove_empty(out, carry, created, existed)
         raise
