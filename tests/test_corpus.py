@@ -650,6 +650,71 @@ def test_a_failed_first_run_leaves_no_empty_cache_folder(tmp_path):
     assert _untouched(out) and not (out / "cache").exists()
 
 
+def _poses(out: Path) -> np.ndarray:
+    from sghr_gtsam.io.poses import read_poses
+
+    return read_poses(out / "poses.txt")[1]
+
+
+def test_cache_entries_that_are_no_files_or_no_rigid_transforms_are_recomputed(small_room, tmp_path):
+    """Entries that are a folder, a pipe, a link to /dev/zero or a cached pair whose rotation is scaled or
+    reflected each ended the run with exit 2 (the message not saying it was the cache); an entry linked to a user's
+    file got that file overwritten. Each is now recomputed to the same poses and the user's file left alone; an
+    OUT/cache, or its features folder, that is a file: the run keeps no cache, says so, and the file stays."""
+    out = tmp_path / "out"
+    args = ("run", small_room, "--out", out, "--workers", "1", "--no-record", "--quiet")
+    assert _cli(*args)[0] == 0
+    first = _poses(out)
+    features, pairs = (sorted((out / CACHE / kind).glob("*.npz")) for kind in ("features", "pairs"))
+    features[0].unlink()
+    features[0].mkdir()
+    features[1].unlink()
+    os.mkfifo(features[1])
+    features[2].unlink()
+    os.symlink("/dev/zero", features[2])
+    mine = tmp_path / "thesis.tex"
+    mine.write_text("mine")
+    pairs[0].unlink()
+    os.symlink(mine, pairs[0])
+    for path, change in zip(pairs[1:3], (np.diag([2.0, 2.0, 2.0, 1.0]), np.diag([1.0, 1.0, -1.0, 1.0]))):
+        with np.load(path) as archive:
+            arrays = dict(archive)
+        arrays["T"] = arrays["T"] @ change
+        with open(path, "wb") as f:
+            np.savez(f, **arrays)
+    with _at_most(120):
+        code, lines = _cli(*args)
+    assert code == 0, lines
+    assert json.loads((out / "report.json").read_text())["cache"]["unreadable"] == 6
+    np.testing.assert_allclose(_poses(out), first, atol=1e-9)
+    assert mine.read_text() == "mine" and all(p.is_file() and not p.is_symlink() for p in features[:3] + pairs[:3])
+
+    shutil.rmtree(out / CACHE / "features")
+    (out / CACHE / "features").write_text("not a folder")
+    code, lines = _cli(*args[:-1])
+    assert code == 0 and f"the cache {out / CACHE} cannot be used ({out / CACHE / 'features'} is not a folder): this " \
+        "run keeps none" in lines, lines
+    shutil.rmtree(out / CACHE)
+    (out / CACHE).write_text("a file")
+    code, lines = _cli(*args[:-1])
+    assert code == 0 and any(line.startswith(f"the cache {out / CACHE} cannot be used") for line in lines), lines
+    assert (out / CACHE).read_text() == "a file"
+    np.testing.assert_allclose(_poses(out), first, atol=1e-9)
+
+
+def test_a_linked_cache_keeps_the_users_empty_folders_after_a_failure(tmp_path):
+    """OUT/cache linked to a user's folder: a failed run removed every empty folder in it."""
+    mine = tmp_path / "mine"
+    (mine / "empty" / "deeper").mkdir(parents=True)
+    out = _old_result(tmp_path / "out")
+    os.symlink(mine, out / CACHE)
+    with pytest.raises(OSError):
+        with staged_folder(out, carry=CACHE):
+            (out / CACHE / "features").mkdir()  # the cache's own: removed
+            raise OSError(28, "No space left on device")
+    assert sorted(str(p.relative_to(mine)) for p in mine.rglob("*")) == ["empty", "empty/deeper"]
+
+
 @contextlib.contextmanager
 def _tmpfs(folder: Path, size: str):
     """A tmpfs of ``size`` mounted at ``folder`` for the block; skips the test where mounting is not allowed."""
