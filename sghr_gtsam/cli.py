@@ -308,7 +308,7 @@ def run(
     descriptor: Optional[str] = typer.Option(None, help="Local descriptor pairs are matched on: fpfh or learned "
                                              "(trained on simulated rooms; more pairs right on 3DMatch, slower)."
                                              + _default(_DEFAULT.descriptor)),
-    features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
+    features: Optional[str] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
     workers: Optional[int] = typer.Option(None, help="Processes for local features, pairwise registration, "
@@ -328,7 +328,7 @@ def run(
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
                  workers=workers, ray=ray, record=record, cache=cache, global_feature=global_feature,
-                 descriptor=descriptor, features=features and str(features),
+                 descriptor=descriptor, features=features,
                  overlap_head=overlap_head and str(overlap_head))
     with _loading():
         _start_workers(cfg)
@@ -362,10 +362,11 @@ def _check_demo_folders(out: Path) -> None:
     """``InputError`` unless ``out/scene`` and ``out/results``, which the demo replaces, are new, empty or its own
     earlier output: a scene ``synthetic.written_scene`` recognises (its gt_poses.txt and the scans it names, nothing
     else), and beside it a run's results (``io.results.check_output_folder``)."""
-    from .io.results import check_output_folder
+    from .io.results import check_output_folder, check_output_path
     from .synthetic import written_scene
 
     scene, results = out / "scene", out / "results"
+    check_output_path(scene)
     ours = written_scene(scene)
     if os.path.lexists(scene) and not ours and not _empty_folder(scene):
         raise InputError(f"--out {out}: {scene} holds files the demo did not write (it writes generated scans and "

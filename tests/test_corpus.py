@@ -258,6 +258,17 @@ BAD_RUNS = {
                              "must hold a JSON object"),
     "--features missing folder": (lambda t, s, o: [s, "--out", o, "--features", t / "nowhere"], "features"),
     "--features a file": (lambda t, s, o: [s, "--out", o, "--features", s / "s0.npy"], "features"),
+    # crawled the current folder (from /, the whole tree)
+    "--features empty": (["--features", ""], "features must name a folder; got an empty path"),
+    # "unexpected MemoryError", "unexpected IndexError", or no bound at all
+    "--iters 1e9": (["--iters", "1000000000"], "iters must be an integer from 1 to 10,000; got 1,000,000,000"),
+    "--iters 2^63": (["--iters", str(2**63)], "iters must be an integer from 1 to 10,000; got 9,223,372,036,854,775,"),
+    "--iters 1e6": (["--iters", "1000000"], "iters must be an integer from 1 to 10,000; got 1,000,000"),
+    # "unexpected RuntimeError", and "File exists" for "Not a directory"
+    "--out a symbolic link loop": (lambda t, s, o: [s, "--out", os.symlink("loop", t / "loop") or t / "loop"],
+                                   "is, or lies through, a symbolic link loop"),
+    "--out below a file": (lambda t, s, o: [s, "--out", (t / "f").write_text("x") and t / "f" / "sub"],
+                           "cannot be made: "),
 }
 
 
