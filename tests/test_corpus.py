@@ -713,6 +713,17 @@ def test_cache_entries_that_are_no_files_or_no_rigid_transforms_are_recomputed(s
     np.testing.assert_allclose(_poses(out), first, atol=1e-9)
 
 
+def test_a_second_run_into_an_output_folder_being_written_refuses(small_room, tmp_path):
+    """Two runs into one OUT both exited 0, the later silently replacing the other's results."""
+    out = _old_result(tmp_path / "out")
+    with staged_folder(out, carry=CACHE) as stage:  # a run writing OUT
+        code, lines = _cli("run", small_room, "--out", out, "--workers", "1", "--no-record", "--quiet")
+        assert code == 2 and lines == [f"error: {out} is being written by another run (pid {os.getpid()}): wait for "
+                                       f"it to end, or choose another output folder"], lines
+        (stage / "poses.txt").write_text("new\n")
+    assert [p.name for p in out.iterdir()] == ["poses.txt"] and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
 def test_a_linked_cache_keeps_the_users_empty_folders_after_a_failure(tmp_path):
     """OUT/cache linked to a user's folder: a failed run removed every empty folder in it."""
     mine = tmp_path / "mine"

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import fcntl
 import os
 import re
 import shutil
@@ -199,6 +200,41 @@ def _remove_empty(out: Path, carry: str | None, created: bool, existed: set[str]
             pass
 
 
+def _lock(out: Path) -> int | None:
+    """The lock of the one writer of ``out``: an ``flock`` on ``.<name>.lock`` beside it, holding the writer's pid;
+    its descriptor (None where the file system has no locks). ``InputError`` when another process holds it."""
+    path = out.with_name(f".{out.name}.lock")
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip()
+            os.close(fd)
+            raise InputError(f"{out} is being written by another run{f' (pid {holder})' if holder else ''}: wait for "
+                             f"it to end, or choose another output folder") from None
+        except OSError as e:
+            os.close(fd)
+            if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP):
+                return None
+            raise
+        try:  # the holder removes the file as it lets go: a lock on that file is no lock on the path
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _unlock(out: Path, fd: int | None) -> None:
+    if fd is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(out.with_name(f".{out.name}.lock"))
+        os.close(fd)
+
+
 @contextlib.contextmanager
 def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     """A new folder beside ``out`` to write a folder's files into; swapped in as ``out`` when the block completes,
@@ -206,21 +242,27 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     a subfolder of ``out`` written in place during the block (a resume cache) and kept across the swap; its folders
     left empty by a block that raised are removed (``_remove_empty``). Stale
     folders of stopped runs are removed first. A symbolic link ``out`` is followed: the folder it leads to is
-    replaced, the link stays."""
+    replaced, the link stays. One writer of ``out`` at a time: a second one gets ``InputError`` (``_lock``)."""
     out = Path(os.path.realpath(out))
     created = not out.exists()
     existed = _folders(out / carry) if carry else set()
+    lock = None
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
+        lock = _lock(out)
         _remove_stale(out, carry)
         stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-{os.getpid()}-"))
         os.chmod(stage, 0o777 & ~_UMASK)  # mkdtemp makes it 0700: the results are for others to read as well
     except OSError as e:
+        _unlock(out, lock)
         if e.errno == errno.ENAMETOOLONG and len(os.fsencode(out.name)) <= 255:  # the staging name is longer
             raise InputError(f"output folder name {out.name[:20]}... is {len(os.fsencode(out.name))} bytes: the "
                              f"results are staged beside it as .{out.name[:8]}...tmp-PID-XXXXXXXX, a name up to 22 "
                              f"bytes longer, which the file system refuses; choose a shorter name") from None
         raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
+    except BaseException:
+        _unlock(out, lock)
+        raise
     try:
         yield stage
         _swap_in(stage, out, carry)
@@ -228,3 +270,5 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
         shutil.rmtree(stage, ignore_errors=True)
         _remove_empty(out, carry, created, existed)
         raise
+    finally:
+        _unlock(out, lock)
