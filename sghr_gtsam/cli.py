@@ -99,7 +99,10 @@ def _end_now(signum: int) -> NoReturn:
 def skip_teardown() -> None:
     """The last exit handler (``__main__`` registers it first): exit with the command's code without the
     interpreter's teardown, during which the signals' handlers are gone (a Ctrl-C there ended a finished run
-    with 130 and no line); exit handlers registered after it have run."""
+    with 130 and no line); exit handlers registered after it have run. Not after a failure the command did not
+    end itself (a traceback's exit code stays)."""
+    if not _ENDING.returned:
+        return
     with suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()
