@@ -7,7 +7,8 @@ registration (``pairs``) and its re-registration from a synchronized guess (``re
 closures). A key is a digest of everything that made the result: the scan's points (``ScanStats.digest``), its given
 keypoints and its centre, the parameters (voxel, radii, matcher, ICP distance, seed, the guess), the source of the
 modules that compute them and the versions of the libraries they call; a change to any of them misses. An entry
-that cannot be read (truncated, damaged) is computed again and overwritten. Nothing removes old entries: delete
+that cannot be read (truncated, damaged, no regular file: a folder, a pipe, a link) is computed again and replaced,
+never written through a link (``_clear``). Nothing removes old entries: delete
 the folder to reclaim its space. During a run the features and grids are read back from these files where a task
 needs them (``store``; a run without a cache writes the same files into a temporary folder).
 """
