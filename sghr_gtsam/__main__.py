@@ -1,5 +1,6 @@
 """``python -m sghr_gtsam`` and the ``sghr-gtsam`` console script (``main``)."""
 
+import atexit
 import signal
 
 
@@ -9,9 +10,16 @@ def main(prog_name: str | None = None) -> None:
     arrived: list[int] = []
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda signum, frame: arrived.append(signum))
+    atexit.register(_last)  # first registered, run last: after every library's exit handler
     from .cli import _main as command_line
 
     command_line(prog_name, arrived)
+
+
+def _last() -> None:
+    from .cli import skip_teardown
+
+    skip_teardown()
 
 
 if __name__ == "__main__":

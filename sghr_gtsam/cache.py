@@ -7,7 +7,8 @@ registration (``pairs``) and its re-registration from a synchronized guess (``re
 closures). A key is a digest of everything that made the result: the scan's points (``ScanStats.digest``), its given
 keypoints and its centre, the parameters (voxel, radii, matcher, ICP distance, seed, the guess), the source of the
 modules that compute them and the versions of the libraries they call; a change to any of them misses. An entry
-that cannot be read (truncated, damaged) is computed again and overwritten. Nothing removes old entries: delete
+that cannot be read (truncated, damaged, no regular file: a folder, a pipe, a link) is computed again and replaced,
+never written through a link (``_clear``). Nothing removes old entries: delete
 the folder to reclaim its space. During a run the features and grids are read back from these files where a task
 needs them (``store``; a run without a cache writes the same files into a temporary folder).
 """
@@ -15,6 +16,9 @@ needs them (``store``; a run without a cache writes the same files into a tempor
 from __future__ import annotations
 
 import hashlib
+import os
+import stat
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -122,10 +126,15 @@ entries swapped) is another scan's or pair's result, which its readable arrays a
 
 
 def read_entry(path: Path, kind: Kind) -> Any:
-    """The result of ``kind`` stored at ``path``, ``MISS`` when there is none; raises when it cannot be read or
-    holds another key's result."""
-    if not path.is_file():
+    """The result of ``kind`` stored at ``path``, ``MISS`` when there is none; raises when it cannot be read, is
+    not a regular file (a folder; a pipe, a device or a symbolic link is never opened) or holds another key's
+    result."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
         return MISS
+    if not stat.S_ISREG(mode):
+        raise ValueError(f"{path.name} is not a regular file")
     with np.load(path, allow_pickle=False) as archive:
         arrays = {name: archive[name] for name in archive.files}  # reading each checks its CRC
     if str(arrays.pop(_KEY, "")) != path.stem:
@@ -175,7 +184,9 @@ class Cache:
     def store(self, kind: Kind, key: str | None, result: Any) -> None:
         arrays = None if key is None else kind.encode(result)
         if arrays is not None:
-            with atomic_write(self._path(kind, key), "wb") as f:
+            path = self._path(kind, key)
+            _clear(path)
+            with atomic_write(path, "wb") as f:
                 np.savez(f, **arrays, **{_KEY: np.array(key)})
 
     def map(self, kind: Kind, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
@@ -206,6 +217,30 @@ class Cache:
         self.counts[kind.name]["cached"] += len(tasks) - len(todo)
         self.counts[kind.name]["computed"] += len(todo)
         return results
+
+
+def _clear(path: Path) -> None:
+    """Make way for an entry at ``path`` where something that is no entry's file stands: a symbolic link is removed
+    (written through, it replaced the user's file it leads to), so are a pipe, a device or a socket; a folder is
+    moved aside to a hidden name (``.<name>.folder-XXXX``: what it holds is kept)."""
+    try:
+        mode = os.lstat(path).st_mode
+    except FileNotFoundError:
+        return
+    if stat.S_ISDIR(mode):
+        os.rename(path, tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.folder-"))
+    elif not stat.S_ISREG(mode):
+        path.unlink()
+
+
+def unusable(folder: str | Path) -> str | None:
+    """Why ``folder`` cannot hold a cache, or None: it, or the folder of one of its kinds, is something else than a
+    folder (a file, a broken link). The run then keeps no cache rather than failing at its first write."""
+    folder = Path(folder)
+    for path in (folder, *(folder / kind for kind in KINDS)):
+        if os.path.lexists(path) and not path.is_dir():
+            return f"{path} is not a folder"
+    return None
 
 
 MISS = object()

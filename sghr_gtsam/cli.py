@@ -8,8 +8,8 @@ import signal
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import replace
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn, Optional
 
@@ -66,8 +66,47 @@ class _Stopped(BaseException):
         self.signum = signum
 
 
+@dataclass
+class _Ending:
+    """How the command ends: the results folder it completed (``complete``, its line on a stop after it), and from
+    when nothing is left to unwind (``returned``: a stop ends the process at once, ``_end_now``), with ``code``."""
+
+    complete: Path | None = None
+    returned: bool = False
+    code: int = 0
+
+
+_ENDING = _Ending()
+
+
 def _stop(signum: int, frame: object) -> None:
+    if _ENDING.returned:
+        _end_now(signum)
     raise _Stopped(signum)
+
+
+def _end_now(signum: int) -> NoReturn:
+    """A stop once the command has returned, while the interpreter shuts down (threads joined, exit handlers run):
+    raised there, it is "ignored" with a traceback and the exit code stays 0. Its one line, and exit at once."""
+    message = f"error: {stopped(signal.Signals(signum).name, _ENDING.complete and str(_ENDING.complete))}\n"
+    with suppress(Exception):
+        sys.stdout.flush()
+    with suppress(Exception):
+        os.write(2, message.encode(errors="replace"))
+    os._exit(128 + signum)
+
+
+def skip_teardown() -> None:
+    """The last exit handler (``__main__`` registers it first): exit with the command's code without the
+    interpreter's teardown, during which the signals' handlers are gone (a Ctrl-C there ended a finished run
+    with 130 and no line); exit handlers registered after it have run. Not after a failure the command did not
+    end itself (a traceback's exit code stays)."""
+    if not _ENDING.returned:
+        return
+    with suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(_ENDING.code)
 
 
 @contextmanager
@@ -120,8 +159,14 @@ def _main(prog_name: str | None = None, arrived: Sequence[int] = ()) -> None:
             raise _Stopped(signum)
         app(prog_name=prog_name)
     except _Stopped as e:  # outside typer: its Exit would not end the process here
-        typer.echo(f"error: {stopped(signal.Signals(e.signum).name)}", err=True)
-        sys.exit(128 + e.signum)
+        _ENDING.returned, _ENDING.code = True, 128 + e.signum
+        typer.echo(f"error: {stopped(signal.Signals(e.signum).name, _ENDING.complete and str(_ENDING.complete))}",
+                   err=True)
+        sys.exit(_ENDING.code)
+    except SystemExit as e:  # typer's end, always
+        _ENDING.returned = True
+        _ENDING.code = e.code if isinstance(e.code, int) else 0 if e.code is None else 1
+        raise
 
 
 def _written(out: Path | None, started: float) -> bool:
@@ -270,7 +315,7 @@ def run(
     descriptor: Optional[str] = typer.Option(None, help="Local descriptor pairs are matched on: fpfh or learned "
                                              "(trained on simulated rooms; more pairs right on 3DMatch, slower)."
                                              + _default(_DEFAULT.descriptor)),
-    features: Optional[Path] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
+    features: Optional[str] = typer.Option(None, "--features", help="Folder of precomputed features per scan: <stem>.kpts.npy (Kx3, scan frame) and <stem>.desc.npy (KxD), also in sub-folders; they replace FPFH. Scans without them are skipped."),
     overlap_head: Optional[Path] = typer.Option(None, "--overlap-head", help="NetVLAD overlap head checkpoint (e.g. the SGHR authors' netvlad_overlap_model_best.pth for YOHO); given, it scores the overlaps."),
     seed: Optional[int] = typer.Option(None, help="Seed of every random choice." + _default(_DEFAULT.seed)),
     max_sigma: Optional[float] = typer.Option(None, "--max-sigma", help="Largest σ (scene units) along a direction "
@@ -293,8 +338,7 @@ def run(
     """Register every scan of SCENE_DIR into one frame and write the results folder."""
     cfg = _guard(_config, config_file, voxel=voxel, k=k, iters=iters, method=method, polish=polish, seed=seed,
                  max_sigma=max_sigma, workers=workers, ray=ray, record=record, cache=cache,
-                 global_feature=global_feature,
-                 descriptor=descriptor, features=features and str(features),
+                 global_feature=global_feature, descriptor=descriptor, features=features,
                  overlap_head=overlap_head and str(overlap_head))
     with _loading():
         _start_workers(cfg)
@@ -303,6 +347,7 @@ def run(
     out = out or Path("results") / scene_dir.resolve().name
     started = time.time()
     result = _observed(run_pipeline, quiet, scene_dir, out, cfg, started)
+    _ENDING.complete = out
     with _guarded(out, started):
         _close(result, out, cfg.record)
 
@@ -321,6 +366,33 @@ def _scene_kind(kind: str, scans: int) -> str:
     if kind not in _SCENE_KINDS:
         raise InputError(f"--kind must be auto or one of {', '.join(_SCENE_KINDS)}; got {kind!r}")
     return kind
+
+
+def _check_demo_folders(out: Path) -> None:
+    """``InputError`` unless ``out/scene`` and ``out/results``, which the demo replaces, are new, empty or its own
+    earlier output: a scene ``synthetic.written_scene`` recognises (its gt_poses.txt and the scans it names, nothing
+    else), and beside it a run's results (``io.results.check_output_folder``)."""
+    from .io.results import check_output_folder, check_output_path
+    from .synthetic import written_scene
+
+    scene, results = out / "scene", out / "results"
+    check_output_path(scene)
+    ours = written_scene(scene)
+    if os.path.lexists(scene) and not ours and not _empty_folder(scene):
+        raise InputError(f"--out {out}: {scene} holds files the demo did not write (it writes generated scans and "
+                         f"gt_poses.txt, and replaces that folder as a whole); choose a new or empty --out")
+    if os.path.lexists(results) and not _empty_folder(results):
+        if not ours:
+            raise InputError(f"--out {out}: {results} is not the demo's (no scene it generated beside it), and the "
+                             f"demo replaces it as a whole; choose a new or empty --out")
+        check_output_folder(results, scene)
+
+
+def _empty_folder(path: Path) -> bool:
+    try:
+        return path.is_dir() and not any(path.iterdir())
+    except OSError:
+        return False
 
 
 @app.command()
@@ -357,6 +429,7 @@ def demo(
                              f"their pairs: ~13 GB at {_MOST_SCANS:,}); got {scans:,}")
         if out.exists() and not out.is_dir():
             raise InputError(f"--out {out} is an existing file, not a folder")
+        _check_demo_folders(out)
         scene_kind = _scene_kind(kind, scans)
         try:
             scene = make_scene(kind=scene_kind, n_scans=scans, seed=seed)
@@ -370,6 +443,7 @@ def demo(
     scene_dir = _guard(generate)
     started = time.time()
     result = _observed(run_pipeline, quiet, scene_dir, out / "results", cfg, started)
+    _ENDING.complete = out / "results"
     with _guarded(out / "results", started):
         gt_names, gt = read_poses(scene_dir / "gt_poses.txt")
         gt = gt[[gt_names.index(n) for n in result.names]]

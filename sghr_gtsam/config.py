@@ -178,7 +178,7 @@ class Config:
 
     def validate(self) -> "Config":
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
-        from .sync import METHODS, POLISHES
+        from .sync import MAX_ITERS, METHODS, POLISHES
         from .sync.irls import REWEIGHTS
 
         choices = {"descriptor": DESCRIPTORS, "global_feature": ("vlad", "learned"), "matcher": MATCHERS,
@@ -195,6 +195,10 @@ class Config:
         for name in ("k", "iters", "min_points", "rounds"):
             if getattr(self, name) < 1:
                 raise InputError(f"{name} must be a positive integer; got {getattr(self, name)!r}")
+        if self.iters > MAX_ITERS:
+            raise InputError(f"iters must be an integer from 1 to {MAX_ITERS:,}; got {self.iters:,}")
+        if self.features is not None and not str(self.features).strip():  # Path("") is the current folder
+            raise InputError("features must name a folder; got an empty path")
         if self.workers is not None and self.workers < 1:
             raise InputError(f"workers must be a positive integer; got {self.workers!r}")
         if self.ray is not None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import local_frame
-from .cache import Cache, pyramid_key, scan_key
+from .cache import Cache, pyramid_key, scan_key, unusable
 from .config import Config
 from .executor import kept_workers, start_server
 from .features.local import FEATURES, scan_features
@@ -422,6 +422,9 @@ def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log | N
         scans, skipped = load_scene(scene_dir, config, log)
     with staged_folder(out, carry=CACHE) as stage:
         cache = Cache(out / CACHE) if config.cache else None  # written in place: kept across the swap
+        if cache and (why := unusable(cache.folder)):
+            log(f"the cache {cache.folder} cannot be used ({why}): this run keeps none")
+            cache = None
         store = Store(cache, scratch=stage)  # without a cache, removed before the swap (and with the stage)
         try:
             recorder = None

@@ -47,6 +47,10 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
             log(f"skipped {path.name}: {sparse}")
             continue
         stats = ScanStats.of(P)
+        if coarse := _float32_rounding(P, stats.extent):
+            skipped[path.name] = coarse
+            log(f"skipped {path.name}: {coarse}")
+            continue
         del P  # the stages read the scan again when they need its points: none holds every scan's at once
         if stats.digest in digests:
             log(f"note: {path.name} holds the same points as {digests[stats.digest]}")
@@ -65,6 +69,28 @@ def load_scene(folder: str | Path, config: Config, log: Log = print) -> tuple[li
     for name in left_out(folder):  # said once the scene is read: an error stays the one line printed
         log(f"not a scan, by its name: {shown_name(name)} (poses, a trajectory, overlaps or a readme)")
     return scans, skipped
+
+
+FLOAT32_RATIO = 50.0
+"""A scan whose coordinates are all float32 values, at a magnitude where float32's steps exceed 1/this of its extent,
+is skipped: it lost its shape to rounding where it was written (float32 keeps 24 bits: steps of 0.25 m at
+2·10⁶ m, UTM northings), and the default voxel is 1/100 of the extent. Four 6.3 m room scans stored as float32
+register at 5·10⁵ (steps of 1/100 of their extent) and none at 2·10⁶ (1/25: "no pair could be registered")."""
+
+
+def _float32_rounding(points: np.ndarray, extent: float) -> str | None:
+    """Why ``points`` (finite, float64) are too coarse to register, rounded to float32 (``FLOAT32_RATIO``), or
+    None. Told from the values (every one a float32) rather than the file's type, for every reader alike."""
+    sample = points[:: max(1, len(points) // 10_000)]
+    if extent <= 0 or not np.array_equal(sample, sample.astype(np.float32)):
+        return None
+    size = float(np.abs(points).max())
+    step = float(np.spacing(np.float32(size)))
+    if step * FLOAT32_RATIO <= extent:
+        return None
+    return (f"its coordinates are float32 values up to {size:.3g}, where float32 rounds to steps of {step:.3g}, "
+            f"1/{extent / step:.3g} of its extent {extent:.3g}: the precision was lost where it was written "
+            f"(store such coordinates as float64, or with the offset taken out)")
 
 
 def too_few(scans: list[Scan], skipped: dict[str, str], where: str = "") -> InputError:

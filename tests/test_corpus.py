@@ -16,6 +16,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -129,6 +130,16 @@ BAD_FILES = {
     "symlink loop": ("bad.ply", lambda p: os.symlink(p.name, p), "leads nowhere"),
     "broken symlink": ("bad.ply", lambda p: os.symlink("nowhere.ply", p), "leads nowhere"),
     "one stray point at 1e9 m": ("bad.npy", _stray(_good_scan(2)), "stray point"),
+    # nothing that is not a regular file is opened: a link to a FIFO hung the run for ever (the memory check opened
+    # it), a plain FIFO was left out without a word, a link to /dev/zero "leads nowhere"
+    "named pipe": ("bad.ply", os.mkfifo, "a named pipe (FIFO)"),
+    "symlink to a named pipe": ("bad.ply", lambda p: os.mkfifo(p.with_name("pipe")) or os.symlink("pipe", p),
+                                "a symbolic link to a named pipe (FIFO)"),
+    "symlink to /dev/zero": ("bad.ply", lambda p: os.symlink("/dev/zero", p),
+                             "a symbolic link to a character device (/dev/zero)"),
+    # UTM-like coordinates stored as float32: rounded to steps of 1 m, they registered nothing, and the error asked
+    # only whether the scans overlap
+    "float32 at 1e7 m": ("bad.ply", _binary_ply(_good_scan(2) + [1e7, 2e6, 0]), "where float32 rounds to steps of 1,"),
 }
 
 
@@ -154,11 +165,38 @@ def test_bad_scan_is_named_with_its_reason(case, tmp_path):
     np.save(scene / "good.npy", _good_scan(0))
     _write_bad(scene / name, content)
     out = _old_result(tmp_path / "out")
-    code, lines = _cli("run", scene, "--out", out, "--workers", "1")
+    with _at_most(60):  # a run that opens a pipe waits for ever
+        code, lines = _cli("run", scene, "--out", out, "--workers", "1")
     assert code == 2
     assert lines[-1].startswith("error: ") and f"skipped {name}" in lines[-1] and reason in lines[-1], lines[-1]
     assert [line for line in lines if line.startswith("error:")] == lines[-1:]
     assert _untouched(out)
+
+
+@contextlib.contextmanager
+def _at_most(seconds: float):
+    """The block, failed (not hung) when it takes longer than ``seconds``: SIGALRM, sent to the main thread itself
+    (sent to the process, another thread may take it and a blocking open goes on waiting) every second from then on
+    (code that swallows the error may open the pipe again)."""
+    def hung(signum, frame):
+        raise TimeoutError(f"still running after {seconds} s")
+
+    done = threading.Event()
+
+    def alarm() -> None:
+        if not done.wait(seconds):
+            while not done.wait(1.0):
+                signal.pthread_kill(threading.main_thread().ident, signal.SIGALRM)
+
+    previous = signal.signal(signal.SIGALRM, hung)
+    thread = threading.Thread(target=alarm, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+        signal.signal(signal.SIGALRM, previous)
 
 
 def _scene_with_scan(tmp_path: Path) -> Path:
@@ -221,6 +259,17 @@ BAD_RUNS = {
                              "must hold a JSON object"),
     "--features missing folder": (lambda t, s, o: [s, "--out", o, "--features", t / "nowhere"], "features"),
     "--features a file": (lambda t, s, o: [s, "--out", o, "--features", s / "s0.npy"], "features"),
+    # crawled the current folder (from /, the whole tree)
+    "--features empty": (["--features", ""], "features must name a folder; got an empty path"),
+    # "unexpected MemoryError", "unexpected IndexError", or no bound at all
+    "--iters 1e9": (["--iters", "1000000000"], "iters must be an integer from 1 to 10,000; got 1,000,000,000"),
+    "--iters 2^63": (["--iters", str(2**63)], "iters must be an integer from 1 to 10,000; got 9,223,372,036,854,775,"),
+    "--iters 1e6": (["--iters", "1000000"], "iters must be an integer from 1 to 10,000; got 1,000,000"),
+    # "unexpected RuntimeError", and "File exists" for "Not a directory"
+    "--out a symbolic link loop": (lambda t, s, o: [s, "--out", os.symlink("loop", t / "loop") or t / "loop"],
+                                   "is, or lies through, a symbolic link loop"),
+    "--out below a file": (lambda t, s, o: [s, "--out", (t / "f").write_text("x") and t / "f" / "sub"],
+                           "cannot be made: "),
 }
 
 
@@ -479,6 +528,46 @@ def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, cod
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
 
 
+_STOP_LATE = """
+import atexit, os, signal, sys, time
+import sghr_gtsam.__main__ as command
+from sghr_gtsam import cli
+
+app, when = cli.app, sys.argv[1]
+
+def stopped_late(*args, **kwargs):  # the stop as the command returns, or as Python shuts down
+    try:
+        app(*args, **kwargs)
+    finally:
+        if when == "returning":
+            signal.raise_signal(signal.{signal})
+        else:
+            atexit.register(lambda: (os.kill(os.getpid(), signal.{signal}), time.sleep(5)))
+
+cli.app = stopped_late
+sys.argv = [sys.argv[0], "run", *sys.argv[2:]]
+command.main("sghr-gtsam")
+"""
+
+
+@pytest.mark.parametrize("when", ["returning", "shutting down"])
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_stop_after_the_results_are_swapped_in_says_they_are_complete(small_room, tmp_path, when, signum):
+    """A Ctrl-C right after the summary: as the command returned it said "nothing written" of complete results, and
+    while Python shut down it printed "Exception ignored in: <module 'threading'> ... _Stopped: 2" and exited 0 (or
+    ended with 130/143 and no line once Python had put the default handlers back)."""
+    name = signal.Signals(signum).name
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, "-c", _STOP_LATE.replace("{signal}", name), when, str(small_room),
+                           "--out", str(out), "--workers", "1", "--no-record", "--quiet"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 128 + signum, done.stderr
+    assert done.stderr.splitlines() == [f"error: stopped by {name} after the results were written: {out} is "
+                                        f"complete"], done.stderr
+    assert (out / "report.json").is_file()
+
+
 def test_a_scan_given_twice_gets_finite_covariances_and_strict_json(small_room, tmp_path):
     """Two identical scans fit with residuals of rounding alone: their information overflowed, gtsam's marginals
     gave NaN, report.json held 190 NaN (which strict JSON readers refuse) and every scan was reported loose."""
@@ -572,6 +661,82 @@ def test_a_failed_first_run_leaves_no_empty_cache_folder(tmp_path):
     assert _untouched(out) and not (out / "cache").exists()
 
 
+def _poses(out: Path) -> np.ndarray:
+    from sghr_gtsam.io.poses import read_poses
+
+    return read_poses(out / "poses.txt")[1]
+
+
+def test_cache_entries_that_are_no_files_or_no_rigid_transforms_are_recomputed(small_room, tmp_path):
+    """Entries that are a folder, a pipe, a link to /dev/zero or a cached pair whose rotation is scaled or
+    reflected each ended the run with exit 2 (the message not saying it was the cache); an entry linked to a user's
+    file got that file overwritten. Each is now recomputed to the same poses and the user's file left alone; an
+    OUT/cache, or its features folder, that is a file: the run keeps no cache, says so, and the file stays."""
+    out = tmp_path / "out"
+    args = ("run", small_room, "--out", out, "--workers", "1", "--no-record", "--quiet")
+    assert _cli(*args)[0] == 0
+    first = _poses(out)
+    features, pairs = (sorted((out / CACHE / kind).glob("*.npz")) for kind in ("features", "pairs"))
+    features[0].unlink()
+    features[0].mkdir()
+    features[1].unlink()
+    os.mkfifo(features[1])
+    features[2].unlink()
+    os.symlink("/dev/zero", features[2])
+    mine = tmp_path / "thesis.tex"
+    mine.write_text("mine")
+    pairs[0].unlink()
+    os.symlink(mine, pairs[0])
+    for path, change in zip(pairs[1:3], (np.diag([2.0, 2.0, 2.0, 1.0]), np.diag([1.0, 1.0, -1.0, 1.0]))):
+        with np.load(path) as archive:
+            arrays = dict(archive)
+        arrays["T"] = arrays["T"] @ change
+        with open(path, "wb") as f:
+            np.savez(f, **arrays)
+    with _at_most(120):
+        code, lines = _cli(*args)
+    assert code == 0, lines
+    assert json.loads((out / "report.json").read_text())["cache"]["unreadable"] == 6
+    np.testing.assert_allclose(_poses(out), first, atol=1e-9)
+    assert mine.read_text() == "mine" and all(p.is_file() and not p.is_symlink() for p in features[:3] + pairs[:3])
+
+    shutil.rmtree(out / CACHE / "features")
+    (out / CACHE / "features").write_text("not a folder")
+    code, lines = _cli(*args[:-1])
+    assert code == 0 and f"the cache {out / CACHE} cannot be used ({out / CACHE / 'features'} is not a folder): this " \
+        "run keeps none" in lines, lines
+    shutil.rmtree(out / CACHE)
+    (out / CACHE).write_text("a file")
+    code, lines = _cli(*args[:-1])
+    assert code == 0 and any(line.startswith(f"the cache {out / CACHE} cannot be used") for line in lines), lines
+    assert (out / CACHE).read_text() == "a file"
+    np.testing.assert_allclose(_poses(out), first, atol=1e-9)
+
+
+def test_a_second_run_into_an_output_folder_being_written_refuses(small_room, tmp_path):
+    """Two runs into one OUT both exited 0, the later silently replacing the other's results."""
+    out = _old_result(tmp_path / "out")
+    with staged_folder(out, carry=CACHE) as stage:  # a run writing OUT
+        code, lines = _cli("run", small_room, "--out", out, "--workers", "1", "--no-record", "--quiet")
+        assert code == 2 and lines == [f"error: {out} is being written by another run (pid {os.getpid()}): wait for "
+                                       f"it to end, or choose another output folder"], lines
+        (stage / "poses.txt").write_text("new\n")
+    assert [p.name for p in out.iterdir()] == ["poses.txt"] and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_linked_cache_keeps_the_users_empty_folders_after_a_failure(tmp_path):
+    """OUT/cache linked to a user's folder: a failed run removed every empty folder in it."""
+    mine = tmp_path / "mine"
+    (mine / "empty" / "deeper").mkdir(parents=True)
+    out = _old_result(tmp_path / "out")
+    os.symlink(mine, out / CACHE)
+    with pytest.raises(OSError):
+        with staged_folder(out, carry=CACHE):
+            (out / CACHE / "features").mkdir()  # the cache's own: removed
+            raise OSError(28, "No space left on device")
+    assert sorted(str(p.relative_to(mine)) for p in mine.rglob("*")) == ["empty", "empty/deeper"]
+
+
 @contextlib.contextmanager
 def _tmpfs(folder: Path, size: str):
     """A tmpfs of ``size`` mounted at ``folder`` for the block; skips the test where mounting is not allowed."""
@@ -631,6 +796,42 @@ def test_demo_with_one_scan_or_a_file_as_out_is_one_line_error(tmp_path):
     code, lines = _cli("demo", "--out", tmp_path / "file")
     assert code == 2 and lines == [f"error: --out {tmp_path / 'file'} is an existing file, not a folder"]
     assert not (tmp_path / "d").exists() and (tmp_path / "file").read_text() == "x"
+
+
+def _tree(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): p.read_text() if p.is_file() else "/" for p in sorted(folder.rglob("*"))}
+
+
+def test_demo_replaces_nothing_it_did_not_write(tmp_path):
+    """`demo --out d` replaced d/scene with the user's scan and folder in it, without a word; with d/results
+    holding the user's file it refused, but only after d/scene was replaced. Now it refuses before touching
+    anything; its own earlier scene (gt_poses.txt and the scans it names) and results beside it it replaces."""
+    d = tmp_path / "d"
+    (d / "scene" / "sub").mkdir(parents=True)
+    (d / "scene" / "my_scan.xyz").write_text("1 2 3\n")
+    (d / "scene" / "sub" / "notes.md").write_text("n")
+    before = _tree(d)
+    code, lines = _cli("demo", "--out", d, "--scans", "3", "--workers", "1")
+    assert code == 2 and lines == [f"error: --out {d}: {d / 'scene'} holds files the demo did not write (it writes "
+                                   f"generated scans and gt_poses.txt, and replaces that folder as a whole); choose a "
+                                   f"new or empty --out"], lines
+    assert _tree(d) == before
+
+    e = tmp_path / "e"
+    (e / "results").mkdir(parents=True)
+    (e / "results" / "thesis.tex").write_text("mine")
+    code, lines = _cli("demo", "--out", e, "--scans", "3", "--workers", "1")
+    assert code == 2 and lines[-1].startswith(f"error: --out {e}: {e / 'results'} is not the demo's"), lines
+    assert _tree(e) == {"results": "/", "results/thesis.tex": "mine"}
+
+    from sghr_gtsam.cli import _check_demo_folders
+
+    write_scene(make_scene(kind="room", n_scans=3, seed=0), d / "ours" / "scene")
+    _old_result(d / "ours" / "results")
+    _check_demo_folders(d / "ours")  # its own earlier output: replaced
+    (d / "ours" / "scene" / "extra.ply").write_text("a user's scan")
+    with pytest.raises(InputError, match="holds files the demo did not write"):
+        _check_demo_folders(d / "ours")
 
 
 def test_demo_with_an_absurd_scan_count_is_refused_before_any_work(tmp_path):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import fcntl
 import os
 import re
 import shutil
@@ -160,7 +161,7 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
         if not out.exists():
             os.rename(stage, out)
         else:
-            if carry and (out / carry).is_dir() and not (stage / carry).exists():
+            if carry and os.path.lexists(out / carry) and not os.path.lexists(stage / carry):  # a file too
                 os.rename(out / carry, stage / carry)
                 carried = True
             if not _exchange(stage, out):  # two renames; a stop between them is repaired by the next run
@@ -172,7 +173,7 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
         with contextlib.suppress(OSError):  # put back what moved: the old results, then their cache
             if not out.exists() and old.exists():
                 os.rename(old, out)
-            if carried and not (out / carry).exists():
+            if carried and not os.path.lexists(out / carry):
                 os.rename(stage / carry, out / carry)
         if e.errno in (errno.EBUSY, errno.EXDEV):
             raise InputError(mounted(out, carry) or f"cannot swap the results into {out}: {e.filename} is a mount "
@@ -182,16 +183,56 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
     fsync_dir(out.parent)
 
 
-def _remove_empty(out: Path, carry: str | None, created: bool) -> None:
-    """After a failed run: the folders of ``out``'s ``carry`` that hold nothing, and ``out`` itself if the run created
-    it and left it empty (a first run that failed before storing anything leaves no ``OUT/cache/features``).
-    Entries a failed run stored stay, for the next run to resume from."""
-    folders = [Path(d) for d, _, _ in os.walk(out / carry, topdown=False)] if carry else []
+def _folders(top: Path) -> set[str]:
+    return {d for d, _, _ in os.walk(top)}
+
+
+def _remove_empty(out: Path, carry: str | None, created: bool, existed: set[str]) -> None:
+    """After a failed run: the folders of ``out``'s ``carry`` that hold nothing and were not there before it
+    (``existed``: a ``carry`` linked to a user's folder keeps its empty sub-folders), and ``out`` itself if the run
+    created it and left it empty (a first run that failed before storing anything leaves no
+    ``OUT/cache/features``). Entries a failed run stored stay, for the next run to resume from."""
+    folders = [Path(d) for d, _, _ in os.walk(out / carry, topdown=False) if d not in existed] if carry else []
     for folder in folders + ([out] if created else []):
         try:
             folder.rmdir()
         except OSError:  # not empty, or a mount point
             pass
+
+
+def _lock(out: Path) -> int | None:
+    """The lock of the one writer of ``out``: an ``flock`` on ``.<name>.lock`` beside it, holding the writer's pid;
+    its descriptor (None where the file system has no locks). ``InputError`` when another process holds it."""
+    path = out.with_name(f".{out.name}.lock")
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip()
+            os.close(fd)
+            raise InputError(f"{out} is being written by another run{f' (pid {holder})' if holder else ''}: wait for "
+                             f"it to end, or choose another output folder") from None
+        except OSError as e:
+            os.close(fd)
+            if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP):
+                return None
+            raise
+        try:  # the holder removes the file as it lets go: a lock on that file is no lock on the path
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                os.ftruncate(fd, 0)
+                os.write(fd, f"{os.getpid()}\n".encode())
+                return fd
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+
+
+def _unlock(out: Path, fd: int | None) -> None:
+    if fd is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(out.with_name(f".{out.name}.lock"))
+        os.close(fd)
 
 
 @contextlib.contextmanager
@@ -201,24 +242,33 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     a subfolder of ``out`` written in place during the block (a resume cache) and kept across the swap; its folders
     left empty by a block that raised are removed (``_remove_empty``). Stale
     folders of stopped runs are removed first. A symbolic link ``out`` is followed: the folder it leads to is
-    replaced, the link stays."""
+    replaced, the link stays. One writer of ``out`` at a time: a second one gets ``InputError`` (``_lock``)."""
     out = Path(os.path.realpath(out))
     created = not out.exists()
+    existed = _folders(out / carry) if carry else set()
+    lock = None
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
+        lock = _lock(out)
         _remove_stale(out, carry)
         stage = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.tmp-{os.getpid()}-"))
         os.chmod(stage, 0o777 & ~_UMASK)  # mkdtemp makes it 0700: the results are for others to read as well
     except OSError as e:
+        _unlock(out, lock)
         if e.errno == errno.ENAMETOOLONG and len(os.fsencode(out.name)) <= 255:  # the staging name is longer
             raise InputError(f"output folder name {out.name[:20]}... is {len(os.fsencode(out.name))} bytes: the "
                              f"results are staged beside it as .{out.name[:8]}...tmp-PID-XXXXXXXX, a name up to 22 "
                              f"bytes longer, which the file system refuses; choose a shorter name") from None
         raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
+    except BaseException:
+        _unlock(out, lock)
+        raise
     try:
         yield stage
         _swap_in(stage, out, carry)
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
-        _remove_empty(out, carry, created)
+        _remove_empty(out, carry, created, existed)
         raise
+    finally:
+        _unlock(out, lock)

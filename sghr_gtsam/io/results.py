@@ -21,8 +21,10 @@ carried across the swap."""
 from __future__ import annotations
 
 import csv
+import errno
 import json
 import math
+import os
 import re
 import time
 from dataclasses import asdict
@@ -282,9 +284,26 @@ def load_results(out: str | Path) -> "RunResult":
 # --- what may be replaced ------------------------------------------------------------------------------------
 
 
+def check_output_path(out: Path) -> None:
+    """``InputError`` when no folder can be made at ``out``: a symbolic link loop on the way, or a file where a
+    folder should be ("File exists" said of ``file/sub``)."""
+    try:
+        os.stat(out)
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise InputError(f"output folder {out} is, or lies through, a symbolic link loop") from None
+        if e.errno == errno.ENOTDIR:
+            file = next((p for p in reversed(out.parents) if p.exists() and not p.is_dir()), out.parent)
+            raise InputError(f"output folder {out} cannot be made: {file} is a file, not a folder") from None
+        raise InputError(f"output folder {out}: {e.strerror or e}") from None
+
+
 def check_output_folder(out: Path, scene_dir: Path) -> None:
     """``InputError`` unless ``out`` can be replaced as a whole: a new or empty folder, or an earlier run's results
     (anything else in it would be lost by the swap, and scans read from it would mix with the outputs)."""
+    check_output_path(out)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} is an existing file, not a folder")
     scene, target = scene_dir.resolve(), out.resolve()

@@ -8,7 +8,9 @@ are checked against the file's size before laspy, which trusts them, reads it.
 
 from __future__ import annotations
 
+import os
 import re
+import stat
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,10 +42,29 @@ def _named_not_scan(path: Path) -> bool:
 
 
 def _scan_like(path: Path) -> bool:
-    """A file, or a symbolic link that does not lead to one (broken, a loop: listed, so that it is skipped with a
-    reason instead of silently), with a scan suffix, not hidden (atomic_write's temporaries are)."""
-    return ((path.is_file() or path.is_symlink() and not path.is_dir()) and path.suffix.lower() in SCAN_SUFFIXES
-            and not path.name.startswith("."))
+    """Anything but a folder (a file; a pipe, device, socket or a symbolic link that does not lead to a file:
+    listed, so that it is skipped with a reason instead of silently) with a scan suffix, not hidden (atomic_write's
+    temporaries are)."""
+    return path.suffix.lower() in SCAN_SUFFIXES and not path.name.startswith(".") and not path.is_dir()
+
+
+_KINDS = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
+          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder, not a file"))
+
+
+def not_regular(path: str | Path) -> str | None:
+    """Why ``path`` is not a regular file to read (its symbolic links followed), or None: a pipe, a device or a
+    socket would block a reader for ever or never end (``/dev/zero``), so nothing opens them."""
+    path = Path(path)
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return ("a symbolic link that leads nowhere (broken or a loop)" if path.is_symlink()
+                else "no such file" if not os.path.lexists(path) else "cannot be read")
+    if stat.S_ISREG(mode):
+        return None
+    kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
+    return f"a symbolic link to {kind} ({os.path.realpath(path)})" if path.is_symlink() else kind
 
 
 def left_out(folder: str | Path) -> list[str]:
@@ -539,9 +560,8 @@ def load_scan(path: str | Path) -> np.ndarray:
     try:
         if suffix not in SCAN_SUFFIXES:
             raise InputError(f"unknown scan format {path.suffix!r} (supported: {', '.join(SCAN_SUFFIXES)})")
-        if not path.is_file():
-            raise InputError("a symbolic link that leads nowhere (broken or a loop)" if path.is_symlink()
-                             else "no such file" if not path.exists() else "not a file")
+        if why := not_regular(path):
+            raise InputError(why)
         if path.stat().st_size == 0:
             raise InputError("empty file")
         if suffix == ".ply":
@@ -618,10 +638,13 @@ def _npy_rows(f) -> int:
 
 def check_memory(path: str | Path) -> None:
     """``InputError`` when reading the scan at ``path`` and computing its features would need more memory than is
-    available now (``READ_BYTES_PER_POINT``): one line before the machine runs out, instead of the kernel's kill."""
+    available now (``READ_BYTES_PER_POINT``): one line before the machine runs out, instead of the kernel's kill.
+    Nothing is opened that is not a regular file (``not_regular``: the reader says why it is skipped)."""
     import psutil
 
     path = Path(path)
+    if not_regular(path):
+        return
     count = point_count(path)
     kind = "text" if _is_text(path) else "binary"
     needed, available = count * READ_BYTES_PER_POINT[kind], psutil.virtual_memory().available

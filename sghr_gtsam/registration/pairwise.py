@@ -17,6 +17,7 @@ from sghr_gtsam.cache import Kind
 from sghr_gtsam.cells import unique_cells
 from sghr_gtsam.config import MATCHERS
 from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
+from sghr_gtsam.se3 import non_rigid
 from sghr_gtsam.types import InputError
 
 from .estimators import sc2_estimate
@@ -99,8 +100,9 @@ def _encode_pair(p: PairResult) -> dict[str, np.ndarray]:
 def _decode_pair(a: dict[str, np.ndarray]) -> PairResult:
     inliers, fitness, rmse, seconds, coverage, free = a["numbers"].tolist()
     matches = (a["match_i"], a["match_j"]) if "match_i" in a else None
-    if a["T"].shape != (4, 4) or not np.isfinite(a["T"]).all():
-        raise ValueError(f"T of shape {a['T'].shape}, or not finite")
+    T = a["T"]  # a scaled or reflected rotation failed the run downstream, as a NaN did
+    if T.shape != (4, 4) or not np.isfinite(T).all() or non_rigid(T):
+        raise ValueError(f"T of shape {T.shape}, not finite or no rigid transform")
     return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
                       int(free), a.get("bounded"), a.get("loose"), a.get("grid"))
 

@@ -41,6 +41,10 @@ POLISHES: dict[str, str] = {
     "none": "the IRLS poses as they are",
 }
 
+MAX_ITERS = 10_000
+"""The most IRLS iterations M: SGHR uses 50; history reweighting's g(m) = 2m / (M(M+1)) spreads its weight thinner
+with M, and each iteration is an eigen-solve (1e9 ended in MemoryError, 2^63 in IndexError)."""
+
 FAR = 2.0
 """The loop polish's answers are also compared on the edges one fits and the other puts this many times the
 consistency tolerances off (``_overturns``)."""
@@ -119,8 +123,8 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         raise InputError(f"unknown synchronization method {method!r}; choose from {', '.join(METHODS)}")
     if reweight not in REWEIGHTS:
         raise InputError(f"unknown reweighting {reweight!r}; choose from {', '.join(REWEIGHTS)}")
-    if iters < 1:
-        raise InputError(f"iters must be at least 1, got {iters}")
+    if not 1 <= iters <= MAX_ITERS:
+        raise InputError(f"iters must be an integer from 1 to {MAX_ITERS:,}; got {iters:,}")
     # Growing and consensus break ties in edge order: the edges are solved in one canonical order, so that the
     # result does not depend on the order they come in (a g2o file's lines, the pipeline's stages).
     graph, order = _canonical(checked_graph(graph))

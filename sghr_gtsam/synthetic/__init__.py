@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from sghr_gtsam.io.poses import write_poses
+from sghr_gtsam.errors import InputError
+from sghr_gtsam.io.poses import read_poses, write_poses
 from sghr_gtsam.io.scans import write_scan
 
 from .building import make_building
@@ -77,9 +78,31 @@ def write_scene(scene: SyntheticScene, folder: str | Path, formats: Sequence[str
     for path, points in zip(paths, scene.scans):
         write_scan(path, points)
     write_poses(
-        folder / "gt_poses.txt",
+        folder / GT_POSES,
         [p.name for p in paths],
         scene.poses,
-        comment="Synthetic scene (sghr_gtsam.synthetic). Per scan: its file name, then T with p_world = T @ p_scan.",
+        comment=_GT_COMMENT,
     )
     return paths
+
+
+GT_POSES = "gt_poses.txt"
+_GT_COMMENT = "Synthetic scene (sghr_gtsam.synthetic). Per scan: its file name, then T with p_world = T @ p_scan."
+
+
+def written_scene(folder: str | Path) -> bool:
+    """Whether ``folder`` holds only what ``write_scene`` wrote: its ``gt_poses.txt`` (told by its comment) and
+    regular files it names. The demo replaces such a folder and nothing else (a user's scans or notes put in it
+    would be lost)."""
+    folder = Path(folder)
+    poses = folder / GT_POSES
+    try:
+        if poses.is_symlink() or not poses.is_file():  # never open a pipe
+            return False
+        with open(poses, encoding="utf-8") as f:
+            if f.readline().rstrip("\n") != f"# {_GT_COMMENT}":
+                return False
+        names = set(read_poses(poses)[0]) | {GT_POSES}
+        return all(p.name in names and p.is_file() and not p.is_symlink() for p in folder.iterdir())
+    except (OSError, UnicodeDecodeError, InputError):
+        return False
