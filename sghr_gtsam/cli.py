@@ -357,7 +357,8 @@ _ONE_ROOM = 12  # --kind auto: the most scans it generates as one room
 _DEMO_ROWS = 40  # the most scans the demo lists one by one
 _MOST_SCANS = 10_000
 """The most scans ``demo`` generates: the run's main process grows by ~1.3 MB a scan (its pairs' state, two N × N
-matrices: docs/BENCHMARKS.md, bounded memory), ~13 GB at 10,000; 2,000 took 46 min on 2 cores."""
+matrices: bounded memory in the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md),
+~13 GB at 10,000; 2,000 took 46 min on 2 cores."""
 
 
 def _scene_kind(kind: str, scans: int) -> str:

@@ -23,9 +23,10 @@ KERNELS = ("none", "huber", "cauchy", "tls")
 
 MIN_INLIERS = {"fpfh": 15, "learned": 31}
 """``Config.min_inliers`` by descriptor (given descriptors use FPFH's): one more than the most inliers a wrong
-pair reached among all pairs of the 3DMatch fragments and the bunny (``benchmarks/bench_learned_descriptor.py
-bars``, sc2; FPFH 14, the learned descriptor 30); right FPFH pairs reach down to 9 there. In a 60-fragment 3DMatch
-scene, 5 of 45 grossly wrong FPFH pairs reach 15-27 (chance agreement between alike objects)."""
+pair reached among all pairs of the 3DMatch fragments and an object's range scans
+(``benchmarks/bench_learned_descriptor.py bars``, sc2; FPFH 14, the learned descriptor 30); right FPFH pairs reach
+down to 9 there. In a 60-fragment 3DMatch scene, 5 of 45 grossly wrong FPFH pairs reach 15-27
+(chance agreement between alike objects)."""
 DESCRIPTORS = tuple(MIN_INLIERS)
 """Local descriptors (``features.local.compute_features``)."""
 
@@ -56,7 +57,7 @@ class Config:
     # --- scans and local features -------------------------------------------------------------
     voxel: float | None = None
     """Voxel size in scene units. None: derived from the scene as 1/100 of the median scan's
-    bounding-box diagonal (4.2 cm on 3DMatch fragments, 2.5 mm on the Stanford bunny: where the
+    bounding-box diagonal (4.2 cm on 3DMatch fragments, 2.5 mm on an object's range scans: where the
     pairwise benchmark got the most pairs right on both)."""
     min_points: int = 100
     """A scan with fewer finite points (after loading) is skipped and reported."""
@@ -68,7 +69,8 @@ class Config:
     """Local descriptor that pairs are matched on: 'fpfh' (open3d's FPFH of the voxel grid) or 'learned' (a
     network trained on simulated rooms, ``features.learned``). The learned one registers more gt.log pairs right
     on every 3DMatch test scene, and gives better whole models on two of them but worse ones on two others, in twice
-    the time (docs/BENCHMARKS.md). The top-k graph is built on FPFH either way."""
+    the time (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
+    The top-k graph is built on FPFH either way."""
     features: str | None = None
     """Folder of precomputed local features, per scan ``<stem>.kpts.npy`` (K×3 keypoints in the scan's
     frame) and ``<stem>.desc.npy`` (K×D descriptors), in the folder or any sub-folder (the SGHR authors'
@@ -85,7 +87,8 @@ class Config:
     global_feature: str = "vlad"
     """Global feature: 'vlad' (NetVLAD initialised from a k-means codebook of this scene's descriptors)
     or 'learned' (a trained NetVLAD head, ``overlap_head``). 'vlad' is the default because it ranks
-    overlaps better on 3DMatch fragments and the bunny than the shipped FPFH head (docs/BENCHMARKS.md)."""
+    overlaps better on 3DMatch fragments and an object's range scans than the shipped FPFH head
+    (``benchmarks/bench_overlap.py``; the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
     overlap_head: str | None = None
     """Checkpoint of a trained NetVLAD head (ours, or the SGHR authors' ``netvlad_overlap_model_best.pth``
     for their 32-d YOHO descriptors); given, it scores the overlaps whatever ``global_feature`` says. Its
@@ -96,7 +99,8 @@ class Config:
     matcher: str = "sc2"
     """Robust estimator on mutual-nearest-neighbour matches: 'sc2' (second-order spatial compatibility,
     ``registration.estimators``), 'kiss' (kiss-matcher) or 'ransac' (open3d). 'sc2' gets the most pairs
-    right on the 3DMatch scenes at about the same cost (docs/BENCHMARKS.md)."""
+    right on the 3DMatch scenes at about the same cost
+    (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
     icp_distance: float = 1.5
     """ICP correspondence distance, in voxels."""
     min_inliers: int | None = None
@@ -148,7 +152,8 @@ class Config:
     """An edge is dropped once the history reweighting has scaled it below this fraction of its initial weight; a
     scan left without edges is reported as unregistered. Initial weights are never cut: a right registration of a
     thin overlap weighs little but still agrees with the loops (cutting edges under 1e-3 of the largest initial
-    weight cost 0.03 of all-pairs recall at 60 % random outliers, docs/BENCHMARKS.md)."""
+    weight cost 0.03 of all-pairs recall at 60 % random outliers:
+    the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
 
     # --- gtsam graph (sghr_gtsam.gtsam_api, the incremental session, ``sync``'s final LM) ---------------
     noise_model: str = "information"

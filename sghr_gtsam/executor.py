@@ -189,9 +189,9 @@ def kept_workers(workers: int | None, ray: str | None = None) -> Iterator[None]:
     a pool each: a worker's memory of the scans it read, with the search structures and GICP clouds built on them
     (``store.LRU_BYTES``), then serves every stage, not one. On a 3DMatch scene of 60 fragments (two workers) the
     pyramid levels were built 840 times for 120 (refinement and two rounds of loop closure, each in each worker),
-    246 times in one pool (docs/BENCHMARKS.md). Nothing is kept under Ray or with one worker; a stage asking for another
-    number of workers, or run by another thread, gets a pool of its own. Results do not depend on it: tasks are
-    pure functions."""
+    246 times in one pool (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md). Nothing is kept under Ray
+    or with one worker; a stage asking for another number of workers, or run by another thread, gets a pool of its
+    own. Results do not depend on it: tasks are pure functions."""
     workers = default_workers() if workers is None else workers
     if workers <= 1 or ray is not None or any(k.workers == workers for k in _BLOCKS.open):
         yield

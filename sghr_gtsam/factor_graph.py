@@ -7,7 +7,7 @@ Weight → noise (``edge_information``): an edge with its own information (``Pos
 from the registration's residuals, or a g2o file's) enters with exactly that, ``Ω'_e = Ω_e``, so the polished
 poses are the maximum-likelihood ones under it and the graph written to graph.g2o is the one they optimize
 (scaling it by ``w⁰`` as well counted the registration's support twice, and moved the optimum 0.05-0.15° from
-what ``gtsam.readG2o`` + LM on the exported graph gives on the bunny and 3DMatch fragments). Without one,
+what ``gtsam.readG2o`` + LM on the exported graph gives on object scans and 3DMatch fragments). Without one,
 ``Ω'_e = (w_e / ŵ) · diag(σ_r⁻² I₃, σ_t⁻² I₃)``, ``w_e`` the weight the caller gives the edge and ``ŵ`` the
 median of the nonzero ones (so a typical edge keeps the base information and the scale of the problem does not
 depend on the weights' units). Edges with ``w_e = 0`` get no factor.

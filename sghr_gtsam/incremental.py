@@ -82,7 +82,7 @@ SETTLE = 20
 Gauss-Newton step, and a prior or a loop far from the current poses takes a few."""
 RELINEARIZE = 1e-6
 """ISAM2 relinearizes a variable whose update exceeds this (radians / scene units), at every update: the
-default (0.1 every 10th update) stops short of the batch optimum by more than a bunny registration's error."""
+default (0.1 every 10th update) stops short of the batch optimum by more than an object scan's registration error."""
 RIGID_TOL = 1e-6
 """An edge's ``T`` is rigid when ``RᵀR`` is the identity and its last row ``0 0 0 1`` to within this (a
 registration's rotation is orthonormal to ~1e-15; a scaled or sheared one is off by far more)."""

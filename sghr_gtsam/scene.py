@@ -214,7 +214,7 @@ VOXEL_DOUBT = 10.0
 SPREAD = 3.0
 """When no pair registers with the default voxel, the scans whose extent is this many times the median scan's, or
 1/this of it, are named: a majority of scans of noise or of another scene sets the median, and so the voxel (two room
-scans among three small clouds of noise: 1/10 of the rooms' voxel). Real scans (3DMatch, the bunny) are within 1.3x."""
+scans among three small clouds of noise: 1/10 of the rooms' voxel). Real scans (3DMatch, objects) are within 1.3x."""
 
 
 def voxel_doubt(voxel: float, scans: list[Scan], given: bool) -> str:

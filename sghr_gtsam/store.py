@@ -38,7 +38,8 @@ LRU_BYTES = 512 * 2**20
 built on them). A pair task on 1-million-point room scans holds ~15 MB a scan (features and both pyramid levels),
 so that is ~34 scans; a 3DMatch fragment ~8.5 MB, so a 60-fragment scene fits whole, and a run's workers, kept from
 stage to stage (``executor.kept_workers``), build each scan's search structures and GICP clouds once instead of
-once a stage (~10-25 ms a scan and level; 256 MB held half such a scene, gaining nothing: docs/BENCHMARKS.md)."""
+once a stage (~10-25 ms a scan and level; 256 MB held half such a scene, gaining nothing:
+the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
 
 
 class _Lru:

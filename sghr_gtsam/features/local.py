@@ -163,7 +163,7 @@ def compute_features(
     it centred), the scan's origin: the sensor for scans in sensor coordinates (3DMatch),
     the object's inside for object-centred scans (Stanford). Either way they are consistent across
     scans, which FPFH needs (its angles change sign with the normals): unoriented normals lose 4 of
-    the 20 right 3DMatch pairs and 5 of the 24 right bunny pairs.
+    the 20 right 3DMatch pairs and 5 of the 24 right pairs of an object's range scans.
     """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -238,9 +238,9 @@ def default_voxel(scans: list[np.ndarray]) -> float:
 def voxel_from_spans(spans: list[float]) -> float:
     """Voxel size from the scans' bounding-box diagonals ``spans``: 1/100 of the median one.
 
-    4.2 cm on 3DMatch fragments and 2.5 mm on the Stanford bunny, where both scenes do best:
+    4.2 cm on 3DMatch fragments and 2.5 mm on an object's range scans, where both do best:
     with kiss-matcher and FPFH at 5 voxels nine 3DMatch fragments get 19 / 20 / 19 of its 29 overlapping pairs
-    right at 3 / 4.2 / 5 cm (3 cm costs 2.5x the time), the bunny 24 / 24 / 22 / 19 at 2 / 2.5 / 3 /
+    right at 3 / 4.2 / 5 cm (3 cm costs 2.5x the time), the object 24 / 24 / 22 / 19 at 2 / 2.5 / 3 /
     4 mm (coarser grids miss its 1 mm bound).
     """
     if not len(spans):

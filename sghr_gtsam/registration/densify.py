@@ -193,7 +193,8 @@ def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncR
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
     by overlap score; the pairs that register enter as retry edges. A scan placed in the largest part is retried
     once a run; only one left outside it is retried again (on a scene of repeated desks a second round of
-    retries for every weak scan cost 15 s for two kept right edges, docs/BENCHMARKS.md). Returns how many registered."""
+    retries for every weak scan cost 15 s for two kept right edges:
+    the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md). Returns how many registered."""
     n = len(features)
     weak = weak_scans(n, edges.ij[:, 0], edges.ij[:, 1], _kept(edges, sync), sync.component, unverified)
     again = np.zeros(n, dtype=bool)

@@ -101,7 +101,7 @@ class EdgeSet:
         coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
         not seen from one origin (``visibility``), so only the coarse check judges them: in a scene of repeated
         desks, the look-alike registrations, 57 of its 127 wrong ones, none of its 256 right ones
-        (docs/BENCHMARKS.md at 18b90a6)."""
+        (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
         todo = np.flatnonzero(~self._checked)
         if len(todo):
             T = np.stack([self.pairs[e].T for e in todo])

@@ -26,7 +26,7 @@ Why point-to-plane: tangential offsets between two samplings of one surface are 
 the point-to-point sum (``Σ [−[q]×, I]ᵀ[−[q]×, I]``) is blind to sliding along a plane; on simulated scenes
 with known range noise the point-to-plane model gives per-edge normalized errors near the χ²₆ median where
 the point-to-point one (with its σ̂ from the full 3-d residuals) is 3-15× overconfident on objects
-(docs/BENCHMARKS.md, calibrated covariances).
+(calibrated covariances in the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
 """
 
 from __future__ import annotations
@@ -160,7 +160,8 @@ def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: n
     if values[0] < FREE_FLOOR * values[-1]:
         # A direction the close points do not measure at all (a few points of a wrong registration: rank 4 seen on
         # noise scans) leaves the information singular, which synchronization and the g2o files refuse. It gets
-        # the floor a free direction keeps; never reached on the real scenes' pairs (docs/BENCHMARKS.md).
+        # the floor a free direction keeps; never reached on the real scenes' pairs
+        # (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
         values = np.maximum(values, FREE_FLOOR * values[-1])
         information = AV @ np.diag(values) @ AV.T
         information = (information + information.T) / 2

@@ -25,22 +25,22 @@ from .information import Information, nearest_points, registration_information
 
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
 # matching is 4-6x faster than exact search and registers the same pairs (+-1) on the 3DMatch fragments and
-# the bunny; with 3 both scenes lose pairs. On the authors' 32-d YOHO descriptors (six fragments) it
+# an object's range scans; with 3 both lose pairs. On the authors' 32-d YOHO descriptors (six fragments) it
 # finds 97-101 % as many mutual matches as exact search and gets the same 14 of 15 pairs right.
 MATCH_EPS = 2.0
 # A match counts towards r_ij when the final T_ij brings its two points this close (voxels).
 INLIER_DISTANCE = 1.5
 # ``PairResult.coverage`` counts the cells of this size (voxels) that the inliers occupy in scan i. A
 # consensus-maximising estimator (sc2) also finds chance agreement between unrelated parts, but there the
-# inliers crowd on one object: on two 3DMatch scenes and the bunny no grossly wrong pair (> 10 deg or
-# 0.5 m) covered more than 10 cells, where its r_ij reached 27 (benchmarks/bench_pairwise.py).
+# inliers crowd on one object: on two 3DMatch scenes and an object's range scans no grossly wrong pair
+# (> 10 deg or 0.5 m) covered more than 10 cells, where its r_ij reached 27 (benchmarks/bench_pairwise.py).
 COVERAGE_CELL = 5.0
 # open3d RANSAC on the matches: inlier distance (voxels) and its stopping rule.
 RANSAC_DISTANCE = 1.5
 RANSAC_MAX_ITERATION = 100_000
 RANSAC_CONFIDENCE = 0.999
 # GICP stops after this many iterations or when an update is below these (radians; voxels). From a
-# robust estimate it converges in 2-7 iterations (36 of the 44 right 3DMatch and bunny pairs); the
+# robust estimate it converges in 2-7 iterations (36 of the 44 right 3DMatch and object pairs); the
 # rest creep along low-overlap surfaces, and a cap of 10 registers the same pairs as 30 at half the
 # cost (wrong pairs never converge, so they always use the whole cap).
 GICP_MAX_ITERATIONS = 10
@@ -58,7 +58,8 @@ class PairResult:
     gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, point-to-plane over the close
     pairs of the grid ``T`` was aligned on (those pairs here; the finest pyramid level for a refined edge or
     a loop closure) with the point noise estimated from their residuals
-    (``information.registration_information``); None with too few pairs. ``seconds``: wall time. ``coverage``: cells of ``COVERAGE_CELL`` voxels
+    (``information.registration_information``); None with too few pairs. ``seconds``: wall time.
+    ``coverage``: cells of ``COVERAGE_CELL`` voxels
     (a grid in scan i's frame) that hold at least one of the ``inliers``: how spread the agreement is.
     ``matches``: the mutual descriptor matches (a, b) it was scored on; they depend on the two scans only, so
     scoring the pair again at another ``T`` (refinement) reuses them.
@@ -123,7 +124,7 @@ def mutual_matches(target_i: ScanFeatures, source_j: ScanFeatures) -> tuple[np.n
 
 def _kiss(p_i: np.ndarray, p_j: np.ndarray, voxel: float) -> np.ndarray:
     # Solved in voxel units: kiss-matcher's noise bounds are multiples of its voxel size, and it
-    # refuses voxels under 5 mm (the bunny's is 2.5 mm). ROBIN's max-core pruning before the GNC
+    # refuses voxels under 5 mm (an object's scans get 2.5 mm). ROBIN's max-core pruning before the GNC
     # solver matters: the solver alone got 14 3DMatch pairs right where pruning got 17 (3 cm grid).
     solver = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(1.0))
     solution = solver.prune_and_solve(
@@ -178,9 +179,9 @@ def register_pair(
     else:
         T = _ransac(target_i, source_j, a, b, voxel, seed)
 
-    # GICP on the matching grid itself: on the bunny's right pairs it lands 0.15 deg / 0.16 mm (median)
+    # GICP on the matching grid itself: on an object's right pairs it lands 0.15 deg / 0.16 mm (median)
     # from ground truth; a 2x finer grid gained 0.02 deg for 7x the time. Started at ground truth,
-    # open3d's point-to-plane ICP drifted 1.4-4 deg on bunny pairs of overlap 0.3-0.55 where GICP
+    # open3d's point-to-plane ICP drifted 1.4-4 deg on object pairs of overlap 0.3-0.55 where GICP
     # stayed within 0.2-0.7 deg, and took 9x longer.
     max_distance = icp_distance * voxel
     T = small_gicp.align(

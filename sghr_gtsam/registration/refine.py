@@ -1,14 +1,16 @@
 """Multi-scale ICP of a pair from a pose guess: the refinement of kept edges and the registration of loop
 closures.
 
-A scan's ``Pyramid`` holds its points on grids of voxel v and v/2 (never finer than the scan's own spacing). ``refine_pair`` runs GICP coarse to fine from ``T_init`` (in the synchronized poses: ``T_i⁻¹ T_j``),
+A scan's ``Pyramid`` holds its points on grids of voxel v and v/2 (never finer than the scan's own spacing).
+``refine_pair`` runs GICP coarse to fine from ``T_init`` (in the synchronized poses: ``T_i⁻¹ T_j``),
 each level starting where the coarser one ended, as Open3D's reconstruction system refines its fragments; the
 final transform is then scored on the matching grid like a global registration (``score_pair``), so that a
 refined edge and a loop closure carry the same kind of weight as the edges they join. Its information comes
 from the finest level instead, the grid the transform was aligned on: on the matching grid the same transform
-gets σ 2-3× what its error spread is (docs/BENCHMARKS.md, calibrated covariances). What that information
-cannot see is how the estimate depends on the grid itself (which points average into a cell, which neighbours a
-normal is fitted on): the same for every draw of noise, so no spread of residuals shows it. The move from the
+gets σ 2-3× what its error spread is (calibrated covariances in the journal at 18b90a6: git show
+18b90a6:docs/BENCHMARKS.md). What that information cannot see is how the estimate depends on the grid itself
+(which points average into a cell, which neighbours a normal is fitted on): the same for every draw of noise, so no
+spread of residuals shows it. The move from the
 next coarser level's transform to the finest one's measures it, if that error shrinks in proportion to the grid
 (half the cell, half the error: the move then equals the finest level's own error); it is kept as
 ``PairResult.grid`` and added to the reported covariance (``gtsam_api.pose_covariances``).
@@ -35,7 +37,7 @@ from .information import registration_information
 from .pairwise import PAIRS, PairResult, informed, scored
 
 LEVELS = (1.0, 0.5)
-"""Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six bunny pairs started a voxel
+"""Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six object pairs started a voxel
 off GT, v/4 landed within 0.03° of what v/2 gives (0.03-0.38° from GT) at 3× the time (0.24 s a pair against
 0.08 s), and on dense 3DMatch fragments its 100k-point grids cost 0.7-2.5 s a pair."""
 LEVEL_DISTANCE = (2.0, 1.5)
@@ -43,13 +45,14 @@ LEVEL_DISTANCE = (2.0, 1.5)
 synchronized guess's drift (a few centimetres on 3DMatch), the fine ones only close neighbours."""
 LEVEL_ITERATIONS = (10, 10)
 """From a guess 1° / v/2 off GT GICP converges within these on 36-38 of 40 3DMatch pairs; 20, small_gicp's default,
-converges on all and turned two 3DMatch scenes' models both ways, no clear gain (docs/BENCHMARKS.md)."""
+converges on all and turned two 3DMatch scenes' models both ways, no clear gain
+(the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
 STEP_VOXELS = 0.025
 """GICP has converged when a step moves the scan less than this (voxels v) and turns it less than 0.1°. In voxels,
 as every other length here, so that a scene registers alike in any unit (small_gicp's default, 1e-3 in scene units,
 was 0.0004 v in millimetres: settled ICPs ran out of iterations and their edges were lost). v/40 is that default
 at the 3DMatch scenes' 4 cm voxel; on a scene of repeated desks a 2 % change of it turns the run's path
-(docs/BENCHMARKS.md)."""
+(the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
 MAX_MOVE_DEG = 5.0
 MAX_MOVE_VOXELS = 3.0
 """A re-registration confirms the synchronized poses only if ICP stays near the guess: a larger move means

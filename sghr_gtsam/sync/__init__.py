@@ -105,7 +105,8 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     the largest) and every part is anchored at its own first node (the identity). A node without kept
     edges is a part of its own. The result does not depend on the order of the edges (they are solved sorted
     by (i, j, weight, T)); it can depend on the nodes' labels, which break ties between near-equal placements
-    (docs/BENCHMARKS.md, "Still near-ties, now deterministic"). Raises ``InputError`` for unusable input.
+    ("Still near-ties, now deterministic" in the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
+    Raises ``InputError`` for unusable input.
     """
     # The dense blocks are small (3N×3N below DENSE_NODES, 3N×3 beyond): a multithreaded BLAS spends its
     # time synchronising threads, 10-30× slower on a busy 2-core machine (a 180×180 Cholesky: 0.8 ms on one
@@ -279,7 +280,8 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[
     would read as disagreement), then whole groups and single scans move where most of their edges agree
     (``replace_groups``, ``consensus_placement`` with the ``credibility`` votes). Growing is what keeps a
     look-alike from dragging a group; the IRLS poses hold better where 70 % of the edges are wrong and the
-    core's evidence runs thin (docs/BENCHMARKS.md). The grown start replaces the IRLS one if it has more
+    core's evidence runs thin (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
+    The grown start replaces the IRLS one if it has more
     consistent edges, and not fewer among those the other answer puts far off (``_overturns``); in the answer
     kept, groups held in place by several wrong edges move across a minimum cut (``cut_moves``). The kept
     answer's consistent edges then say what each weight class is worth in this graph (``inlier_odds``);
@@ -339,7 +341,8 @@ def _overturns(graph: PoseGraph, votes: np.ndarray, challenger: tuple[np.ndarray
 
     Votes alone are decided by edges just inside the tolerances in one answer and just outside in the other:
     on a real scene's final graph, 204 consistent edges against 203, in some orders of the edges, for an answer
-    that turns 24 scans 91° and that 4 edges to them support against 6. Far-off edges alone would let a drifted answer win: one whose scans sit 10-20° off puts few edges
+    that turns 24 scans 91° and that 4 edges to them support against 6.
+    Far-off edges alone would let a drifted answer win: one whose scans sit 10-20° off puts few edges
     far."""
     (Q, kept_q), (P, kept) = challenger, incumbent
     if votes[kept_q].sum() <= votes[kept].sum():
@@ -361,7 +364,8 @@ def _robust_placement(graph: PoseGraph, poses: np.ndarray,
     Residual reweighting keeps a wrong placement repeated on several edges of a scan and ignores
     translations (the authors' units). The consensus step can move a scan back by 90° or a metre, which
     no descent does; GNC over all edges then weighs translations too, and a second consensus pass catches
-    what GNC moved (docs/BENCHMARKS.md, robustness). Edges negligible from the start (below
+    what GNC moved (robustness in the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
+    Edges negligible from the start (below
     ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
     from ..factor_graph import edge_information, gnc_tls_poses

@@ -110,7 +110,8 @@ def triangle_support(graph: PoseGraph, max_deg: float = MAX_DEG, max_trans: floa
 def credibility(graph: PoseGraph) -> np.ndarray:
     """(E,) an edge's vote: ``1 + w⁰ / max w⁰`` for an edge with positive weight, else 0 — between 1 and 2,
     so a placement more edges agree on wins unless the fewer are much heavier (measured against pure
-    counts and against ``w⁰`` alone on the development draws: docs/BENCHMARKS.md)."""
+    counts and against ``w⁰`` alone on the development draws:
+    the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
     top = graph.weight.max(initial=0.0)
     return np.where(graph.weight > 0, 1.0 + graph.weight / (top if top > 0 else 1.0), 0.0)
 
@@ -390,7 +391,8 @@ def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.n
     C = sp.csr_matrix((data, (rows, cols)), shape=(n + 2, n + 2))
     flow = maximum_flow(C, source, sink)
     # No consistent edge between the ends: the move would join two parts on dropped edges alone, which is the
-    # front end's to verify (a building whose halves only wrong registrations joined: docs/BENCHMARKS.md).
+    # front end's to verify (a building whose halves only wrong registrations joined:
+    # the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md).
     if flow.flow_value == 0 or (1.0 + MARGIN) * flow.flow_value >= family_votes * _CAPACITY:
         return None
     residual = (C - flow.flow).tocsr()  # ≥ 0: the flow is antisymmetric and within the capacities
