@@ -28,11 +28,25 @@ def commit(root: Path = ROOT) -> str:
     """The short hash of HEAD, ``+dirty`` when tracked files other than results differ from it; ``unknown`` outside a
     git checkout."""
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True,
-                              check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", ".",
-                                ":!benchmarks/results", ":!docs/benchmarks.md"],  # results are not code
-                               cwd=root, capture_output=True, text=True, check=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            [
+                "git",
+                "status",
+                "--porcelain",
+                "--untracked-files=no",
+                "--",
+                ".",
+                ":!benchmarks/results",
+                ":!docs/benchmarks.md",
+            ],  # results are not code
+            cwd=root,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
     return head + ("+dirty" if dirty else "")
@@ -66,21 +80,44 @@ def machine() -> dict[str, Any]:
         load = round(os.getloadavg()[0], 1)
     except OSError:
         load = None
-    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "memory_gb": _memory_gb(), "load": load,
-            "os": f"{platform.system()} {platform.release()}", "python": platform.python_version()}
+    return {
+        "cpu": _cpu_model(),
+        "cores": os.cpu_count(),
+        "memory_gb": _memory_gb(),
+        "load": load,
+        "os": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+    }
 
 
-def save(name: str, rows: Sequence[Sequence[Any]], columns: Sequence[str], command: str | None = None,
-         notes: str = "", *, section: str = "Other", title: str | None = None, folder: Path = RESULTS) -> Path:
+def save(
+    name: str,
+    rows: Sequence[Sequence[Any]],
+    columns: Sequence[str],
+    command: str | None = None,
+    notes: str = "",
+    *,
+    section: str = "Other",
+    title: str | None = None,
+    folder: Path = RESULTS,
+) -> Path:
     """Write ``folder/<name>.json`` (atomically) and return its path. ``command`` defaults to this process's own
     command line; cells are JSON values (numbers, strings, None) in the order of ``columns``."""
     if any(len(row) != len(columns) for row in rows):
         raise ValueError(f"{name}: every row needs {len(columns)} cells ({', '.join(columns)})")
-    record = {"name": name, "section": section, "title": title or name, "columns": list(columns),
-              "rows": [list(row) for row in rows],
-              "command": command or "python " + " ".join([_relative(sys.argv[0]), *sys.argv[1:]]),
-              "commit": STARTED_AT, "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"), "machine": machine(),
-              "notes": notes, "transcribed": False}
+    record = {
+        "name": name,
+        "section": section,
+        "title": title or name,
+        "columns": list(columns),
+        "rows": [list(row) for row in rows],
+        "command": command or "python " + " ".join([_relative(sys.argv[0]), *sys.argv[1:]]),
+        "commit": STARTED_AT,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%d"),
+        "machine": machine(),
+        "notes": notes,
+        "transcribed": False,
+    }
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.json"
     tmp = path.with_name(f".{path.name}.tmp")

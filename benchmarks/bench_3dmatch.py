@@ -12,7 +12,8 @@ misplaced when outside the largest rigid piece of its own part (15° / 0.6 m aga
 whole model: one rigid alignment of all placed scan positions to GT (as ``evo_ape --align``), then the scans
 within 5° / 0.2 m (bunny: 0.2° / 0.5 mm, aligned by whole poses: its sensor positions ring the object and
 leave a positions-only alignment's rotation loose), ATE rmse and rotation errors. ``doubted`` lists the placed scans
-outside the tolerance (fragment numbers), and ``unflagged wrong`` the scans of the trusted model (``Verdict.trusted``: the
+outside the tolerance (fragment numbers), and ``unflagged wrong`` the scans of the trusted model (``Verdict.trusted``:
+the
 verified scans of the world part) that one rigid alignment of those scans alone leaves outside the tolerance
 (``SceneScore.unflagged_wrong``: a wrong model that looks right). ``bunny_ring`` is the bunny's six
 ring scans alone (45-90° apart). ``unseen`` is the other five 3DMatch test scenes (``kitchen60``, ``home_md``,
@@ -61,16 +62,30 @@ class Scene:
 
 
 SCENES = {
-    "home_at": Scene("3dmatch-scenes/home_at", "3dmatch-scenes/home_at/gt_poses.txt",
-                     f"{GT_3DMATCH}/sun3d-home_at-home_at_scan1_2013_jan_1"),
-    "hotel_uc": Scene("3dmatch-scenes/hotel_uc", "3dmatch-scenes/hotel_uc/gt_poses.txt",
-                      f"{GT_3DMATCH}/sun3d-hotel_uc-scan3"),
-    "studyroom": Scene("3dmatch-scenes/studyroom", "3dmatch-scenes/studyroom/gt_poses.txt",
-                       f"{GT_3DMATCH}/sun3d-mit_76_studyroom-76-1studyroom2"),
+    "home_at": Scene(
+        "3dmatch-scenes/home_at",
+        "3dmatch-scenes/home_at/gt_poses.txt",
+        f"{GT_3DMATCH}/sun3d-home_at-home_at_scan1_2013_jan_1",
+    ),
+    "hotel_uc": Scene(
+        "3dmatch-scenes/hotel_uc", "3dmatch-scenes/hotel_uc/gt_poses.txt", f"{GT_3DMATCH}/sun3d-hotel_uc-scan3"
+    ),
+    "studyroom": Scene(
+        "3dmatch-scenes/studyroom",
+        "3dmatch-scenes/studyroom/gt_poses.txt",
+        f"{GT_3DMATCH}/sun3d-mit_76_studyroom-76-1studyroom2",
+    ),
     "kitchen": Scene("kitchen", "kitchen/gt/gt_poses.txt", "kitchen/gt"),
     "bunny": Scene("bunny", "bunny/gt_poses.txt", None, 0.2, 0.0005, "poses"),
-    "bunny_ring": Scene("bunny", "bunny/gt_poses.txt", None, 0.3, 0.0006, "poses",
-                        tuple(f"bun{a:03d}.ply" for a in (0, 45, 90, 180, 270, 315))),
+    "bunny_ring": Scene(
+        "bunny",
+        "bunny/gt_poses.txt",
+        None,
+        0.3,
+        0.0006,
+        "poses",
+        tuple(f"bun{a:03d}.ply" for a in (0, 45, 90, 180, 270, 315)),
+    ),
 }
 DEFAULT_SCENES = ["home_at", "hotel_uc", "studyroom"]
 # The other five 3DMatch test scenes, never tuned to: not in the shared data, built into a data folder of their own
@@ -134,8 +149,13 @@ def scene_gt(data: Path, scene: Scene) -> dict:
     if scene.scans:
         keep = [gt_names.index(n) for n in scene.scans]
         gt_names, gt_poses = [gt_names[k] for k in keep], gt_poses[keep]
-    kw = {"gt_names": gt_names, "gt_poses": gt_poses, "max_deg": scene.max_deg, "max_trans": scene.max_trans,
-          "align": scene.align}
+    kw = {
+        "gt_names": gt_names,
+        "gt_poses": gt_poses,
+        "max_deg": scene.max_deg,
+        "max_trans": scene.max_trans,
+        "align": scene.align,
+    }
     if scene.gt_dir:
         kw["gt_log"] = read_gt_log(data / scene.gt_dir / "gt.log")
         kw["gt_info"] = read_gt_info(data / scene.gt_dir / "gt.info")
@@ -149,28 +169,46 @@ def lo_gt(data: Path, scene: Scene) -> tuple[dict, dict] | None:
     if not scene.gt_dir:
         return None
     folder = data / scene.gt_dir
-    for log, info in ((folder / "gtLo.log", folder / "gtLo.info"),
-                      (data / scene.gt_dir.replace("/3DMatch/", "/3DLoMatch/") / "gt.log",
-                       data / scene.gt_dir.replace("/3DMatch/", "/3DLoMatch/") / "gt.info")):
+    for log, info in (
+        (folder / "gtLo.log", folder / "gtLo.info"),
+        (
+            data / scene.gt_dir.replace("/3DMatch/", "/3DLoMatch/") / "gt.log",
+            data / scene.gt_dir.replace("/3DMatch/", "/3DLoMatch/") / "gt.info",
+        ),
+    ):
         if log.is_file() and info.is_file():
             return read_gt_log(log), read_gt_info(info)
     return None
 
 
-def score_row(name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None, parts,
-              lo_recall: float | None) -> dict:
+def score_row(
+    name: str, score, seconds: dict[str, float], wall: float, peak_mb: float | None, parts, lo_recall: float | None
+) -> dict:
     """One JSON-able row from a ``SceneScore``, the run's timings, its ``evaluate.PartsScore`` and its 3DLoMatch
     recall."""
     w = score.whole
     return {
-        "scene": name, "scans": score.scans, "placed": len(score.placed), "unregistered": score.unregistered,
-        "parts": [len(p) for p in parts.parts], "pieces": [len(p) for p in parts.pieces],
-        "misplaced": parts.misplaced, "doubts": parts.doubted, "caught": parts.caught,
+        "scene": name,
+        "scans": score.scans,
+        "placed": len(score.placed),
+        "unregistered": score.unregistered,
+        "parts": [len(p) for p in parts.parts],
+        "pieces": [len(p) for p in parts.pieces],
+        "misplaced": parts.misplaced,
+        "doubts": parts.doubted,
+        "caught": parts.caught,
         "unflagged_wrong": score.unflagged_wrong,
-        "recall": score.recall.recall if score.recall else None, "lo_recall": lo_recall,
-        "within": score.within, "tolerance": [score.max_deg, score.max_trans], "ate_rmse": w.ate_rmse,
-        "median_rot": float(np.median(w.rotation_deg)), "worst_rot": float(w.rotation_deg.max()),
-        "worst_trans": float(w.translation.max()), "seconds": seconds, "wall": wall, "peak_mb": peak_mb,
+        "recall": score.recall.recall if score.recall else None,
+        "lo_recall": lo_recall,
+        "within": score.within,
+        "tolerance": [score.max_deg, score.max_trans],
+        "ate_rmse": w.ate_rmse,
+        "median_rot": float(np.median(w.rotation_deg)),
+        "worst_rot": float(w.rotation_deg.max()),
+        "worst_trans": float(w.translation.max()),
+        "seconds": seconds,
+        "wall": wall,
+        "peak_mb": peak_mb,
         "doubted": score.doubted,
         "errors": {n: [float(r), float(t)] for n, r, t in zip(w.names, w.rotation_deg, w.translation)},
     }
@@ -184,9 +222,26 @@ def labels(names: list[str]) -> str:
 def tables(rows: list[dict]) -> list[tuple[str, list[str], list[list]]]:
     """The runs' table, then (with ``--refit-gt``) the same runs against the re-fitted GT: (kind, columns, rows)."""
     stages = list(dict.fromkeys(k for r in rows for k in r.get("seconds", {})))
-    columns = ["scene", "scans", "placed", "RR (paper)", "3DLoMatch RR", "parts (scans)", "misplaced in its part",
-               "doubted by the run", "of them misplaced", "within tol", "ATE rmse m", "median rot °", "worst rot °",
-               *(f"{s} s" for s in stages), "wall s", "peak MB", "outside tol (whole model)", "unflagged wrong"]
+    columns = [
+        "scene",
+        "scans",
+        "placed",
+        "RR (paper)",
+        "3DLoMatch RR",
+        "parts (scans)",
+        "misplaced in its part",
+        "doubted by the run",
+        "of them misplaced",
+        "within tol",
+        "ATE rmse m",
+        "median rot °",
+        "worst rot °",
+        *(f"{s} s" for s in stages),
+        "wall s",
+        "peak MB",
+        "outside tol (whole model)",
+        "unflagged wrong",
+    ]
     cells = []
     for r in rows:
         if "error" in r:
@@ -194,26 +249,60 @@ def tables(rows: list[dict]) -> list[tuple[str, list[str], list[list]]]:
             continue
         rr = "-" if r["recall"] is None else f"{r['recall']:.3f}"
         lo = "-" if r["lo_recall"] is None else f"{r['lo_recall']:.3f}"
-        cells.append([r["scene"], r["scans"], f"{r['placed']}/{r['scans']}", rr, lo,
-                      " + ".join(map(str, r["parts"])), labels(r["misplaced"]), labels(r["doubts"]),
-                      len(r["caught"]), f"{r['within']}/{r['scans']}", f"{r['ate_rmse']:.4g}",
-                      f"{r['median_rot']:.3g}", f"{r['worst_rot']:.3g}",
-                      *(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages), f"{r['wall']:.0f}", f"{r['peak_mb']:.0f}",
-                      labels(r["doubted"]), labels(r["unflagged_wrong"])])
+        cells.append(
+            [
+                r["scene"],
+                r["scans"],
+                f"{r['placed']}/{r['scans']}",
+                rr,
+                lo,
+                " + ".join(map(str, r["parts"])),
+                labels(r["misplaced"]),
+                labels(r["doubts"]),
+                len(r["caught"]),
+                f"{r['within']}/{r['scans']}",
+                f"{r['ate_rmse']:.4g}",
+                f"{r['median_rot']:.3g}",
+                f"{r['worst_rot']:.3g}",
+                *(f"{r['seconds'].get(s, 0.0):.1f}" for s in stages),
+                f"{r['wall']:.0f}",
+                f"{r['peak_mb']:.0f}",
+                labels(r["doubted"]),
+                labels(r["unflagged_wrong"]),
+            ]
+        )
     out = [("runs", columns, cells)]
     refit = [r for r in rows if "refit" in r]
     if refit:
-        columns = ["scene", "pairs re-fitted", "ICP optimum from GT: rot median / 90 % °", "trans median / 90 % m",
-                   "re-fitted GT vs GT: within tol, ATE m", "within tol", "ATE rmse m", "doubted", "unflagged wrong",
-                   "placed together (5° / 0.2 m): scans, fragments, turn against the largest"]
+        columns = [
+            "scene",
+            "pairs re-fitted",
+            "ICP optimum from GT: rot median / 90 % °",
+            "trans median / 90 % m",
+            "re-fitted GT vs GT: within tol, ATE m",
+            "within tol",
+            "ATE rmse m",
+            "doubted",
+            "unflagged wrong",
+            "placed together (5° / 0.2 m): scans, fragments, turn against the largest",
+        ]
         cells = []
         for r in refit:
             f = r["refit"]
-            cells.append([r["scene"], f["pairs"], f"{f['rot'][0]:.2f} / {f['rot'][1]:.2f}",
-                          f"{f['trans'][0]:.3f} / {f['trans'][1]:.3f}",
-                          f"{f['gt_within']}/{r['scans']}, {f['gt_ate']:.3f}",
-                          f"{f['within']}/{r['scans']}", f"{f['ate_rmse']:.4g}", labels(f["doubted"]),
-                          labels(f["unflagged_wrong"]), "; ".join(f.get("groups", []))])
+            cells.append(
+                [
+                    r["scene"],
+                    f["pairs"],
+                    f"{f['rot'][0]:.2f} / {f['rot'][1]:.2f}",
+                    f"{f['trans'][0]:.3f} / {f['trans'][1]:.3f}",
+                    f"{f['gt_within']}/{r['scans']}, {f['gt_ate']:.3f}",
+                    f"{f['within']}/{r['scans']}",
+                    f"{f['ate_rmse']:.4g}",
+                    labels(f["doubted"]),
+                    labels(f["unflagged_wrong"]),
+                    "; ".join(f.get("groups", [])),
+                ]
+            )
         out.append(("refit", columns, cells))
     return out
 
@@ -247,13 +336,25 @@ def child(scene_dir: str, overrides_json: str, workers: str, overlap_log: str) -
         scores = log_overlaps(Path(overlap_log), [fragment_id(s.name) for s in scans])
         res = register(scans, config, log=log, skipped=skipped, scores=scores)
     verdict = res.verdict
-    print(json.dumps({"names": res.names, "poses": res.poses.tolist(), "unregistered": res.unregistered,
-                      "trusted": verdict.trusted(), "parts": [p.scans for p in verdict.parts],
-                      "doubts": list(verdict.doubts), "timings": res.timings, "peak_mb": peak_memory_mb()}))
+    print(
+        json.dumps(
+            {
+                "names": res.names,
+                "poses": res.poses.tolist(),
+                "unregistered": res.unregistered,
+                "trusted": verdict.trusted(),
+                "parts": [p.scans for p in verdict.parts],
+                "doubts": list(verdict.doubts),
+                "timings": res.timings,
+                "peak_mb": peak_memory_mb(),
+            }
+        )
+    )
 
 
-def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False,
-              gt_overlap: bool = False) -> dict:
+def run_scene(
+    data: Path, name: str, overrides: dict, workers: int | None, refit_gt: bool = False, gt_overlap: bool = False
+) -> dict:
     from sghr_gtsam.evaluate import fragment_id, registration_recall_counting_unplaced, score_parts, score_run
 
     scene = SCENES[name]
@@ -265,9 +366,21 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
             folder = Path(subset)
         started = time.perf_counter()
         overlap_log = str(data / scene.gt_dir / "gt_overlap.log") if gt_overlap and scene.gt_dir else "none"
-        proc = subprocess.run([sys.executable, __file__, "--child", str(folder), json.dumps(overrides),
-                               str(workers) if workers else "none", overlap_log], capture_output=True, text=True,
-                              cwd=ROOT, check=False)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                __file__,
+                "--child",
+                str(folder),
+                json.dumps(overrides),
+                str(workers) if workers else "none",
+                overlap_log,
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            check=False,
+        )
         wall = time.perf_counter() - started
     if proc.returncode:
         return {"scene": name, "error": (proc.stderr.strip().splitlines() or ["?"])[-1]}
@@ -283,8 +396,11 @@ def run_scene(data: Path, name: str, overrides: dict, workers: int | None, refit
     if lo is not None:
         placed = [k for k, n in enumerate(names) if n not in set(r["unregistered"])]
         lo_recall = registration_recall_counting_unplaced(
-            [fragment_id(names[k]) for k in placed], poses[placed], *lo,
-            scene_ids=[fragment_id(n) for n in gt["gt_names"]]).recall
+            [fragment_id(names[k]) for k in placed],
+            poses[placed],
+            *lo,
+            scene_ids=[fragment_id(n) for n in gt["gt_names"]],
+        ).recall
     row = score_row(name, score, r["timings"], wall, r["peak_mb"], parts, lo_recall)
     row["poses"] = dict(zip(names, r["poses"]))  # for scoring against another reference later
     if refit_gt and scene.gt_dir:
@@ -300,15 +416,21 @@ def refit_row(data: Path, scene: Scene, names: list[str], poses: np.ndarray, r: 
 
     fit = refit([load_scan(data / scene.folder / n) for n in gt["gt_names"]], gt["gt_poses"], 0.025)
     against = {**gt, "gt_poses": fit.poses, "gt_log": None, "gt_info": None}
-    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set(names) - set(r["trusted"]),
-                      **against)
+    score = score_run(names, poses, unregistered=r["unregistered"], flagged=set(names) - set(r["trusted"]), **against)
     moved = whole_model_errors(gt["gt_names"], fit.poses, gt["gt_poses"], gt["align"])
     rot, trans = fit.icp_move.T
-    return {"pairs": len(fit.pairs), "rot": [float(np.median(rot)), float(np.quantile(rot, 0.9))],
-            "trans": [float(np.median(trans)), float(np.quantile(trans, 0.9))],
-            "gt_within": int(moved.within(gt["max_deg"], gt["max_trans"]).sum()), "gt_ate": moved.ate_rmse,
-            "within": score.within, "ate_rmse": score.whole.ate_rmse, "doubted": score.doubted,
-            "unflagged_wrong": score.unflagged_wrong, "groups": _groups(names, poses, r["unregistered"], gt, fit.poses)}
+    return {
+        "pairs": len(fit.pairs),
+        "rot": [float(np.median(rot)), float(np.quantile(rot, 0.9))],
+        "trans": [float(np.median(trans)), float(np.quantile(trans, 0.9))],
+        "gt_within": int(moved.within(gt["max_deg"], gt["max_trans"]).sum()),
+        "gt_ate": moved.ate_rmse,
+        "within": score.within,
+        "ate_rmse": score.whole.ate_rmse,
+        "doubted": score.doubted,
+        "unflagged_wrong": score.unflagged_wrong,
+        "groups": _groups(names, poses, r["unregistered"], gt, fit.poses),
+    }
 
 
 def _groups(names: list[str], poses: np.ndarray, unregistered: list[str], gt: dict, truth: np.ndarray) -> list[str]:
@@ -319,8 +441,9 @@ def _groups(names: list[str], poses: np.ndarray, unregistered: list[str], gt: di
     index = {n: k for k, n in enumerate(gt["gt_names"])}
     skip = set(unregistered)
     placed = [k for k, n in enumerate(names) if n not in skip]
-    return placement_groups(poses[placed], truth[[index[names[k]] for k in placed]],
-                            [fragment_id(names[k]) for k in placed])
+    return placement_groups(
+        poses[placed], truth[[index[names[k]] for k in placed]], [fragment_id(names[k]) for k in placed]
+    )
 
 
 def main() -> None:
@@ -330,15 +453,27 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=data_root())
     ap.add_argument("--scenes", nargs="+", default=DEFAULT_SCENES, choices=[*SCENES, *GROUPS])
-    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a Config field (repeatable)")
+    ap.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a Config field (repeatable)",
+    )
     ap.add_argument("--workers", type=int, help="Config.workers, when the installed Config has it")
     ap.add_argument("--json", type=Path, help="also write the raw rows (with per-scan errors) here")
-    ap.add_argument("--refit-gt", action="store_true",
-                    help="also score the 3DMatch scenes against their GT re-fitted to the scans (data_tools.refit_gt)")
-    ap.add_argument("--gt-overlap", action="store_true",
-                    help="the top-k graph from the scenes' GT overlaps (gt_overlap.log; 3DMatch scenes and kitchen): "
-                         "an upper reference for the overlap estimate, not a result")
+    ap.add_argument(
+        "--refit-gt",
+        action="store_true",
+        help="also score the 3DMatch scenes against their GT re-fitted to the scans (data_tools.refit_gt)",
+    )
+    ap.add_argument(
+        "--gt-overlap",
+        action="store_true",
+        help="the top-k graph from the scenes' GT overlaps (gt_overlap.log; 3DMatch scenes and kitchen): "
+        "an upper reference for the overlap estimate, not a result",
+    )
     args = ap.parse_args()
     from sghr_gtsam.config import Config
     from sghr_gtsam.types import InputError
@@ -351,8 +486,13 @@ def main() -> None:
     rows = []
     for name in [n for group in args.scenes for n in GROUPS.get(group, [group])]:
         if not (args.data / SCENES[name].folder).is_dir():
-            rows.append({"scene": name, "error": f"{args.data / SCENES[name].folder} not found"
-                         + (" (python -m data_tools.other_3dmatch_scenes)" if name in OTHER_SCENES else "")})
+            rows.append(
+                {
+                    "scene": name,
+                    "error": f"{args.data / SCENES[name].folder} not found"
+                    + (" (python -m data_tools.other_3dmatch_scenes)" if name in OTHER_SCENES else ""),
+                }
+            )
             continue
         print(f"running {name} ...", file=sys.stderr, flush=True)
         rows.append(run_scene(args.data, name, overrides, args.workers, args.refit_gt, args.gt_overlap))
@@ -360,8 +500,11 @@ def main() -> None:
     if not overrides and not args.gt_overlap:  # the defaults' results: the benchmarks page's tables
         which = "unseen" if args.scenes == ["unseen"] else "shared"  # the titles name the scenes
         for kind, columns, cells in tables(rows):
-            title = (f"{', '.join(args.scenes)}: the runs" if kind == "runs"
-                     else f"{', '.join(args.scenes)}: the same runs against the GT re-fitted to the scans")
+            title = (
+                f"{', '.join(args.scenes)}: the runs"
+                if kind == "runs"
+                else f"{', '.join(args.scenes)}: the same runs against the GT re-fitted to the scans"
+            )
             save(f"3dmatch_{which}_{kind}", cells, columns, section="3DMatch end to end", title=title)
     if args.json:
         from sghr_gtsam.io.atomic import atomic_write

@@ -54,8 +54,15 @@ def main() -> None:
             args = args(t, scene, out) if callable(args) else [scene, "--out", out, *args]
             extra = [] if "--workers" in args else ["--workers", "1"]
             code, lines = corpus._cli("run", *args, *extra)
-            print(_row(f"run: {case}", code, lines, "no report.json written" if not (out / "report.json").exists()
-                       else "report.json written", d))
+            print(
+                _row(
+                    f"run: {case}",
+                    code,
+                    lines,
+                    "no report.json written" if not (out / "report.json").exists() else "report.json written",
+                    d,
+                )
+            )
     for case, (text, _) in corpus.SYNC_ERRORS.items():
         with tempfile.TemporaryDirectory() as d:
             (Path(d) / "in.g2o").write_text(text)

@@ -58,25 +58,35 @@ def simulated(scenes: int, first_seed: int, n_scans: int) -> None:
         kind = "room" if s % 2 == 0 else "object"
         count[kind] += 1
         scene = make_scene(kind=kind, n_scans=n_scans, seed=s)
-        result = register([Scan(n, P) for n, P in zip(scene.names, scene.scans)],
-                          Config(record=False, seed=s, voxel=scene.voxel, workers=1), log=lambda m: None)
+        result = register(
+            [Scan(n, P) for n, P in zip(scene.names, scene.scans)],
+            Config(record=False, seed=s, voxel=scene.voxel, workers=1),
+            log=lambda m: None,
+        )
         anchor = int(np.flatnonzero(result.sync.component == 0)[0])
         scans = coverage_rows(result.poses, scene.poses, pose_covariances(result), result.registered, anchor)
         gross[kind] += sum(r["rot"] > GROSS_DEG for r in scans)
         rows[kind] += [r for r in scans if r["rot"] <= GROSS_DEG]
-        print(f"seed {s} {kind}: {len(scans)} scans, NEES mean {np.mean([r['nees'] for r in scans]):.2f}",
-              file=sys.stderr, flush=True)
-    print(f"| scenes | scans | gross (> {GROSS_DEG:g}°) | mean NEES | median NEES | 95 % band of the mean "
-          f"| scans with NEES < χ²₆(0.95) | within {WITHIN:g}σ | median σ/error rot | median σ/error trans |")
+        print(
+            f"seed {s} {kind}: {len(scans)} scans, NEES mean {np.mean([r['nees'] for r in scans]):.2f}",
+            file=sys.stderr,
+            flush=True,
+        )
+    print(
+        f"| scenes | scans | gross (> {GROSS_DEG:g}°) | mean NEES | median NEES | 95 % band of the mean "
+        f"| scans with NEES < χ²₆(0.95) | within {WITHIN:g}σ | median σ/error rot | median σ/error trans |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|")
     for label, kinds in (("rooms", ["room"]), ("objects", ["object"]), ("all", ["room", "object"])):
         kept = [r for k in kinds for r in rows[k]]
         x = np.array([r["nees"] for r in kept])
         lo, hi = band(len(x))
         t = summary(kept)
-        print(f"| {label} ({sum(count[k] for k in kinds)}) | {len(x)} | {sum(gross[k] for k in kinds)} | "
-              f"{x.mean():.2f} | {np.median(x):.2f} | [{lo:.2f}, {hi:.2f}] | {np.mean(x < chi2.ppf(0.95, 6)):.0%} | "
-              f"{t['covered']:.0%} | {t['median_ratio_rot']:.2f} | {t['median_ratio_trans']:.2f} |")
+        print(
+            f"| {label} ({sum(count[k] for k in kinds)}) | {len(x)} | {sum(gross[k] for k in kinds)} | "
+            f"{x.mean():.2f} | {np.median(x):.2f} | [{lo:.2f}, {hi:.2f}] | {np.mean(x < chi2.ppf(0.95, 6)):.0%} | "
+            f"{t['covered']:.0%} | {t['median_ratio_rot']:.2f} | {t['median_ratio_trans']:.2f} |"
+        )
 
 
 REAL = {  # scene: folder, GT poses, voxel of the GT re-fit (None: no re-fit, the GT is the best there is)
@@ -91,8 +101,9 @@ WITHIN = 3.0
 covariance along the error's own direction."""
 
 
-def coverage_rows(poses: np.ndarray, gt: np.ndarray, covariances: np.ndarray, registered: list[int],
-                  anchor: int) -> list[dict]:
+def coverage_rows(
+    poses: np.ndarray, gt: np.ndarray, covariances: np.ndarray, registered: list[int], anchor: int
+) -> list[dict]:
     """Per registered scan but ``anchor``, errors relative to ``anchor`` (``ξ = Log(T̂⁻¹ T_gt)``, gtsam order)
     against the σ of ``covariances`` along them: rotation (degrees) and translation, their ratios σ / error, NEES."""
     est = inv_T(poses[anchor])[None] @ poses
@@ -120,10 +131,15 @@ def summary(rows: list[dict]) -> dict:
         return {"scans": 0}
     ratio = {p: np.median([r[f"sigma_{p}"] / max(r[p], 1e-12) for r in rows]) for p in ("rot", "trans")}
     nees = np.array([r["nees"] for r in rows])
-    return {"scans": len(rows), "covered": float(np.mean([r["covered"] for r in rows])),
-            "median_ratio_rot": float(ratio["rot"]), "median_ratio_trans": float(ratio["trans"]),
-            "mean_nees": float(nees.mean()), "median_nees": float(np.median(nees)),
-            "gross": int(sum(r["rot"] > GROSS_DEG for r in rows))}
+    return {
+        "scans": len(rows),
+        "covered": float(np.mean([r["covered"] for r in rows])),
+        "median_ratio_rot": float(ratio["rot"]),
+        "median_ratio_trans": float(ratio["trans"]),
+        "mean_nees": float(nees.mean()),
+        "median_nees": float(np.median(nees)),
+        "gross": int(sum(r["rot"] > GROSS_DEG for r in rows)),
+    }
 
 
 def _refit(folder: Path, names: list[str], gt: np.ndarray, voxel: float, out: Path) -> np.ndarray:
@@ -134,8 +150,12 @@ def _refit(folder: Path, names: list[str], gt: np.ndarray, voxel: float, out: Pa
 
     path = out / "refit_gt.txt"
     if not path.exists():
-        write_poses(path, names, refit([load_scan(folder / n) for n in names], gt, voxel).poses,
-                    comment="re-fitted GT (data_tools.refit_gt)")
+        write_poses(
+            path,
+            names,
+            refit([load_scan(folder / n) for n in names], gt, voxel).poses,
+            comment="re-fitted GT (data_tools.refit_gt)",
+        )
     refit_names, poses = read_poses(path)
     return poses[[refit_names.index(n) for n in names]]
 
@@ -171,9 +191,13 @@ def real(names: list[str], data: Path, out_root: Path, workers: int | None, reus
         anchor = int(np.flatnonzero(result.sync.component == 0)[0])
         chosen = result.sync.weights > 0
         degree = np.bincount(np.r_[result.graph.i[chosen], result.graph.j[chosen]]).max()
-        scenes[scene] = {"variance_factor": variance_factor(result), "most_edges_at_a_scan": int(degree),
-                         "underdetermined": result.underdetermined,
-                         "poses": result.poses.tolist(), "names": result.names}
+        scenes[scene] = {
+            "variance_factor": variance_factor(result),
+            "most_edges_at_a_scan": int(degree),
+            "underdetermined": result.underdetermined,
+            "poses": result.poses.tolist(),
+            "names": result.names,
+        }
         for ref, truth in references.items():
             rows = coverage_rows(result.poses, truth, C, result.registered, anchor)
             for r in rows:
@@ -186,8 +210,19 @@ def real(names: list[str], data: Path, out_root: Path, workers: int | None, reus
     return scenes
 
 
-COLUMNS = ["scene", "against", "scans", f"within {WITHIN:g}σ", "median σ/error rot", "median σ/error trans", "mean NEES",
-           "median NEES", f"gross (> {GROSS_DEG:g}°)", "variance factor", "most edges at a scan"]
+COLUMNS = [
+    "scene",
+    "against",
+    "scans",
+    f"within {WITHIN:g}σ",
+    "median σ/error rot",
+    "median σ/error trans",
+    "mean NEES",
+    "median NEES",
+    f"gross (> {GROSS_DEG:g}°)",
+    "variance factor",
+    "most edges at a scan",
+]
 
 
 def table(scenes: dict) -> list[list]:
@@ -197,9 +232,21 @@ def table(scenes: dict) -> list[list]:
         for ref in ("gt", "refit"):
             if ref in r:
                 s = r[ref]["summary"]
-                rows.append([scene, ref, s["scans"], f"{s['covered']:.0%}", round(s["median_ratio_rot"], 2),
-                             round(s["median_ratio_trans"], 2), round(s["mean_nees"], 1), round(s["median_nees"], 1),
-                             s["gross"], round(r["variance_factor"], 1), r["most_edges_at_a_scan"]])
+                rows.append(
+                    [
+                        scene,
+                        ref,
+                        s["scans"],
+                        f"{s['covered']:.0%}",
+                        round(s["median_ratio_rot"], 2),
+                        round(s["median_ratio_trans"], 2),
+                        round(s["mean_nees"], 1),
+                        round(s["median_nees"], 1),
+                        s["gross"],
+                        round(r["variance_factor"], 1),
+                        r["most_edges_at_a_scan"],
+                    ]
+                )
     return rows
 
 
@@ -208,22 +255,32 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=60)
     parser.add_argument("--first-seed", type=int, default=1000)
     parser.add_argument("--scans", type=int, default=6)
-    parser.add_argument("--real", nargs="*", default=None, choices=list(REAL),
-                        help="real scenes instead (none named: all of them)")
+    parser.add_argument(
+        "--real", nargs="*", default=None, choices=list(REAL), help="real scenes instead (none named: all of them)"
+    )
     parser.add_argument("--data", type=Path, default=data_root())
-    parser.add_argument("--out", type=Path, default=Path(tempfile.gettempdir()) / "bench_covariance",
-                        help="the real runs' results and caches, kept for the next call")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(tempfile.gettempdir()) / "bench_covariance",
+        help="the real runs' results and caches, kept for the next call",
+    )
     parser.add_argument("--workers", type=int, help="Config.workers of the real runs")
     parser.add_argument("--reuse", action="store_true", help="the real runs of an earlier call, not run again")
     args = parser.parse_args()
     if args.real is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         scenes = real(args.real or list(REAL), args.data, args.out, args.workers, args.reuse)
-        save("covariance", table(scenes), COLUMNS, section="Covariances",
-             title="Pose covariances against the real scans' errors",
-             notes=f"A scan is covered when its rotation and translation errors relative to the world scan are each "
-                   f"within {WITHIN:g}σ along their own direction; `refit`: the GT re-fitted to the scans "
-                   f"(data_tools.refit_gt), `gt`: as shipped.")
+        save(
+            "covariance",
+            table(scenes),
+            COLUMNS,
+            section="Covariances",
+            title="Pose covariances against the real scans' errors",
+            notes=f"A scan is covered when its rotation and translation errors relative to the world scan are each "
+            f"within {WITHIN:g}σ along their own direction; `refit`: the GT re-fitted to the scans "
+            f"(data_tools.refit_gt), `gt`: as shipped.",
+        )
     else:
         simulated(args.scenes, args.first_seed, args.scans)
 

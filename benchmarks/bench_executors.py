@@ -23,7 +23,14 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-PARALLEL = ("features", "pairwise", "pyramids", "refine", "loops", "retry")  # the stages that run through executor.parallel_map
+PARALLEL = (
+    "features",
+    "pairwise",
+    "pyramids",
+    "refine",
+    "loops",
+    "retry",
+)  # the stages that run through executor.parallel_map
 
 CHILD = r"""
 import json, sys, time
@@ -37,8 +44,12 @@ wall = time.perf_counter() - started
 print(json.dumps({"wall": wall, "timings": res.timings, "poses": res.poses.tolist(), "names": res.names}))
 """
 
-BACKENDS = [("in-process (--workers 1)", 1, ""), ("process pool, 2 workers", 2, ""),
-            ("Ray local, 1 CPU", 1, "local"), ("Ray local, 2 CPUs", 2, "local")]
+BACKENDS = [
+    ("in-process (--workers 1)", 1, ""),
+    ("process pool, 2 workers", 2, ""),
+    ("Ray local, 1 CPU", 1, "local"),
+    ("Ray local, 2 CPUs", 2, "local"),
+]
 
 
 def _load() -> str:
@@ -48,8 +59,13 @@ def _load() -> str:
 def _run(scene: Path, workers: int, ray: str) -> dict:
     with tempfile.TemporaryDirectory() as out:
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
-        proc = subprocess.run([sys.executable, "-c", CHILD, str(scene), str(Path(out) / "out"), str(workers), ray],
-                              capture_output=True, text=True, cwd=ROOT, env=env)
+        proc = subprocess.run(
+            [sys.executable, "-c", CHILD, str(scene), str(Path(out) / "out"), str(workers), ray],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env=env,
+        )
     if proc.returncode:
         raise SystemExit(f"{workers} workers, ray={ray!r} failed: {proc.stderr.strip()[-2000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
@@ -69,8 +85,10 @@ def main() -> None:
             scene = Path(tmp) / "scene"
             write_scene(make_scene("room", args.scans), scene)
         print(f"scene: {args.scene or f'generated room, {args.scans} scans'}; {os.cpu_count()} cores")
-        print("| backend | wall s | executor stages s (" + " + ".join(PARALLEL) + ") | max pose difference "
-              "to in-process | load before / after |")
+        print(
+            "| backend | wall s | executor stages s (" + " + ".join(PARALLEL) + ") | max pose difference "
+            "to in-process | load before / after |"
+        )
         print("|---|---|---|---|---|")
         reference = None
         for label, workers, ray in BACKENDS:

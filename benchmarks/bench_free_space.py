@@ -37,8 +37,13 @@ from sghr_gtsam.registration.visibility import (  # noqa: E402
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
-REAL = (("kitchen", 0.025), ("bunny", 0.002), ("3dmatch-scenes/home_at", 0.025),
-        ("3dmatch-scenes/hotel_uc", 0.025), ("3dmatch-scenes/studyroom", 0.025))
+REAL = (
+    ("kitchen", 0.025),
+    ("bunny", 0.002),
+    ("3dmatch-scenes/home_at", 0.025),
+    ("3dmatch-scenes/hotel_uc", 0.025),
+    ("3dmatch-scenes/studyroom", 0.025),
+)
 
 
 def _grid(path: Path, voxel: float) -> np.ndarray:
@@ -79,7 +84,8 @@ def _run_row(scene: Path, out: Path) -> dict:
     for i, j, T, _ in _registered(out):
         rot, trans = relative_errors(T, inv_T(gt[i]) @ gt[j])
         (right if rot <= MAX_DEG and trans <= MAX_TRANS else wrong).append(
-            free_space_conflict(grid(i), grid(j), T, voxel))
+            free_space_conflict(grid(i), grid(j), T, voxel)
+        )
     return {"run": f"{scene.name} / {out.name}", "right": np.array(right), "wrong": np.array(wrong)}
 
 
@@ -89,8 +95,10 @@ def _quantiles(x: np.ndarray) -> str:
 
 def _real_row(data: Path, folder: str, voxel: float) -> str:
     h = np.array([hidden_fraction(_grid(path, voxel), voxel) for path in list_scans(data / folder)])
-    return (f"| {folder} | {len(h)} | {h.min():.3f} / {np.median(h):.3f} / {h.max():.3f} | "
-            f"{int((h <= SELF_HIDDEN).sum())} |")
+    return (
+        f"| {folder} | {len(h)} | {h.min():.3f} / {np.median(h):.3f} / {h.max():.3f} | "
+        f"{int((h <= SELF_HIDDEN).sum())} |"
+    )
 
 
 def main() -> None:
@@ -99,13 +107,17 @@ def main() -> None:
     ap.add_argument("--real", type=Path)
     args = ap.parse_args()
     if args.run:
-        print(f"| run | right pairs | conflict of right: 10/50/90/100 % | right above {CONFLICT} | wrong pairs | "
-              f"conflict of wrong: 10/50/90/100 % | wrong above {CONFLICT} |")
+        print(
+            f"| run | right pairs | conflict of right: 10/50/90/100 % | right above {CONFLICT} | wrong pairs | "
+            f"conflict of wrong: 10/50/90/100 % | wrong above {CONFLICT} |"
+        )
         print("|---|---|---|---|---|---|---|")
         for scene, out in args.run:
             r = _run_row(Path(scene), Path(out))
-            print(f"| {r['run']} | {len(r['right'])} | {_quantiles(r['right'])} | {(r['right'] > CONFLICT).sum()} | "
-                  f"{len(r['wrong'])} | {_quantiles(r['wrong'])} | {(r['wrong'] > CONFLICT).sum()} |")
+            print(
+                f"| {r['run']} | {len(r['right'])} | {_quantiles(r['right'])} | {(r['right'] > CONFLICT).sum()} | "
+                f"{len(r['wrong'])} | {_quantiles(r['wrong'])} | {(r['wrong'] > CONFLICT).sum()} |"
+            )
     if args.real:
         print("\n| scans | count | own points hidden: min / median / max | seen from origin (checked) |")
         print("|---|---|---|---|")

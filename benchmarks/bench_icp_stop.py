@@ -27,6 +27,7 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_3dmatch, when imported from elsewhere
 from bench_3dmatch import SCENES  # noqa: E402
+
 from data_tools.scene_gt import data_root  # noqa: E402
 from sghr_gtsam.evaluate import fragment_id  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_log, read_poses  # noqa: E402
@@ -52,13 +53,17 @@ def scene_rows(data: Path, name: str, pairs: int, steps: list[float], budgets: l
     poses = np.array([gt[gt_names.index(p.name)] for p in paths])
     rng = np.random.default_rng(seed)
     index = {fragment_id(p.name): k for k, p in enumerate(paths)}  # gt.log names fragments by number
-    log = sorted((index[a], index[b]) for a, b in read_gt_log(data / scene.gt_dir / "gt.log")
-                 if a in index and b in index)
+    log = sorted(
+        (index[a], index[b]) for a, b in read_gt_log(data / scene.gt_dir / "gt.log") if a in index and b in index
+    )
     sample = [log[k] for k in rng.permutation(len(log))[:pairs]]
     pyramids = {}
     defaults = refine.STEP_VOXELS, refine.LEVEL_ITERATIONS
-    labelled = [(f"{label}, {b}", step, b) for b in budgets
-                for label, step in [("1 mm", 1e-3 / voxel)] + [(f"{s:g} v", s) for s in steps]]
+    labelled = [
+        (f"{label}, {b}", step, b)
+        for b in budgets
+        for label, step in [("1 mm", 1e-3 / voxel)] + [(f"{s:g} v", s) for s in steps]
+    ]
     stops = {label: [] for label, _, _ in labelled}
     for i, j in sample:
         for k in (i, j):
@@ -79,9 +84,11 @@ def scene_rows(data: Path, name: str, pairs: int, steps: list[float], budgets: l
     for label, step, _ in labelled:
         r = np.array(stops[label], dtype=float)
         flips = sum(bool(c) != b for c, b in zip(r[:, 0], base))
-        rows.append(f"| {name} | {label} | {step:.4f} | {int(r[:, 0].sum())}/{len(r)} | {int(r[:, 1].sum())} | {flips} | "
-                    f"{np.median(r[:, 2]):.3f} / {np.percentile(r[:, 2], 90):.3f} | "
-                    f"{np.median(r[:, 3]):.3f} / {np.percentile(r[:, 3], 90):.3f} |")
+        rows.append(
+            f"| {name} | {label} | {step:.4f} | {int(r[:, 0].sum())}/{len(r)} | {int(r[:, 1].sum())} | {flips} | "
+            f"{np.median(r[:, 2]):.3f} / {np.percentile(r[:, 2], 90):.3f} | "
+            f"{np.median(r[:, 3]):.3f} / {np.percentile(r[:, 3], 90):.3f} |"
+        )
     print(f"{name}: voxel {voxel:.4f}, {len(sample)} of {len(log)} gt.log pairs", file=sys.stderr)
     return rows
 
@@ -94,8 +101,9 @@ def _unit(rng: np.random.Generator) -> np.ndarray:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=data_root())
-    ap.add_argument("--scenes", nargs="+", default=["studyroom", "home_at"],
-                    choices=[n for n, s in SCENES.items() if s.gt_dir])
+    ap.add_argument(
+        "--scenes", nargs="+", default=["studyroom", "home_at"], choices=[n for n, s in SCENES.items() if s.gt_dir]
+    )
     ap.add_argument("--pairs", type=int, default=40)
     ap.add_argument("--steps", nargs="+", type=float, default=[0.0205, 0.025, 0.01, 0.005], help="in voxels")
     ap.add_argument("--budgets", nargs="+", type=int, default=[10], help="iterations a level")
@@ -104,8 +112,10 @@ def main() -> None:
     missing = [n for n in args.scenes if not (args.data / SCENES[n].folder).is_dir()]
     if missing:
         raise SystemExit(f"no scene folder for {', '.join(missing)} under {args.data}")
-    print("| scene | step, iterations a level | step (voxels) | converged | and near the guess | verdicts unlike the first "
-          "row's | from the fixed point: ° median / 90 % | voxels median / 90 % |")
+    print(
+        "| scene | step, iterations a level | step (voxels) | converged | and near the guess | verdicts unlike the "
+        "first row's | from the fixed point: ° median / 90 % | voxels median / 90 % |"
+    )
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for name in args.scenes:
         for row in scene_rows(args.data, name, args.pairs, args.steps, args.budgets, args.seed):

@@ -69,9 +69,11 @@ def graphs(sizes: list[int], outliers: float, seed: int) -> None:
             seconds.append(time.perf_counter() - t0)
         s = np.array(seconds)
         rot, _ = relative_errors(session.poses, truth)
-        tail = s[int(0.9 * n):]
-        print(f"| {n} | {edges} | {session.robust_runs} | {np.median(s):.4f} | {np.percentile(s, 95):.4f} | "
-              f"{np.median(tail):.4f} | {s.sum():.1f} |  <!-- max rotation error {np.nanmax(rot):.2f}° -->")
+        tail = s[int(0.9 * n) :]
+        print(
+            f"| {n} | {edges} | {session.robust_runs} | {np.median(s):.4f} | {np.percentile(s, 95):.4f} | "
+            f"{np.median(tail):.4f} | {s.sum():.1f} |  <!-- max rotation error {np.nanmax(rot):.2f}° -->"
+        )
 
 
 def _session(names, scans, cfg, voxel):
@@ -83,8 +85,10 @@ def _session(names, scans, cfg, voxel):
 def real(names: list[str], data: Path) -> None:
     from sghr_gtsam.pipeline import load_scene, register
 
-    print("| scene | scans placed (batch / session) | robust re-runs | max Δ rotation [°] | max Δ translation [mm] "
-          "| median s / scan (front + back) | median back-end s / scan |")
+    print(
+        "| scene | scans placed (batch / session) | robust re-runs | max Δ rotation [°] | max Δ translation [mm] "
+        "| median s / scan (front + back) | median back-end s / scan |"
+    )
     print("|---|---|---|---|---|---|---|")
     for scene in names:
         cfg = Config(record=False, workers=1)
@@ -95,9 +99,11 @@ def real(names: list[str], data: Path) -> None:
         both = [k for k in batch.registered if np.isfinite(P[k]).all()]
         rot, trans = relative_errors(P[both], batch.poses[both])
         total = np.median([s.front_seconds + s.back_seconds for s in steps])
-        print(f"| {scene} | {len(batch.registered)} / {int(np.isfinite(P[:, 0, 0]).sum())} | {session.robust_runs} | "
-              f"{rot.max():.4f} | {1e3 * trans.max():.3f} | {total:.2f} | "
-              f"{np.median([s.back_seconds for s in steps]):.4f} |")
+        print(
+            f"| {scene} | {len(batch.registered)} / {int(np.isfinite(P[:, 0, 0]).sum())} | {session.robust_runs} | "
+            f"{rot.max():.4f} | {1e3 * trans.max():.3f} | {total:.2f} | "
+            f"{np.median([s.back_seconds for s in steps]):.4f} |"
+        )
 
 
 def scans(sizes: list[int], seed: int) -> None:
@@ -108,9 +114,11 @@ def scans(sizes: list[int], seed: int) -> None:
     for n in sizes:
         scene = make_scene(kind="room", n_scans=n, seed=seed)
         session, steps = _session(scene.names, scene.scans, Config(record=False, workers=1), scene.voxel)
-        print(f"| {n} | {int(np.isfinite(session.poses[:, 0, 0]).sum())} | {session.robust_runs} | "
-              f"{np.median([s.front_seconds + s.back_seconds for s in steps]):.2f} | "
-              f"{np.median([s.back_seconds for s in steps]):.4f} |")
+        print(
+            f"| {n} | {int(np.isfinite(session.poses[:, 0, 0]).sum())} | {session.robust_runs} | "
+            f"{np.median([s.front_seconds + s.back_seconds for s in steps]):.2f} | "
+            f"{np.median([s.back_seconds for s in steps]):.4f} |"
+        )
 
 
 def main() -> None:

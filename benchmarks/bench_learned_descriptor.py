@@ -45,12 +45,12 @@ from scipy.spatial import cKDTree
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # bench_pairwise, when imported from elsewhere
-from sghr_gtsam.features.learned import (PatchNet, encode_patches, learned_descriptors, load_patch_net,  # noqa: E402
-                                         torch_network)
-from sghr_gtsam.features.local import ScanFeatures, compute_features  # noqa: E402
+from bench_pairwise import MATCH_SCENES, PAPER_RMSE, load_3dmatch, paper_rmse  # noqa: E402
+
 from data_tools.other_3dmatch_scenes import OTHER_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
-from bench_pairwise import MATCH_SCENES, PAPER_RMSE, load_3dmatch, paper_rmse  # noqa: E402
+from sghr_gtsam.features.learned import PatchNet, encode_patches, learned_descriptors, load_patch_net, torch_network  # noqa: E402
+from sghr_gtsam.features.local import ScanFeatures, compute_features  # noqa: E402
 
 DATA_SEED = 99
 PAIRS_A_SCENE = 30
@@ -60,8 +60,17 @@ HOLD_OUT = 10  # every tenth room is held out of training
 
 def _learned(net: PatchNet, fpfh: list) -> list:
     """The scans of ``fpfh`` (``ScanFeatures``) with the learned descriptors of the same grid points."""
-    return [ScanFeatures(f.points, f.normals, f.fpfh, f.voxel, f.points,
-                         learned_descriptors(f.points, f.normals, f.voxel, net, workers=2)) for f in fpfh]
+    return [
+        ScanFeatures(
+            f.points,
+            f.normals,
+            f.fpfh,
+            f.voxel,
+            f.points,
+            learned_descriptors(f.points, f.normals, f.voxel, net, workers=2),
+        )
+        for f in fpfh
+    ]
 
 
 def _room(index: int):
@@ -99,8 +108,12 @@ def _scene(args: tuple[Path, int]) -> int:
         b.append(encode_patches(feats[j].points, feats[j].normals, v, pick, trees[j], workers=1))
         pair.append(np.full(PER_PAIR, k))
     if a:
-        np.savez(path, a=np.concatenate(a).astype(np.float16), b=np.concatenate(b).astype(np.float16),
-                 pair=np.concatenate(pair))
+        np.savez(
+            path,
+            a=np.concatenate(a).astype(np.float16),
+            b=np.concatenate(b).astype(np.float16),
+            pair=np.concatenate(pair),
+        )
     return index
 
 
@@ -131,8 +144,13 @@ def _load(files: list[str]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
 def _top1(net: torch.nn.Module, a: np.ndarray, b: np.ndarray, groups: list[np.ndarray]) -> float:
     net.eval()
     with torch.no_grad():
-        hits = [(torch.argmax(net(torch.from_numpy(a[g])) @ net(torch.from_numpy(b[g])).T, 1)
-                 == torch.arange(len(g))).float().mean().item() for g in groups]
+        hits = [
+            (torch.argmax(net(torch.from_numpy(a[g])) @ net(torch.from_numpy(b[g])).T, 1) == torch.arange(len(g)))
+            .float()
+            .mean()
+            .item()
+            for g in groups
+        ]
     net.train()
     return float(np.mean(hits))
 
@@ -176,8 +194,10 @@ def evaluate(weights: Path | None, scenes: list[str], root: Path) -> None:
     from sghr_gtsam.registration.pairwise import register_pair
 
     net = load_patch_net(weights)
-    print("| scene | descriptor | right / gt.log pairs | right / pairs \\|i−j\\| > 1 | mutual matches within 2 voxels "
-          "of GT, median | pairs with ≥ 15 of them | s a scan to describe | CPU s a pair |")
+    print(
+        "| scene | descriptor | right / gt.log pairs | right / pairs \\|i−j\\| > 1 | mutual matches within 2 voxels "
+        "of GT, median | pairs with ≥ 15 of them | s a scan to describe | CPU s a pair |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for name in scenes:
         _, log, info, scans, voxel = load_3dmatch(root, name, {**MATCH_SCENES, **OTHER_SCENES}[name])
@@ -200,12 +220,17 @@ def evaluate(weights: Path | None, scenes: list[str], root: Path) -> None:
                 good.append(int((np.linalg.norm(feats[i].keypoints[a] - moved, axis=1) < 2 * voxel).sum()))
                 ok.append(paper_rmse(res.T, T_gt, info[(i, j)]) <= PAPER_RMSE)
             right[label] = np.array(ok)
-            print(f"| {name} | {label} | {sum(ok)}/{len(ok)} | {sum(ok[k] for k in far)}/{len(far)} | "
-                  f"{np.median(good):.0f} | {np.mean(np.array(good) >= 15):.3f} | {seconds[label]:.2f} | "
-                  f"{cpu / len(ok):.3f} |", flush=True)
+            print(
+                f"| {name} | {label} | {sum(ok)}/{len(ok)} | {sum(ok[k] for k in far)}/{len(far)} | "
+                f"{np.median(good):.0f} | {np.mean(np.array(good) >= 15):.3f} | {seconds[label]:.2f} | "
+                f"{cpu / len(ok):.3f} |",
+                flush=True,
+            )
         f, lr = right["FPFH"], right["learned"]
-        print(f"|   | right with both {np.sum(f & lr)}, FPFH only {np.sum(f & ~lr)}, learned only {np.sum(~f & lr)}, "
-              f"neither {np.sum(~f & ~lr)} | | | | | | |")
+        print(
+            f"|   | right with both {np.sum(f & lr)}, FPFH only {np.sum(f & ~lr)}, learned only {np.sum(~f & lr)}, "
+            f"neither {np.sum(~f & ~lr)} | | | | | | |"
+        )
 
 
 def calibrate(weights: Path | None, scenes: int, min_inliers: int) -> None:
@@ -235,16 +260,22 @@ def calibrate(weights: Path | None, scenes: int, min_inliers: int) -> None:
     wrong_fpfh = np.array([c for ok, c in counts["FPFH"] if not ok])
     admitted = np.mean(wrong_fpfh >= min_inliers)
     wrong_learned = np.sort([c for ok, c in counts["learned"] if not ok])
-    threshold = int(np.quantile(wrong_learned, 1 - admitted, method="higher")) if admitted > 0 else wrong_learned[-1] + 1
-    print("| descriptor | right registrations: count, inliers median | wrong: count, inliers median / 90 % "
-          "| wrong admitted at the threshold | right admitted |")
+    threshold = (
+        int(np.quantile(wrong_learned, 1 - admitted, method="higher")) if admitted > 0 else wrong_learned[-1] + 1
+    )
+    print(
+        "| descriptor | right registrations: count, inliers median | wrong: count, inliers median / 90 % "
+        "| wrong admitted at the threshold | right admitted |"
+    )
     print("|---|---|---|---|---|")
     for label, threshold_ in (("FPFH", min_inliers), ("learned", threshold)):
         c = np.array(counts[label])
         ok, inl = c[:, 0].astype(bool), c[:, 1]
-        print(f"| {label} (threshold {threshold_}) | {ok.sum()}, {np.median(inl[ok]):.0f} | {(~ok).sum()}, "
-              f"{np.median(inl[~ok]):.0f} / {np.quantile(inl[~ok], 0.9):.0f} | {np.mean(inl[~ok] >= threshold_):.3f} | "
-              f"{np.mean(inl[ok] >= threshold_):.3f} |")
+        print(
+            f"| {label} (threshold {threshold_}) | {ok.sum()}, {np.median(inl[ok]):.0f} | {(~ok).sum()}, "
+            f"{np.median(inl[~ok]):.0f} / {np.quantile(inl[~ok], 0.9):.0f} | {np.mean(inl[~ok] >= threshold_):.3f} | "
+            f"{np.mean(inl[ok] >= threshold_):.3f} |"
+        )
 
 
 def bars(weights: Path | None) -> None:
@@ -270,15 +301,19 @@ def bars(weights: Path | None) -> None:
                 res = register_pair(feats[i], feats[j], voxel)
                 rot, trans = relative_errors(res.T, inv_T(poses[i]) @ poses[j])
                 counts[label].append((bool(rot < rot_bound and trans < trans_bound), res.inliers))
-    print("| descriptor | right registrations | their inliers, lowest five | wrong | their inliers, highest five | "
-          "bar (1 + the most) | right admitted | MIN_INLIERS |")
+    print(
+        "| descriptor | right registrations | their inliers, lowest five | wrong | their inliers, highest five | "
+        "bar (1 + the most) | right admitted | MIN_INLIERS |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     for label, c in counts.items():
         right = sorted(n for ok, n in c if ok)
         wrong = sorted(n for ok, n in c if not ok)
         bar = wrong[-1] + 1
-        print(f"| {label} | {len(right)} | {right[:5]} | {len(wrong)} | {wrong[-5:]} | {bar} | "
-              f"{sum(n >= bar for n in right)} | {MIN_INLIERS[label.lower()]} |")
+        print(
+            f"| {label} | {len(right)} | {right[:5]} | {len(wrong)} | {wrong[-5:]} | {bar} | "
+            f"{sum(n >= bar for n in right)} | {MIN_INLIERS[label.lower()]} |"
+        )
 
 
 def main() -> None:
@@ -294,8 +329,12 @@ def main() -> None:
     e = sub.add_parser("eval")
     e.add_argument("--weights", type=Path, help="a trained network (default: the shipped one)")
     e.add_argument("--scenes", nargs="+", default=list(MATCH_SCENES), choices=[*MATCH_SCENES, *OTHER_SCENES])
-    e.add_argument("--data", type=Path, default=data_root(),
-                   help="the shared data, or a folder made by data_tools.other_3dmatch_scenes for the other scenes")
+    e.add_argument(
+        "--data",
+        type=Path,
+        default=data_root(),
+        help="the shared data, or a folder made by data_tools.other_3dmatch_scenes for the other scenes",
+    )
     c = sub.add_parser("calibrate")
     c.add_argument("--weights", type=Path, help="a trained network (default: the shipped one)")
     c.add_argument("--scenes", type=int, default=6, help="held-out rooms")

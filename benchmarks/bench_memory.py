@@ -89,8 +89,20 @@ def measured_run(scene: Path, out: Path, *options: str) -> dict:
     """One ``run`` of ``scene`` into ``out`` (with ``options``) under ``/usr/bin/time -v``, its tree's memory
     sampled; peaks in GB, wall and CPU seconds, and from its report.json the scans, those registered, the pairs
     and the seconds of each stage (``benchmarks/bench_scale.py`` measures with it too)."""
-    cmd = ["/usr/bin/time", "-v", sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out),
-           "--no-record", "--quiet", *options]
+    cmd = [
+        "/usr/bin/time",
+        "-v",
+        sys.executable,
+        "-m",
+        "sghr_gtsam",
+        "run",
+        str(scene),
+        "--out",
+        str(out),
+        "--no-record",
+        "--quiet",
+        *options,
+    ]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     started = time.perf_counter()
     with tempfile.TemporaryFile("w+") as err:
@@ -109,10 +121,17 @@ def measured_run(scene: Path, out: Path, *options: str) -> dict:
         raise SystemExit(f"run on {scene} failed ({proc.returncode}):\n{log[-2000:]}")
     max_rss_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", log).group(1))
     report = json.loads((out / "report.json").read_text())
-    return {"wall": wall, "cpu": sum(cpu.values()), "max_process_gb": max_rss_kb / 2**20,
-            "tree_rss_gb": peak_rss / 2**30,
-            "tree_pss_gb": peak_pss / 2**30, "registered": len(report["registered"]), "scans": len(report["scans"]),
-            "pairs": report["pairs_registered"], "seconds": report["seconds"]}
+    return {
+        "wall": wall,
+        "cpu": sum(cpu.values()),
+        "max_process_gb": max_rss_kb / 2**20,
+        "tree_rss_gb": peak_rss / 2**30,
+        "tree_pss_gb": peak_pss / 2**30,
+        "registered": len(report["registered"]),
+        "scans": len(report["scans"]),
+        "pairs": report["pairs_registered"],
+        "seconds": report["seconds"],
+    }
 
 
 def main() -> None:
@@ -121,16 +140,20 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None, help="where the scenes go (default: a temporary folder)")
     ap.add_argument("--keep", action="store_true", help="keep the generated scenes")
     args = ap.parse_args()
-    big, many, per_scan, sweep = (1_000_000, 20, 100_000, (10, 20)) if args.quick else \
-        (5_000_000, 100, 1_000_000, (20, 50, 100))
+    big, many, per_scan, sweep = (
+        (1_000_000, 20, 100_000, (10, 20)) if args.quick else (5_000_000, 100, 1_000_000, (20, 50, 100))
+    )
     work = Path(tempfile.mkdtemp(dir=args.workdir, prefix="bench_memory-"))
-    print(f"machine: {psutil.cpu_count()} cores, {psutil.virtual_memory().total / 2**30:.1f} GB; "
-          f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(
+        f"machine: {psutil.cpu_count()} cores, {psutil.virtual_memory().total / 2**30:.1f} GB; "
+        f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}"
+    )
     rows = []
     try:
         points = _write_scene(work / "one_large", 6, [big] + [None] * 5, seed=0)
-        rows.append((f"1 scan of {big / 1e6:g} M + 5 of ~10 k", 6, points,
-                     measured_run(work / "one_large", work / "out_a")))
+        rows.append(
+            (f"1 scan of {big / 1e6:g} M + 5 of ~10 k", 6, points, measured_run(work / "one_large", work / "out_a"))
+        )
         _write_scene(work / "many", many, [per_scan] * many, seed=1)
         for n in sweep:
             scene = work / "many" if n == many else work / f"many_{n}"
@@ -143,14 +166,18 @@ def main() -> None:
             shutil.rmtree(work, ignore_errors=True)
     print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print()
-    print("| case | scans | points | registered | pairs | wall s | CPU s | largest process GB | all processes RSS GB "
-          "| all processes PSS GB | ≤ 4 GB |")
+    print(
+        "| case | scans | points | registered | pairs | wall s | CPU s | largest process GB | all processes RSS GB "
+        "| all processes PSS GB | ≤ 4 GB |"
+    )
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for label, n, points, r in rows:
         ok = "yes" if r["tree_pss_gb"] <= TARGET_GB else "**no**"
-        print(f"| {label} | {n} | {points / 1e6:.1f} M | {r['registered']}/{r['scans']} | {r['pairs']} | "
-              f"{r['wall']:.0f} | {r['cpu']:.0f} | {r['max_process_gb']:.2f} | {r['tree_rss_gb']:.2f} | "
-              f"{r['tree_pss_gb']:.2f} | {ok} |")
+        print(
+            f"| {label} | {n} | {points / 1e6:.1f} M | {r['registered']}/{r['scans']} | {r['pairs']} | "
+            f"{r['wall']:.0f} | {r['cpu']:.0f} | {r['max_process_gb']:.2f} | {r['tree_rss_gb']:.2f} | "
+            f"{r['tree_pss_gb']:.2f} | {ok} |"
+        )
     sweep_rows = [(n, r) for label, n, _, r in rows[1:]]
     if len(sweep_rows) > 1:
         n = np.array([s for s, _ in sweep_rows], dtype=float)

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_3dmatch import SCENES, labels, scene_gt
+
 from data_tools.scene_gt import data_root
 
 _CLOUDS: dict = {}  # per worker process: name -> (raw cloud, down-sampled cloud with normals, FPFH)
@@ -48,7 +49,8 @@ def _prepare(points: np.ndarray, voxel: float):
     down = raw.voxel_down_sample(voxel)
     down.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel, max_nn=30))
     fpfh = o3d.pipelines.registration.compute_fpfh_feature(
-        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100))
+        down, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
+    )
     return raw, down, fpfh
 
 
@@ -71,9 +73,17 @@ def _global_pair(pair: tuple[int, int]):
     (_, src, fs), (_, dst, ft) = _CLOUDS[s], _CLOUDS[t]
     dist = 1.4 * v
     result = reg.registration_ransac_based_on_feature_matching(
-        src, dst, fs, ft, False, dist, reg.TransformationEstimationPointToPoint(False), 4,
+        src,
+        dst,
+        fs,
+        ft,
+        False,
+        dist,
+        reg.TransformationEstimationPointToPoint(False),
+        4,
         [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(dist)],
-        reg.RANSACConvergenceCriteria(1000000, 0.999))
+        reg.RANSACConvergenceCriteria(1000000, 0.999),
+    )
     if np.trace(result.transformation) == 4.0:
         return None
     info = reg.get_information_matrix_from_point_clouds(src, dst, dist, result.transformation)
@@ -93,8 +103,9 @@ def _multiscale_icp(s: int, t: int, T0: np.ndarray, voxels: list[float], iters: 
         src, dst = _CLOUDS[s][0].voxel_down_sample(v), _CLOUDS[t][0].voxel_down_sample(v)
         for c in (src, dst):
             c.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
-        T = reg.registration_icp(src, dst, dist, T, reg.TransformationEstimationPointToPlane(),
-                                 reg.ICPConvergenceCriteria(max_iteration=n)).transformation
+        T = reg.registration_icp(
+            src, dst, dist, T, reg.TransformationEstimationPointToPlane(), reg.ICPConvergenceCriteria(max_iteration=n)
+        ).transformation
     return T, reg.get_information_matrix_from_point_clouds(src, dst, 1.4 * voxels[-1], T)
 
 
@@ -139,14 +150,21 @@ def _optimize(poses: np.ndarray, edges: list, voxel: float, nodes: list[int]):
     for s, t, T, info in edges:
         if s in local and t in local:
             graph.edges.append(reg.PoseGraphEdge(local[s], local[t], T, info, uncertain=True))
-    option = reg.GlobalOptimizationOption(max_correspondence_distance=1.4 * voxel, edge_prune_threshold=0.25,
-                                          preference_loop_closure=5.0, reference_node=0)
-    reg.global_optimization(graph, reg.GlobalOptimizationLevenbergMarquardt(),
-                            reg.GlobalOptimizationConvergenceCriteria(), option)
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=1.4 * voxel,
+        edge_prune_threshold=0.25,
+        preference_loop_closure=5.0,
+        reference_node=0,
+    )
+    reg.global_optimization(
+        graph, reg.GlobalOptimizationLevenbergMarquardt(), reg.GlobalOptimizationConvergenceCriteria(), option
+    )
     out = poses.copy()
     out[nodes] = np.stack([np.asarray(node.pose) for node in graph.nodes])
-    kept = [(nodes[e.source_node_id], nodes[e.target_node_id], np.asarray(e.transformation),
-             np.asarray(e.information)) for e in graph.edges]
+    kept = [
+        (nodes[e.source_node_id], nodes[e.target_node_id], np.asarray(e.transformation), np.asarray(e.information))
+        for e in graph.edges
+    ]
     return out, kept
 
 
@@ -172,47 +190,84 @@ def run_scene(data: Path, name: str, processes: int) -> list[dict]:
             if e is not None:
                 edges.append(e)
             if done % max(1, len(pairs) // 10) == 0:
-                print(f"  {name}: {done}/{len(pairs)} pairs, {time.perf_counter() - started:.0f} s",
-                      file=sys.stderr, flush=True)
+                print(
+                    f"  {name}: {done}/{len(pairs)} pairs, {time.perf_counter() - started:.0f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
         t_pairs = time.perf_counter() - started
         init, reached = _spanning_tree_poses(n, edges)
         poses, kept = _optimize(init, edges, voxel, reached)
         t_first = time.perf_counter() - started
         unregistered = [names[k] for k in range(n) if k not in set(reached)]
-        rows.append(_row(name, "multiway", score_run(names, poses, unregistered=unregistered, **gt),
-                         len(pairs), len(edges), len(kept), {"pairs": t_pairs, "total": t_first}))
+        rows.append(
+            _row(
+                name,
+                "multiway",
+                score_run(names, poses, unregistered=unregistered, **gt),
+                len(pairs),
+                len(edges),
+                len(kept),
+                {"pairs": t_pairs, "total": t_first},
+            )
+        )
         jobs = [(s, t, np.linalg.inv(poses[t]) @ poses[s]) for s, t, _, _ in kept]
         refined = pool.map(_refine_pair, jobs, chunksize=2)
     poses2, kept2 = _optimize(poses, refined, voxel, reached)
-    rows.append(_row(name, "multiway + refinement", score_run(names, poses2, unregistered=unregistered, **gt),
-                     len(pairs), len(refined), len(kept2),
-                     {"pairs": t_pairs, "total": time.perf_counter() - started}))
+    rows.append(
+        _row(
+            name,
+            "multiway + refinement",
+            score_run(names, poses2, unregistered=unregistered, **gt),
+            len(pairs),
+            len(refined),
+            len(kept2),
+            {"pairs": t_pairs, "total": time.perf_counter() - started},
+        )
+    )
     return rows
 
 
 def _row(scene: str, variant: str, score, pairs: int, edges: int, kept: int, seconds: dict) -> dict:
     w = score.whole
-    return {"scene": scene, "variant": variant, "scans": score.scans, "placed": len(score.placed),
-            "pairs": pairs, "edges": edges, "kept": kept, "within": score.within,
-            "tolerance": [score.max_deg, score.max_trans],
-            "recall": score.recall.recall if score.recall else None, "ate_rmse": w.ate_rmse,
-            "worst_rot": float(w.rotation_deg.max()), "worst_trans": float(w.translation.max()),
-            "doubted": score.doubted, "unregistered": score.unregistered, "seconds": seconds}
+    return {
+        "scene": scene,
+        "variant": variant,
+        "scans": score.scans,
+        "placed": len(score.placed),
+        "pairs": pairs,
+        "edges": edges,
+        "kept": kept,
+        "within": score.within,
+        "tolerance": [score.max_deg, score.max_trans],
+        "recall": score.recall.recall if score.recall else None,
+        "ate_rmse": w.ate_rmse,
+        "worst_rot": float(w.rotation_deg.max()),
+        "worst_trans": float(w.translation.max()),
+        "doubted": score.doubted,
+        "unregistered": score.unregistered,
+        "seconds": seconds,
+    }
 
 
 def print_header() -> None:
-    print("| scene | variant | scans | placed | pairs registered / tried | edges kept | within tol | RR (paper) "
-          "| ATE rmse m | worst rot ° | worst trans m | pairwise s | total s | doubted (whole model) |")
+    print(
+        "| scene | variant | scans | placed | pairs registered / tried | edges kept | within tol | RR (paper) "
+        "| ATE rmse m | worst rot ° | worst trans m | pairwise s | total s | doubted (whole model) |"
+    )
     print("|---" * 14 + "|", flush=True)
 
 
 def print_rows(rows: list[dict]) -> None:
     for r in rows:
         rr = "-" if r["recall"] is None else f"{r['recall']:.3f}"
-        print(f"| {r['scene']} | {r['variant']} | {r['scans']} | {r['placed']}/{r['scans']} "
-              f"| {r['edges']}/{r['pairs']} | {r['kept']} | {r['within']}/{r['scans']} | {rr} | {r['ate_rmse']:.4g} "
-              f"| {r['worst_rot']:.3g} | {r['worst_trans']:.3g} | {r['seconds']['pairs']:.0f} "
-              f"| {r['seconds']['total']:.0f} | {labels(r['doubted'])} |", flush=True)
+        print(
+            f"| {r['scene']} | {r['variant']} | {r['scans']} | {r['placed']}/{r['scans']} "
+            f"| {r['edges']}/{r['pairs']} | {r['kept']} | {r['within']}/{r['scans']} | {rr} | {r['ate_rmse']:.4g} "
+            f"| {r['worst_rot']:.3g} | {r['worst_trans']:.3g} | {r['seconds']['pairs']:.0f} "
+            f"| {r['seconds']['total']:.0f} | {labels(r['doubted'])} |",
+            flush=True,
+        )
 
 
 def main() -> None:

@@ -50,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
 from data_tools.scene_gt import data_root, log_overlaps  # noqa: E402
+from sghr_gtsam.evaluate import fragment_id  # noqa: E402
 from sghr_gtsam.features.local import compute_features, default_voxel  # noqa: E402
 from sghr_gtsam.features.netvlad import (  # noqa: E402
     DEFAULT_HEAD,
@@ -58,7 +59,6 @@ from sghr_gtsam.features.netvlad import (  # noqa: E402
     global_features,
     load_checkpoint,
 )
-from sghr_gtsam.evaluate import fragment_id  # noqa: E402
 from sghr_gtsam.graph import gram32, overlap_scores, top_k_edges, top_k_graph  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_log, read_poses  # noqa: E402
 from sghr_gtsam.io.scans import load_scan  # noqa: E402
@@ -118,8 +118,14 @@ def _row(name: str, m: dict) -> str:
     return f"| {name} | " + " | ".join(parts) + " |"
 
 
-def report_scene(title: str, names: list[str], desc: list[np.ndarray], G: np.ndarray, head: VladHead,
-                 extra: dict[str, np.ndarray] | None = None) -> dict[str, dict]:
+def report_scene(
+    title: str,
+    names: list[str],
+    desc: list[np.ndarray],
+    G: np.ndarray,
+    head: VladHead,
+    extra: dict[str, np.ndarray] | None = None,
+) -> dict[str, dict]:
     iu = np.triu_indices(len(G), 1)
     n_pairs, n_good = len(iu[0]), int((G[iu] > THRESHOLD).sum())
     results = {
@@ -159,17 +165,27 @@ def match_scene(data: Path, name: str) -> tuple[list[np.ndarray], np.ndarray, se
     return [compute_features(P, voxel).fpfh for P in scans], G, pairs
 
 
-def report_match_scene(name: str, desc: list[np.ndarray], G: np.ndarray, pairs: set[tuple[int, int]],
-                       head: VladHead) -> None:
+def report_match_scene(
+    name: str, desc: list[np.ndarray], G: np.ndarray, pairs: set[tuple[int, int]], head: VladHead
+) -> None:
     """The share of the scene's gt.log pairs that each score's top-k graph proposes (a pair never proposed is
     never registered), for k in ``MATCH_KS``, with the graph's size and its edges between scans that barely
     overlap (GT overlap below ``THRESHOLD``)."""
     n = len(G)
-    scores = {"VLAD codebook (pipeline now)": codebook_scores(desc),
-              "learned head": overlap_scores(global_features(head, desc)), "GT overlap (oracle)": G}
+    scores = {
+        "VLAD codebook (pipeline now)": codebook_scores(desc),
+        "learned head": overlap_scores(global_features(head, desc)),
+        "GT overlap (oracle)": G,
+    }
     print(f"\n### {name}: {n} fragments, {n * (n - 1) // 2} pairs, {len(pairs)} gt.log pairs\n")
-    print("| scores | " + " | ".join(f"top-{k}: gt.log pairs proposed (edges, % of all pairs; edges of GT overlap "
-                                     f"< {THRESHOLD})" for k in MATCH_KS) + " |")
+    print(
+        "| scores | "
+        + " | ".join(
+            f"top-{k}: gt.log pairs proposed (edges, % of all pairs; edges of GT overlap < {THRESHOLD})"
+            for k in MATCH_KS
+        )
+        + " |"
+    )
     print("|---|" + "---:|" * len(MATCH_KS))
     for label, S in scores.items():
         cells = []
@@ -177,8 +193,10 @@ def report_match_scene(name: str, desc: list[np.ndarray], G: np.ndarray, pairs: 
             edges = {tuple(e) for e in np.sort(top_k_edges(S, k), axis=1).tolist()}
             hit = len(pairs & edges)
             blind = sum(G[i, j] < THRESHOLD for i, j in edges)
-            cells.append(f"{hit}/{len(pairs)} = {hit / len(pairs):.3f} ({len(edges)}, {len(edges) / (n * (n - 1) / 2):.0%}; "
-                         f"{blind} below {THRESHOLD})")
+            cells.append(
+                f"{hit}/{len(pairs)} = {hit / len(pairs):.3f} ({len(edges)}, {len(edges) / (n * (n - 1) / 2):.0%}; "
+                f"{blind} below {THRESHOLD})"
+            )
         print(f"| {label} | " + " | ".join(cells) + " |")
 
 
@@ -189,7 +207,7 @@ def previous_scores_top_k(F: np.ndarray, k: int) -> np.ndarray:
     S = (np.clip(F32 @ F32.T, -1.0, 1.0).astype(np.float64) + 1.0) / 2.0
     neg = -S
     np.fill_diagonal(neg, np.inf)
-    kth = np.partition(neg, k - 1, axis=1)[:, k - 1:k]
+    kth = np.partition(neg, k - 1, axis=1)[:, k - 1 : k]
     better, ties = neg < kth, neg == kth
     need = k - better.sum(axis=1)
     chosen = better | ties
@@ -230,15 +248,21 @@ def graph_speed(D: int, n: int = 5000, k: int = 10, repeats: int = 5) -> None:
     def cell(values) -> str:
         return f"{np.median(values):.2f} s ({np.min(values):.2f}–{np.max(values):.2f})"
 
-    print(f"\nN = {n} scans, D = {D}, k = {k}, {repeats} repeats, median (min–max); load average "
-          f"{load_before:.1f} before, {load_after:.1f} after; {len(fused)} edges, same for all three paths: {same}\n")
+    print(
+        f"\nN = {n} scans, D = {D}, k = {k}, {repeats} repeats, median (min–max); load average "
+        f"{load_before:.1f} before, {load_after:.1f} after; {len(fused)} edges, same for all three paths: {same}\n"
+    )
     print("| what | time | target |")
     print("|---|---:|---:|")
     print(f"| `graph.gram32`: float32 Gram matrix (ssyrk + tiled mirror) | {cell(times['gram'])} | |")
-    print(f"| **`graph.top_k_graph(F, {k})`: scores + top-k, fused (Gram + torch.topk + exact ties)** | "
-          f"**{cell(times['fused'])}** | ≤ 1 s |")
-    print(f"| `graph.top_k_graph(F, {k}, full_scores=True)`: the same plus the full float64 matrix | "
-          f"{cell(times['fused_full'])} | |")
+    print(
+        f"| **`graph.top_k_graph(F, {k})`: scores + top-k, fused (Gram + torch.topk + exact ties)** | "
+        f"**{cell(times['fused'])}** | ≤ 1 s |"
+    )
+    print(
+        f"| `graph.top_k_graph(F, {k}, full_scores=True)`: the same plus the full float64 matrix | "
+        f"{cell(times['fused_full'])} | |"
+    )
     print(f"| `graph.overlap_scores(F)`: full float64 matrix | {cell(times['scores'])} | |")
     print(f"| `graph.top_k_edges(scores, {k})` on that matrix | {cell(times['topk'])} | |")
     print(f"| overlap_scores + top_k_edges | {cell(full)} | ≤ 1 s |")
@@ -263,10 +287,14 @@ def speed(head: VladHead, desc: list[np.ndarray], n: int = 5000, repeats: int = 
     print(f"\n### Speed (this machine: {os.cpu_count()} cores, load average {load:.1f} when measured; medians)\n")
     print("| what | time | target |")
     print("|---|---:|---:|")
-    print(f"| global feature of one scan, learned head, 5000 FPFH descriptors ({len(d5000)} kitchen scans "
-          f"x 3; numpy, as global_features runs it) | {1e3 * np.median(per_scan):.1f} ms | ≤ 50 ms |")
-    print(f"| VLAD codebook, k-means + features of the whole kitchen ({len(desc)} scans) | "
-          f"{1e3 * codebook_total:.0f} ms ({1e3 * codebook_total / len(desc):.0f} ms a scan) | |")
+    print(
+        f"| global feature of one scan, learned head, 5000 FPFH descriptors ({len(d5000)} kitchen scans "
+        f"x 3; numpy, as global_features runs it) | {1e3 * np.median(per_scan):.1f} ms | ≤ 50 ms |"
+    )
+    print(
+        f"| VLAD codebook, k-means + features of the whole kitchen ({len(desc)} scans) | "
+        f"{1e3 * codebook_total:.0f} ms ({1e3 * codebook_total / len(desc):.0f} ms a scan) | |"
+    )
     graph_speed(D, n, repeats=repeats)
 
 
@@ -278,37 +306,52 @@ def simulated(head: VladHead, cache: Path) -> None:
     scenes = load_cache(cache)
     rho = np.array([[evaluate(head, [s])["spearman"], evaluate_codebook([s])["spearman"]] for s in scenes])
     kinds = np.array([s.kind for s in scenes])
-    print(f"\n### Simulated scenes of {cache.name} ({len(scenes)} scenes, {sum(len(s.descriptors) for s in scenes)} "
-          f"scans; Spearman ρ over each scene's pairs, averaged)\n")
+    print(
+        f"\n### Simulated scenes of {cache.name} ({len(scenes)} scenes, {sum(len(s.descriptors) for s in scenes)} "
+        f"scans; Spearman ρ over each scene's pairs, averaged)\n"
+    )
     print("| scenes | learned head | VLAD codebook (pipeline now) | head − codebook | scenes won: head / codebook |")
     print("|---|---:|---:|---:|---:|")
     for name in [*sorted(set(kinds)), "all"]:
         r = rho if name == "all" else rho[kinds == name]
         d = r[:, 0] - r[:, 1]
         se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else float("nan")
-        print(f"| {name} ({len(r)}) | {r[:, 0].mean():.3f} | {r[:, 1].mean():.3f} | {d.mean():+.3f} ± {se:.3f} "
-              f"| {(d > 0).sum()} / {(d < 0).sum()} |")
+        print(
+            f"| {name} ({len(r)}) | {r[:, 0].mean():.3f} | {r[:, 1].mean():.3f} | {d.mean():+.3f} ± {se:.3f} "
+            f"| {(d > 0).sum()} / {(d < 0).sum()} |"
+        )
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--head", type=Path, default=DEFAULT_HEAD, help="learned head checkpoint")
-    parser.add_argument("--sim", type=Path, help="also score every scene of this simulated cache (make it with "
-                        "another seed than the training cache's)")
-    parser.add_argument("--scenes", nargs="*", default=[], choices=list(MATCH_SCENES),
-                        help="also these full 3DMatch test scenes: the gt.log pairs each top-k graph proposes")
+    parser.add_argument(
+        "--sim",
+        type=Path,
+        help="also score every scene of this simulated cache (make it with another seed than the training cache's)",
+    )
+    parser.add_argument(
+        "--scenes",
+        nargs="*",
+        default=[],
+        choices=list(MATCH_SCENES),
+        help="also these full 3DMatch test scenes: the gt.log pairs each top-k graph proposes",
+    )
     parser.add_argument("--no-speed", action="store_true")
-    parser.add_argument("--speed-only", "--only-speed", dest="only_speed", action="store_true",
-                        help="skip the overlap tables")
+    parser.add_argument(
+        "--speed-only", "--only-speed", dest="only_speed", action="store_true", help="skip the overlap tables"
+    )
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the N = 5000 graph timing")
     args = parser.parse_args(argv)
     if not (args.data / "MANIFEST.md").is_file():
         print(f"real data not found at {args.data} (set SGHR_DATA)")
         return 2
     head = load_checkpoint(str(args.head))
-    print(f"# Overlap report\n\nlearned head: `{args.head.name}` ({head.centroids.shape[0]} clusters × "
-          f"{head.centroids.shape[1]}-d FPFH); GT overlap > {THRESHOLD} counts as a good edge.")
+    print(
+        f"# Overlap report\n\nlearned head: `{args.head.name}` ({head.centroids.shape[0]} clusters × "
+        f"{head.centroids.shape[1]}-d FPFH); GT overlap > {THRESHOLD} counts as a good edge."
+    )
 
     names, scans, G = kitchen(args.data)
     voxel = default_voxel(scans)
@@ -323,15 +366,21 @@ def main(argv: list[str] | None = None) -> int:
     six = [names.index(f"cloud_bin_{i}.ply") for i in range(6)]
     authors = load_checkpoint(str(ref / "netvlad_overlap_model_best.pth"))
     yoho = [np.load(ref / "yoho" / f"cloud_bin_{i}.desc.npy") for i in range(6)]
-    report_scene("kitchen fragments 0–5 only", [names[k] for k in six], [desc[k] for k in six],
-                 G[np.ix_(six, six)], head,
-                 extra={"authors' head on YOHO (reference)": overlap_scores(global_features(authors, yoho))})
+    report_scene(
+        "kitchen fragments 0–5 only",
+        [names[k] for k in six],
+        [desc[k] for k in six],
+        G[np.ix_(six, six)],
+        head,
+        extra={"authors' head on YOHO (reference)": overlap_scores(global_features(authors, yoho))},
+    )
 
     b_names, b_scans, b_G = bunny(args.data)
     b_voxel = default_voxel(b_scans)
     b_desc = [compute_features(P, b_voxel).fpfh for P in b_scans]
-    report_scene(f"Stanford bunny (voxel {1000 * b_voxel:.2f} mm; GT: gt_overlap tool, symmetric)", b_names,
-                 b_desc, b_G, head)
+    report_scene(
+        f"Stanford bunny (voxel {1000 * b_voxel:.2f} mm; GT: gt_overlap tool, symmetric)", b_names, b_desc, b_G, head
+    )
 
     for name in args.scenes:
         report_match_scene(name, *match_scene(args.data, name), head)

@@ -14,7 +14,8 @@ at random (seed 0) from those not in gt.log (little or no overlap, as the top-k 
 only the separation tables: right there means within 5 deg / 0.2 m. Seconds per pair are CPU seconds of
 ``register_pair`` (process time: both k-d query threads counted), median and mean, on a shared machine.
 
-On kitchen and bunny a pair is *right* within 5 deg / 0.2 m (kitchen) or 1 deg / 1 mm (bunny). Its ground-truth overlap is
+On kitchen and bunny a pair is *right* within 5 deg / 0.2 m (kitchen) or 1 deg / 1 mm (bunny). Its ground-truth
+overlap is
 the larger of the two fractions of grid points with a point of the other scan within 3 voxels after
 ground-truth alignment; pairs over 0.1 are the ones a registration can be asked to get. *Near* pairs
 are wrong but within 5 deg / 5 voxels (a refinement short of the bounds); *far* pairs are the rest.
@@ -104,24 +105,45 @@ def run_scene(name: str, matchers: list[str], show_pairs: bool) -> None:
     gt = {(i, j): inv_T(poses[i]) @ poses[j] for i, j in pairs}
     overlap = {p: gt_overlap(feats[p[0]], feats[p[1]], gt[p], OVERLAP_RADIUS * voxel) for p in pairs}
     n_ov = sum(o > MIN_OVERLAP for o in overlap.values())
-    print(f"\n== {name}: {len(scans)} scans, voxel {voxel:.4g} (grid {np.mean([len(f) for f in feats]):.0f} points "
-          f"a scan), load {t_load:.2f} s, features {t_feat / len(scans):.3f} s a scan; {len(pairs)} pairs, "
-          f"{n_ov} with GT overlap > {MIN_OVERLAP}; right = within {rot_bound:g} deg / {trans_bound:g}")
+    print(
+        f"\n== {name}: {len(scans)} scans, voxel {voxel:.4g} (grid {np.mean([len(f) for f in feats]):.0f} points "
+        f"a scan), load {t_load:.2f} s, features {t_feat / len(scans):.3f} s a scan; {len(pairs)} pairs, "
+        f"{n_ov} with GT overlap > {MIN_OVERLAP}; right = within {rot_bound:g} deg / {trans_bound:g}"
+    )
 
     for matcher in matchers:
         rows = []
         for i, j in pairs:
             res = register_pair(feats[i], feats[j], voxel, matcher=matcher)
             rot, trans = (float(x) for x in relative_errors(res.T, gt[(i, j)]))
-            kind = ("right" if rot < rot_bound and trans < trans_bound
-                    else "near" if rot < NEAR[0] and trans < NEAR[1] * voxel else "far")
-            rows.append(Row(i, j, overlap[(i, j)], rot, trans, res.inliers,
-                            res.inliers / min(len(feats[i]), len(feats[j])), res.coverage, res.seconds, kind))
+            kind = (
+                "right"
+                if rot < rot_bound and trans < trans_bound
+                else "near"
+                if rot < NEAR[0] and trans < NEAR[1] * voxel
+                else "far"
+            )
+            rows.append(
+                Row(
+                    i,
+                    j,
+                    overlap[(i, j)],
+                    rot,
+                    trans,
+                    res.inliers,
+                    res.inliers / min(len(feats[i]), len(feats[j])),
+                    res.coverage,
+                    res.seconds,
+                    kind,
+                )
+            )
         if show_pairs:
             print(f"  {matcher}: pair, GT overlap, rotation error (deg), translation error, r_ij, frac, seconds")
             for r in sorted(rows, key=lambda r: -r.overlap):
-                print(f"    {names[r.i]:>14} {names[r.j]:>14}  {r.overlap:4.2f}  {r.rot_deg:7.2f}  {r.trans:8.4f}  "
-                      f"{r.inliers:5d}  {r.frac:.4f}  {r.seconds:.2f}  {r.kind}")
+                print(
+                    f"    {names[r.i]:>14} {names[r.j]:>14}  {r.overlap:4.2f}  {r.rot_deg:7.2f}  {r.trans:8.4f}  "
+                    f"{r.inliers:5d}  {r.frac:.4f}  {r.seconds:.2f}  {r.kind}"
+                )
         summarize(matcher, rows, voxel)
 
 
@@ -129,16 +151,20 @@ def summarize(matcher: str, rows: list[Row], voxel: float) -> None:
     by = {k: [r for r in rows if r.kind == k] for k in ("right", "near", "far")}
     ov = [r for r in rows if r.overlap > MIN_OVERLAP]
     secs = np.array([r.seconds for r in rows])
-    print(f"  {matcher:6s} right {sum(r.kind == 'right' for r in ov):2d}/{len(ov)} of the overlapping pairs "
-          f"({len(by['right'])}/{len(rows)} of all; near {len(by['near'])}, far {len(by['far'])}); "
-          f"{secs.mean():.3f} s a pair (max {secs.max():.2f})")
+    print(
+        f"  {matcher:6s} right {sum(r.kind == 'right' for r in ov):2d}/{len(ov)} of the overlapping pairs "
+        f"({len(by['right'])}/{len(rows)} of all; near {len(by['near'])}, far {len(by['far'])}); "
+        f"{secs.mean():.3f} s a pair (max {secs.max():.2f})"
+    )
     right = by["right"]
     if right:
         rot = np.array([r.rot_deg for r in right])
         tr = np.array([r.trans for r in right])
-        print(f"         right pairs' error: rotation median {np.median(rot):.3f} max {rot.max():.3f} deg, "
-              f"translation median {np.median(tr):.4g} max {tr.max():.4g} ({np.median(tr) / voxel:.2f} / "
-              f"{tr.max() / voxel:.2f} voxels)")
+        print(
+            f"         right pairs' error: rotation median {np.median(rot):.3f} max {rot.max():.3f} deg, "
+            f"translation median {np.median(tr):.4g} max {tr.max():.4g} ({np.median(tr) / voxel:.2f} / "
+            f"{tr.max() / voxel:.2f} voxels)"
+        )
 
     def extreme(kinds: tuple[str, ...], f, attr: str):
         vals = [getattr(r, attr) for k in kinds for r in by[k]]
@@ -149,8 +175,10 @@ def summarize(matcher: str, rows: list[Row], voxel: float) -> None:
         hi_wrong = extreme(("near", "far"), max, attr)
         hi_far = extreme(("far",), max, attr)
         lo_near = extreme(("right", "near"), min, attr)
-        print(f"         {attr:7s}: right >= {fmt.format(lo_right)}, wrong <= {fmt.format(hi_wrong)}  |  "
-              f"right or near >= {fmt.format(lo_near)}, far <= {fmt.format(hi_far)}")
+        print(
+            f"         {attr:7s}: right >= {fmt.format(lo_right)}, wrong <= {fmt.format(hi_wrong)}  |  "
+            f"right or near >= {fmt.format(lo_near)}, far <= {fmt.format(hi_far)}"
+        )
 
 
 def paper_rmse(T_est: np.ndarray, T_gt: np.ndarray, info: np.ndarray) -> float:
@@ -176,11 +204,15 @@ def run_3dmatch(name: str, matchers: list[str], show_pairs: bool, negatives: int
     others = [p for p in itertools.combinations(range(len(scans)), 2) if p not in log]
     rng = np.random.default_rng(0)
     extra = [others[k] for k in sorted(rng.choice(len(others), min(negatives, len(others)), replace=False))]
-    print(f"\n== {name}: {len(scans)} fragments, voxel {voxel:.4g} (grid {np.mean([len(f) for f in feats]):.0f} points "
-          f"a scan), features {t_feat / len(scans):.3f} s a scan; {len(log)} gt.log pairs "
-          f"({sum(abs(i - j) > 1 for i, j in log)} with |i-j| > 1), {len(extra)} negatives")
-    print("| matcher | right / gt.log pairs | right / pairs \\|i-j\\|>1 | rot err median (deg) | trans err median (m) "
-          "| < 5 deg & 0.2 m | CPU s a pair median (mean) |")
+    print(
+        f"\n== {name}: {len(scans)} fragments, voxel {voxel:.4g} (grid {np.mean([len(f) for f in feats]):.0f} points "
+        f"a scan), features {t_feat / len(scans):.3f} s a scan; {len(log)} gt.log pairs "
+        f"({sum(abs(i - j) > 1 for i, j in log)} with |i-j| > 1), {len(extra)} negatives"
+    )
+    print(
+        "| matcher | right / gt.log pairs | right / pairs \\|i-j\\|>1 | rot err median (deg) | trans err median (m) "
+        "| < 5 deg & 0.2 m | CPU s a pair median (mean) |"
+    )
     print("|---|---|---|---|---|---|---|")
     tables = {}
     for matcher in matchers:
@@ -201,30 +233,41 @@ def run_3dmatch(name: str, matchers: list[str], show_pairs: bool, negatives: int
         cpu = np.array([r[8] for r in g])
         n_right = sum(r[3] for r in g)
         n_gap = sum(r[3] for r in far_gap)
-        print(f"| {matcher} | {n_right}/{len(g)} = {n_right / len(g):.3f} | {n_gap}/{len(far_gap)} = "
-              f"{n_gap / len(far_gap):.3f} | {np.median(rot):.2f} | {np.median(tr):.3f} | "
-              f"{np.mean((rot < 5) & (tr < 0.2)):.3f} | {np.median(cpu):.3f} ({cpu.mean():.3f}) |")
+        print(
+            f"| {matcher} | {n_right}/{len(g)} = {n_right / len(g):.3f} | {n_gap}/{len(far_gap)} = "
+            f"{n_gap / len(far_gap):.3f} | {np.median(rot):.2f} | {np.median(tr):.3f} | "
+            f"{np.mean((rot < 5) & (tr < 0.2)):.3f} | {np.median(cpu):.3f} ({cpu.mean():.3f}) |"
+        )
         if show_pairs:
             for r in rows:
-                print(f"    {r[0]:3d} {r[1]:3d} gt.log {r[2]!s:5} right {r[3]!s:5} rot {r[5]:7.2f} trans {r[6]:6.3f} "
-                      f"r_ij {r[7]:4d} coverage {r[9]:3d} cpu {r[8]:.3f}")
+                print(
+                    f"    {r[0]:3d} {r[1]:3d} gt.log {r[2]!s:5} right {r[3]!s:5} rot {r[5]:7.2f} trans {r[6]:6.3f} "
+                    f"r_ij {r[7]:4d} coverage {r[9]:3d} cpu {r[8]:.3f}"
+                )
         tables[matcher] = rows
     for matcher, rows in tables.items():
         for column, score in ((7, "r_ij"), (9, "coverage")):
-            separation_table(f"{name}, {matcher}", score,
-                             [(r[column], "right" if r[3] else "far" if r[4] else "near") for r in rows])
+            separation_table(
+                f"{name}, {matcher}", score, [(r[column], "right" if r[3] else "far" if r[4] else "near") for r in rows]
+            )
 
 
 def separation_table(title: str, score: str, scored: list[tuple[int, str]]) -> None:
     """Histogram of a score over right, near and far pairs (``scored``: (score, kind) a pair)."""
     print(f"\n  {score} separation ({title}; gt.log pairs and negatives): pairs a bin")
-    print(f"  | {score} | " + " | ".join(f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}" for lo, hi in
-                                      itertools.pairwise(R_BINS)) + " |")
+    print(
+        f"  | {score} | "
+        + " | ".join(f"[{lo}, {hi})" if hi < 10**9 else f">= {lo}" for lo, hi in itertools.pairwise(R_BINS))
+        + " |"
+    )
     print("  |" + "---|" * len(R_BINS))
     for kind in ("right", "near", "far"):
         r = np.array([s for s, k in scored if k == kind], dtype=float)
-        print(f"  | {kind} ({len(r)}) | " + " | ".join(str(int(np.sum((r >= lo) & (r < hi))))
-                                                    for lo, hi in itertools.pairwise(R_BINS)) + " |")
+        print(
+            f"  | {kind} ({len(r)}) | "
+            + " | ".join(str(int(np.sum((r >= lo) & (r < hi)))) for lo, hi in itertools.pairwise(R_BINS))
+            + " |"
+        )
 
 
 def main() -> None:

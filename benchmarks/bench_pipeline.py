@@ -53,14 +53,21 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     args = ap.parse_args()
     stages = ["load", "features", "global_graph", "pairwise", "sync", "write", "total"]
-    print("| scene | scans | pairs | " + " | ".join(f"{s} s" for s in stages)
-          + " | peak MB | within tol | worst rot ° | worst trans | recall | unregistered |")
+    print(
+        "| scene | scans | pairs | "
+        + " | ".join(f"{s} s" for s in stages)
+        + " | peak MB | within tol | worst rot ° | worst trans | recall | unregistered |"
+    )
     print("|---" * (len(stages) + 9) + "|")
     for name in args.scenes:
         scene, gt, max_deg, max_t = SCENES[name]
         with tempfile.TemporaryDirectory() as out:
-            proc = subprocess.run([sys.executable, "-c", CHILD, str(args.data / scene), str(args.data / gt), out],
-                                  capture_output=True, text=True, cwd=ROOT)
+            proc = subprocess.run(
+                [sys.executable, "-c", CHILD, str(args.data / scene), str(args.data / gt), out],
+                capture_output=True,
+                text=True,
+                cwd=ROOT,
+            )
         if proc.returncode:
             print(f"| {name} | failed: {proc.stderr.strip().splitlines()[-1]} |")
             continue
@@ -70,9 +77,12 @@ def main() -> None:
         worst_rot = max(r["rot"][k] for k in reg)
         worst_t = max(r["trans"][k] for k in reg)
         t = r["timings"]
-        print(f"| {name} | {r['n']} | {r['pairs']} | " + " | ".join(f"{t.get(s, 0):.2f}" for s in stages)
-              + f" | {r['peak_mb']:.0f} | {ok}/{r['n']} | {worst_rot:.3f} | {worst_t:.4f} | "
-              f"{r.get('recall', float('nan')):.3f} | {', '.join(r['unregistered']) or '-'} |")
+        print(
+            f"| {name} | {r['n']} | {r['pairs']} | "
+            + " | ".join(f"{t.get(s, 0):.2f}" for s in stages)
+            + f" | {r['peak_mb']:.0f} | {ok}/{r['n']} | {worst_rot:.3f} | {worst_t:.4f} | "
+            f"{r.get('recall', float('nan')):.3f} | {', '.join(r['unregistered']) or '-'} |"
+        )
 
 
 if __name__ == "__main__":

@@ -44,8 +44,19 @@ def main() -> None:
     ref = args.data / "sghr-reference"
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp)
-        cmd = [sys.executable, "-m", "sghr_gtsam", "run", str(args.data / "kitchen"), "--out", str(out),
-               "--features", str(ref), "--overlap-head", str(ref / "netvlad_overlap_model_best.pth")]
+        cmd = [
+            sys.executable,
+            "-m",
+            "sghr_gtsam",
+            "run",
+            str(args.data / "kitchen"),
+            "--out",
+            str(out),
+            "--features",
+            str(ref),
+            "--overlap-head",
+            str(ref / "netvlad_overlap_model_best.pth"),
+        ]
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
         wall = time.perf_counter() - t0
@@ -64,6 +75,7 @@ def main() -> None:
 
     print("| scan | ours vs GT | authors vs GT | ours vs authors |")
     print("|---|---|---|---|")
+
     def cell(r: float, t: float) -> str:
         return f"{r:.2f}° / {100 * t:.1f} cm"
 
@@ -76,8 +88,10 @@ def main() -> None:
     overlap = np.loadtxt(ref / "multi_reg" / "overlap.txt")
     diff = max(abs(1.0 - np.sqrt(1.0 - float(e["overlap_score"])) - overlap[int(e["i"]), int(e["j"])]) for e in edges)
     seconds = ", ".join(f"{k} {v:.2f}" for k, v in report["seconds"].items())
-    print(f"\nregistered {len(names)}/{len(report['scans'])}, skipped {', '.join(report['skipped'])}; "
-          f"edges kept {report['edges_kept']}/{len(edges)}; overlap scores vs the authors' max |diff| {diff:.1e}")
+    print(
+        f"\nregistered {len(names)}/{len(report['scans'])}, skipped {', '.join(report['skipped'])}; "
+        f"edges kept {report['edges_kept']}/{len(edges)}; overlap scores vs the authors' max |diff| {diff:.1e}"
+    )
     print(f"seconds: {seconds}; command wall time {wall:.1f} s; peak {report['peak_memory_mb']:.0f} MB")
 
 

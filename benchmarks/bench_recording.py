@@ -58,7 +58,6 @@ def _replay(module_dir: str, trace: str, out: str) -> None:
     """In a fresh process: replay ``trace`` into the Recorder found first on ``module_dir``; print JSON."""
     sys.path.insert(0, module_dir)
     import rerun  # noqa: F401  (imports outside the timing)
-
     from recording import Recorder  # the module under test, copied beside its package
 
     calls = pickle.loads(Path(trace).read_bytes())
@@ -78,15 +77,27 @@ def _replay(module_dir: str, trace: str, out: str) -> None:
             args = (poses, *[flags.get(p, []) for p in final_params])
         getattr(recorder, name)(*args)
     recorder.close()
-    print(json.dumps({"cpu": cpu() - c0, "wall": time.perf_counter() - wall,
-                      "records": sum(name == "on_iteration" for name, _ in calls), "mb": os.path.getsize(out) / 1e6}))
+    print(
+        json.dumps(
+            {
+                "cpu": cpu() - c0,
+                "wall": time.perf_counter() - wall,
+                "records": sum(name == "on_iteration" for name, _ in calls),
+                "mb": os.path.getsize(out) / 1e6,
+            }
+        )
+    )
 
 
 def _module_dir(commit: str | None, tmp: Path) -> str:
     """A folder holding ``recording.py`` (of ``commit``, else of this tree) importing the installed package."""
-    source = (subprocess.run(["git", "show", f"{commit}:sghr_gtsam/recording.py"], cwd=ROOT, check=True,
-                             capture_output=True, text=True).stdout if commit
-              else (ROOT / "sghr_gtsam" / "recording.py").read_text())
+    source = (
+        subprocess.run(
+            ["git", "show", f"{commit}:sghr_gtsam/recording.py"], cwd=ROOT, check=True, capture_output=True, text=True
+        ).stdout
+        if commit
+        else (ROOT / "sghr_gtsam" / "recording.py").read_text()
+    )
     folder = tmp / (commit or "current")
     folder.mkdir()
     (folder / "recording.py").write_text(source.replace("from .", "from sghr_gtsam."))
@@ -111,14 +122,32 @@ def main() -> None:
         targets = [("this tree", None)] + ([(f"baseline {args.baseline}", args.baseline)] if args.baseline else [])
         for label, commit in targets:
             folder = _module_dir(commit, tmp)
-            runs = [json.loads(subprocess.run(
-                [sys.executable, __file__, args.scene, "--replay", folder, str(tmp / "trace.pkl"), str(tmp / "r.rrd")],
-                env=env, check=True, capture_output=True, text=True).stdout.splitlines()[-1])
-                for _ in range(args.repeat)]
+            runs = [
+                json.loads(
+                    subprocess.run(
+                        [
+                            sys.executable,
+                            __file__,
+                            args.scene,
+                            "--replay",
+                            folder,
+                            str(tmp / "trace.pkl"),
+                            str(tmp / "r.rrd"),
+                        ],
+                        env=env,
+                        check=True,
+                        capture_output=True,
+                        text=True,
+                    ).stdout.splitlines()[-1]
+                )
+                for _ in range(args.repeat)
+            ]
             cpu = statistics.median(r["cpu"] for r in runs)
             wall = statistics.median(r["wall"] for r in runs)
-            print(f"{label}: {runs[0]['records']} records, CPU {cpu:.2f} s ({1000 * cpu / runs[0]['records']:.1f} ms "
-                  f"a record), wall {wall:.2f} s, {runs[0]['mb']:.1f} MB")
+            print(
+                f"{label}: {runs[0]['records']} records, CPU {cpu:.2f} s ({1000 * cpu / runs[0]['records']:.1f} ms "
+                f"a record), wall {wall:.2f} s, {runs[0]['mb']:.1f} MB"
+            )
 
 
 if __name__ == "__main__":

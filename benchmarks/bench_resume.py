@@ -34,8 +34,20 @@ ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1"}
 
 
 def _cli(scene: Path, out: Path, workers: int, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out), "--workers", str(workers),
-            "--no-record", "--quiet", *extra]
+    return [
+        sys.executable,
+        "-m",
+        "sghr_gtsam",
+        "run",
+        str(scene),
+        "--out",
+        str(out),
+        "--workers",
+        str(workers),
+        "--no-record",
+        "--quiet",
+        *extra,
+    ]
 
 
 def _entries(folder: Path) -> int:
@@ -58,10 +70,16 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--kill-at", type=float, default=0.5, help="fraction of the pairs finished when the run is killed")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--workdir", type=Path, default=None, help="where the scene and runs go (default: a temporary folder)")
+    ap.add_argument(
+        "--workdir", type=Path, default=None, help="where the scene and runs go (default: a temporary folder)"
+    )
     ap.add_argument("--scene", type=Path, help="an existing scene folder instead of generating one")
-    ap.add_argument("--reference", type=Path, help="with --scene: a finished run of it made with this benchmark's "
-                    "command and a fresh cache (bench_scale.py --keep writes one), instead of running it again")
+    ap.add_argument(
+        "--reference",
+        type=Path,
+        help="with --scene: a finished run of it made with this benchmark's "
+        "command and a fresh cache (bench_scale.py --keep writes one), instead of running it again",
+    )
     args = ap.parse_args()
     if args.reference and not args.scene:
         ap.error("--reference needs --scene")
@@ -80,8 +98,13 @@ def main() -> None:
         out = work / "out"
         pairs = out / CACHE / "pairs"
         started = time.perf_counter()
-        proc = subprocess.Popen(_cli(scene, out, args.workers), env=ENV, stdout=subprocess.DEVNULL,
-                                stderr=subprocess.DEVNULL, start_new_session=True)
+        proc = subprocess.Popen(
+            _cli(scene, out, args.workers),
+            env=ENV,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         try:
             while proc.poll() is None and _entries(pairs) < args.kill_at * total:
                 time.sleep(0.05)
@@ -98,11 +121,16 @@ def main() -> None:
     computed = cache["pairs"]["computed"]
     again = computed - (total - done)
     print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
-    print("| scans | pair registrations | finished before the kill | computed by the resumed run | computed "
-          "again | reference s | killed after s | resumed s | poses identical |")
+    print(
+        "| scans | pair registrations | finished before the kill | computed by the resumed run | computed "
+        "again | reference s | killed after s | resumed s | poses identical |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
-    print(f"| {len(list(scene.glob('*.ply')))} | {total} | {done} | {computed} | {again} ({again / total:.1%}) | {reference_s:.0f} | "
-          f"{killed_s:.0f} | {resumed_s:.0f} | {'yes' if same else '**no**'} |")
+    print(
+        f"| {len(list(scene.glob('*.ply')))} | {total} | {done} | {computed} | {again} ({again / total:.1%}) | "
+        f"{reference_s:.0f} | "
+        f"{killed_s:.0f} | {resumed_s:.0f} | {'yes' if same else '**no**'} |"
+    )
     print(f"\ncache of the resumed run: {json.dumps(cache)}")
 
 

@@ -51,8 +51,7 @@ from sghr_gtsam.io.atomic import atomic_write  # noqa: E402
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
 from sghr_gtsam.sync import METHODS, POLISHES, synchronize  # noqa: E402
 from sghr_gtsam.sync.baselines import BASELINES, oracle  # noqa: E402
-from sghr_gtsam.sync.consensus import (  # noqa: E402
-    MAX_DEG, consistent_edges, placement_support, translation_tolerance)
+from sghr_gtsam.sync.consensus import MAX_DEG, consistent_edges, placement_support, translation_tolerance  # noqa: E402
 from sghr_gtsam.sync.cycles import credibility  # noqa: E402
 from sghr_gtsam.sync.irls import REWEIGHTS  # noqa: E402
 from sghr_gtsam.types import PoseGraph, SyncResult  # noqa: E402
@@ -120,8 +119,10 @@ def run_graph(task: tuple[str, int, str, float, bool, list[str]]) -> list[Run]:
     scene, seed, kind, ratio, noisy_overlap, names = task
     methods = all_methods()
     gt = ground_truth(scene, seed)
-    graphs = {w: make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap, weight=w)
-              for w in ["s*r", *(w for w, row in WEIGHT_ABLATIONS.items() if row in names)]}
+    graphs = {
+        w: make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap, weight=w)
+        for w in ["s*r", *(w for w, row in WEIGHT_ABLATIONS.items() if row in names)]
+    }
     runs = []
     for name in names:
         weight = next((w for w, row in WEIGHT_ABLATIONS.items() if row == name), "s*r")
@@ -135,8 +136,20 @@ def run_graph(task: tuple[str, int, str, float, bool, list[str]]) -> list[Run]:
         b = np.array([index[q] for _, q in recall.pairs])
         estimated = inv_T(result.poses[a]) @ result.poses[b]
         rot, _ = relative_errors(estimated, np.stack([gt.gt_log[p] for p in recall.pairs]))
-        runs.append(Run(name, scene, seed, kind, ratio, recall.recall, float(rot.mean()), float(np.median(rot)),
-                        seconds, all_pairs_recall(result.poses, gt.poses)))
+        runs.append(
+            Run(
+                name,
+                scene,
+                seed,
+                kind,
+                ratio,
+                recall.recall,
+                float(rot.mean()),
+                float(np.median(rot)),
+                seconds,
+                all_pairs_recall(result.poses, gt.poses),
+            )
+        )
     return runs
 
 
@@ -153,8 +166,9 @@ def all_pairs_recall(poses: np.ndarray, truth: np.ndarray) -> float:
     return float(np.mean(right_pairs(poses, truth)[2]))
 
 
-def table_rows(runs: list[Run], names: list[str], kinds: list[str],
-               ratios: list[float]) -> list[tuple[str, str, list[str], list[list]]]:
+def table_rows(
+    runs: list[Run], names: list[str], kinds: list[str], ratios: list[float]
+) -> list[tuple[str, str, list[str], list[list]]]:
     """Per kind: registration recall (with seconds a scene), recall over all node pairs, then mean / median rotation
     error, by method and ratio; each as (key, title, columns, rows)."""
     out = []
@@ -168,16 +182,36 @@ def table_rows(runs: list[Run], names: list[str], kinds: list[str],
         for name in names:
             rs = [cell.get((name, x), []) for x in ratios]
             seconds = np.mean([r.seconds for group in rs for r in group]) if any(rs) else float("nan")
-            recall.append([name, *(f"{np.mean([r.recall for r in g]):.3f}" if g else "–" for g in rs),
-                           f"{seconds:.2f}"])
+            recall.append(
+                [name, *(f"{np.mean([r.recall for r in g]):.3f}" if g else "–" for g in rs), f"{seconds:.2f}"]
+            )
             all_pairs.append([name, *(f"{np.mean([r.all_pairs for r in g]):.3f}" if g else "–" for g in rs)])
-            rotation.append([name, *(f"{np.mean([r.rot_mean_deg for r in g]):.2f} / "
-                                     f"{np.mean([r.rot_median_deg for r in g]):.2f}" if g else "–" for g in rs)])
-        out += [(f"{kind}_recall", f"{kind} outliers: registration recall", [*header, "s / scene"], recall),
-                (f"{kind}_all_pairs", f"{kind} outliers: recall over all node pairs ({ALL_PAIRS_DEG:g}° / "
-                 f"{ALL_PAIRS_M:g} m)", header, all_pairs),
-                (f"{kind}_rotation", f"{kind} outliers: rotation error of the gt.log pairs, mean / median (°)", header,
-                 rotation)]
+            rotation.append(
+                [
+                    name,
+                    *(
+                        f"{np.mean([r.rot_mean_deg for r in g]):.2f} / {np.mean([r.rot_median_deg for r in g]):.2f}"
+                        if g
+                        else "–"
+                        for g in rs
+                    ),
+                ]
+            )
+        out += [
+            (f"{kind}_recall", f"{kind} outliers: registration recall", [*header, "s / scene"], recall),
+            (
+                f"{kind}_all_pairs",
+                f"{kind} outliers: recall over all node pairs ({ALL_PAIRS_DEG:g}° / {ALL_PAIRS_M:g} m)",
+                header,
+                all_pairs,
+            ),
+            (
+                f"{kind}_rotation",
+                f"{kind} outliers: rotation error of the gt.log pairs, mean / median (°)",
+                header,
+                rotation,
+            ),
+        ]
     return out
 
 
@@ -208,8 +242,15 @@ def _outvoted(graph: PoseGraph, P: np.ndarray, votes: np.ndarray) -> np.ndarray:
     return bad
 
 
-def identifiability(scenes: list[str], kinds: list[str], ratios: list[float], seeds: int,
-                    noisy_overlap: bool = False, vote: str = "w0", first_seed: int = 0) -> str:
+def identifiability(
+    scenes: list[str],
+    kinds: list[str],
+    ratios: list[float],
+    seeds: int,
+    noisy_overlap: bool = False,
+    vote: str = "w0",
+    first_seed: int = 0,
+) -> str:
     """Markdown: what the graphs themselves say, before any method runs. With every other scan at its GT
     pose, a scan is *outvoted* when a placement its edges propose, away from its GT pose, has more support
     (the ``vote`` of the agreeing edges, ``VOTES``) than the GT pose (``consensus.placement_support``: the
@@ -226,8 +267,7 @@ def identifiability(scenes: list[str], kinds: list[str], ratios: list[float], se
                 for seed in range(first_seed, first_seed + seeds):
                     gt = ground_truth(scene, seed)
                     index = {f: k for k, f in enumerate(gt.ids)}
-                    pairs = [(index[a], index[b]) for a, b in gt.gt_log
-                             if a in index and b in index and abs(a - b) > 1]
+                    pairs = [(index[a], index[b]) for a, b in gt.gt_log if a in index and b in index and abs(a - b) > 1]
                     graph, P, outlier = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
                     bad = _outvoted(graph, P, VOTES[vote](graph))
                     outvoted.append(bad.mean())
@@ -246,15 +286,33 @@ def _placed_right(poses: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return right >= (len(truth) - 1) / 2
 
 
-def _per_cell(per_graph: Callable[[tuple[str, int, str, float, bool]], object], scenes: list[str], kinds: list[str],
-              ratios: list[float], seeds: int, noisy_overlap: bool, first_seed: int,
-              jobs: int) -> list[tuple[tuple[str, float], list]]:
+def _per_cell(
+    per_graph: Callable[[tuple[str, int, str, float, bool]], object],
+    scenes: list[str],
+    kinds: list[str],
+    ratios: list[float],
+    seeds: int,
+    noisy_overlap: bool,
+    first_seed: int,
+    jobs: int,
+) -> list[tuple[tuple[str, float], list]]:
     """``per_graph`` of every scene and seed, over ``jobs`` processes, grouped by (kind, ratio)."""
     cells = [(kind, ratio) for kind in kinds for ratio in ratios]
     with Pool(jobs) as pool:
-        return [(cell, pool.map(per_graph, [(scene, seed, *cell, noisy_overlap) for scene in scenes
-                                            for seed in range(first_seed, first_seed + seeds)]))
-                for cell in cells]
+        return [
+            (
+                cell,
+                pool.map(
+                    per_graph,
+                    [
+                        (scene, seed, *cell, noisy_overlap)
+                        for scene in scenes
+                        for seed in range(first_seed, first_seed + seeds)
+                    ],
+                ),
+            )
+            for cell in cells
+        ]
 
 
 def _disputed_graph(task: tuple[str, int, str, float, bool]) -> np.ndarray:
@@ -265,20 +323,35 @@ def _disputed_graph(task: tuple[str, int, str, float, bool]) -> np.ndarray:
     loops = _placed_right(synchronize(graph).poses, P)
     robust = _placed_right(synchronize(graph, polish="robust").poses, P)
     by_count, by_w0 = _outvoted(graph, P, credibility(graph)), _outvoted(graph, P, graph.weight)
-    return np.array([[m.sum(), (m & by_count).sum(), (m & by_w0).sum(), (m & by_count & by_w0).sum()]
-                     for m in (loops & ~robust, robust & ~loops)])
+    return np.array(
+        [
+            [m.sum(), (m & by_count).sum(), (m & by_w0).sum(), (m & by_count & by_w0).sum()]
+            for m in (loops & ~robust, robust & ~loops)
+        ]
+    )
 
 
-def disputes(scenes: list[str], kinds: list[str], ratios: list[float], seeds: int, noisy_overlap: bool,
-             first_seed: int, jobs: int) -> str:
+def disputes(
+    scenes: list[str],
+    kinds: list[str],
+    ratios: list[float],
+    seeds: int,
+    noisy_overlap: bool,
+    first_seed: int,
+    jobs: int,
+) -> str:
     """Markdown: where the default (``loops``) and ``polish robust`` place a scan differently, what its edges say.
     A scan is placed right when it is right against at least half of the others (``_placed_right``); for the
     scans only one of the two places right, how many are outvoted by counts, by w⁰ and by both (``_outvoted``):
     a polish that places an outvoted scan right has kept it where it was, not followed the evidence."""
-    out = ["| kind | ρ | right by the default only: scans / outvoted by counts / by w⁰ / by both | right by "
-           "`robust` only: the same |", "|---|---:|---|---|"]
-    for (kind, ratio), rows in _per_cell(_disputed_graph, scenes, kinds, ratios, seeds, noisy_overlap, first_seed,
-                                         jobs):
+    out = [
+        "| kind | ρ | right by the default only: scans / outvoted by counts / by w⁰ / by both | right by "
+        "`robust` only: the same |",
+        "|---|---:|---|---|",
+    ]
+    for (kind, ratio), rows in _per_cell(
+        _disputed_graph, scenes, kinds, ratios, seeds, noisy_overlap, first_seed, jobs
+    ):
         total = np.sum(rows, axis=0)
         out.append(f"| {kind} | {ratio:g} | " + " | ".join(" / ".join(map(str, row)) for row in total) + " |")
     return "\n".join(out)
@@ -293,34 +366,59 @@ def _consensus_graph(task: tuple[str, int, str, float, bool]) -> dict:
     graph, P, outlier = make_graph(scene, ratio, kind, seed, noisy_overlap=noisy_overlap)
     votes = {"count": np.ones(graph.num_edges), "credibility": credibility(graph), "w0": graph.weight}
     row = {}
-    for name, poses in (("default", synchronize(graph).poses), ("robust", synchronize(graph, polish="robust").poses),
-                        ("oracle", oracle(graph, ~outlier).poses), ("GT", P)):
+    for name, poses in (
+        ("default", synchronize(graph).poses),
+        ("robust", synchronize(graph, polish="robust").poses),
+        ("oracle", oracle(graph, ~outlier).poses),
+        ("GT", P),
+    ):
         kept = consistent_edges(graph, poses)
-        row[name] = {"all_pairs": all_pairs_recall(poses, P), "wrong": int((kept & outlier).sum()),
-                     "gt_log": registration_recall(gt.ids, poses, gt.gt_log, gt.gt_info).recall,
-                     **{v: float(w[kept].sum()) for v, w in votes.items()}}
+        row[name] = {
+            "all_pairs": all_pairs_recall(poses, P),
+            "wrong": int((kept & outlier).sum()),
+            "gt_log": registration_recall(gt.ids, poses, gt.gt_log, gt.gt_info).recall,
+            **{v: float(w[kept].sum()) for v, w in votes.items()},
+        }
     return row
 
 
-def consensus(scenes: list[str], kinds: list[str], ratios: list[float], seeds: int, noisy_overlap: bool,
-              first_seed: int, jobs: int) -> str:
+def consensus(
+    scenes: list[str],
+    kinds: list[str],
+    ratios: list[float],
+    seeds: int,
+    noisy_overlap: bool,
+    first_seed: int,
+    jobs: int,
+) -> str:
     """Markdown: is the truth the answer the graph's own consistency prefers? Per kind and ratio, the edges
     consistent with the default's answer, the oracle's and the GT poses, and on how many graphs the default's
     answer leaves more of them (by count, by the default's votes ``cycles.credibility``, by w⁰) than the oracle's.
     Where it does, a method that picks the answer most edges agree with cannot prefer the truth. Then, from the
     same runs, where the default's remaining gaps lie (``_gaps``)."""
-    out = ["| kind | ρ | all pairs: default / oracle | consistent edges: default / oracle / GT | of them outliers: "
-           "default / oracle / GT | graphs where the default's answer leaves more consistent than the oracle's: "
-           "count / credibility / w⁰ |", "|---|---:|---|---|---|---|"]
+    out = [
+        "| kind | ρ | all pairs: default / oracle | consistent edges: default / oracle / GT | of them outliers: "
+        "default / oracle / GT | graphs where the default's answer leaves more consistent than the oracle's: "
+        "count / credibility / w⁰ |",
+        "|---|---:|---|---|---|---|",
+    ]
     cells = _per_cell(_consensus_graph, scenes, kinds, ratios, seeds, noisy_overlap, first_seed, jobs)
     for (kind, ratio), rows in cells:
-        means = {(who, what): np.mean([r[who][what] for r in rows]) for who in ("default", "oracle", "GT")
-                 for what in ("all_pairs", "count", "wrong")}
+        means = {
+            (who, what): np.mean([r[who][what] for r in rows])
+            for who in ("default", "oracle", "GT")
+            for what in ("all_pairs", "count", "wrong")
+        }
         more = [sum(r["default"][v] > r["oracle"][v] for r in rows) for v in ("count", "credibility", "w0")]
-        out.append(f"| {kind} | {ratio:g} | {means['default', 'all_pairs']:.3f} / {means['oracle', 'all_pairs']:.3f} | "
-                   + " / ".join(f"{means[w, 'count']:.1f}" for w in ("default", "oracle", "GT")) + " | "
-                   + " / ".join(f"{means[w, 'wrong']:.1f}" for w in ("default", "oracle", "GT")) + " | "
-                   + " / ".join(map(str, more)) + f" of {len(rows)} |")
+        out.append(
+            f"| {kind} | {ratio:g} | {means['default', 'all_pairs']:.3f} / {means['oracle', 'all_pairs']:.3f} | "
+            + " / ".join(f"{means[w, 'count']:.1f}" for w in ("default", "oracle", "GT"))
+            + " | "
+            + " / ".join(f"{means[w, 'wrong']:.1f}" for w in ("default", "oracle", "GT"))
+            + " | "
+            + " / ".join(map(str, more))
+            + f" of {len(rows)} |"
+        )
     return "\n".join(out) + "\n\n" + _gaps(cells)
 
 
@@ -332,10 +430,12 @@ def _gaps(cells: list[tuple[tuple[str, float], list[dict]]]) -> str:
     it is higher, and the part of it on graphs where the default's answer carries more votes than ``robust``'s:
     there ``robust`` is ahead by an answer the graph supports less, not by a search the default missed. Each is a
     sum over the graphs with a gap (a gain), divided by the number of all graphs: a share of the cell's mean."""
-    out = ["| kind | ρ | all pairs: default / oracle | gap to the oracle | of it where the default's answer carries "
-           "≥ GT's votes | graphs with a gap: of them so | gt.log: default / `robust` | `robust`'s gain | of it "
-           "where the default's answer carries more votes than `robust`'s | graphs where `robust` gains: of them so |",
-           "|---|---:|---|---:|---:|---|---|---:|---:|---|"]
+    out = [
+        "| kind | ρ | all pairs: default / oracle | gap to the oracle | of it where the default's answer carries "
+        "≥ GT's votes | graphs with a gap: of them so | gt.log: default / `robust` | `robust`'s gain | of it "
+        "where the default's answer carries more votes than `robust`'s | graphs where `robust` gains: of them so |",
+        "|---|---:|---|---:|---:|---|---|---:|---:|---|",
+    ]
     for (kind, ratio), rows in cells:
         n = len(rows)
         gap = np.array([r["oracle"]["all_pairs"] - r["default"]["all_pairs"] for r in rows])
@@ -343,45 +443,79 @@ def _gaps(cells: list[tuple[tuple[str, float], list[dict]]]) -> str:
         gain = np.array([r["robust"]["gt_log"] - r["default"]["gt_log"] for r in rows])
         preferred = np.array([r["default"]["credibility"] > r["robust"]["credibility"] for r in rows])
         lost, won = gap > 0, gain > 0
-        mean = {(w, m): np.mean([r[w][m] for r in rows]) for w in ("default", "robust", "oracle")
-                for m in ("all_pairs", "gt_log")}
-        out.append(f"| {kind} | {ratio:g} | {mean['default', 'all_pairs']:.3f} / {mean['oracle', 'all_pairs']:.3f} | "
-                   f"{gap[lost].sum() / n:.3f} | {gap[lost & held].sum() / n:.3f} | {lost.sum()}: "
-                   f"{(lost & held).sum()} | {mean['default', 'gt_log']:.3f} / {mean['robust', 'gt_log']:.3f} | "
-                   f"{gain[won].sum() / n:.3f} | {gain[won & preferred].sum() / n:.3f} | {won.sum()}: "
-                   f"{(won & preferred).sum()} |")
+        mean = {
+            (w, m): np.mean([r[w][m] for r in rows])
+            for w in ("default", "robust", "oracle")
+            for m in ("all_pairs", "gt_log")
+        }
+        out.append(
+            f"| {kind} | {ratio:g} | {mean['default', 'all_pairs']:.3f} / {mean['oracle', 'all_pairs']:.3f} | "
+            f"{gap[lost].sum() / n:.3f} | {gap[lost & held].sum() / n:.3f} | {lost.sum()}: "
+            f"{(lost & held).sum()} | {mean['default', 'gt_log']:.3f} / {mean['robust', 'gt_log']:.3f} | "
+            f"{gain[won].sum() / n:.3f} | {gain[won & preferred].sum() / n:.3f} | {won.sum()}: "
+            f"{(won & preferred).sum()} |"
+        )
     return "\n".join(out)
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=5, help="seeds per scene (default 5)")
-    parser.add_argument("--first-seed", type=int, default=0,
-                        help="first seed (default 0); report on seeds other than those a method was developed on")
+    parser.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="first seed (default 0); report on seeds other than those a method was developed on",
+    )
     parser.add_argument("--ratios", type=float, nargs="+", default=list(RATIOS), help="outlier ratios")
     parser.add_argument("--methods", nargs="+", help="row names (default: all); see --list")
     parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), metavar="SCENE",
-                        help="3DMatch test scenes (default: all 8) or generated buildings gen<N>, e.g. gen200 "
-                             "gen1000 (data_tools.building; one building per seed)")
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        default=list(SCENES),
+        metavar="SCENE",
+        help="3DMatch test scenes (default: all 8) or generated buildings gen<N>, e.g. gen200 "
+        "gen1000 (data_tools.building; one building per seed)",
+    )
     parser.add_argument("--quick", action="store_true", help="1 seed, ratios 0 and 0.5")
-    parser.add_argument("--noisy-overlap", action="store_true",
-                        help="top-k by overlap + N(0, 0.1) instead of the GT overlap (make_graph's variant)")
+    parser.add_argument(
+        "--noisy-overlap",
+        action="store_true",
+        help="top-k by overlap + N(0, 0.1) instead of the GT overlap (make_graph's variant)",
+    )
     parser.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
     parser.add_argument("--records", help="write every run as a JSON line to this file")
-    parser.add_argument("--tables-from", nargs="+", metavar="JSONL",
-                        help="no runs: print the tables of the --methods rows of these --records files")
+    parser.add_argument(
+        "--tables-from",
+        nargs="+",
+        metavar="JSONL",
+        help="no runs: print the tables of the --methods rows of these --records files",
+    )
     parser.add_argument("--list", action="store_true", help="list the methods and exit")
-    parser.add_argument("--identifiability", action="store_true",
-                        help="only the table of outvoted scans and the recall they leave (only the oracle runs)")
-    parser.add_argument("--consensus", action="store_true",
-                        help="only the tables of the edges consistent with the default's answer, the oracle's and GT, "
-                             "and of where the default's gaps lie")
-    parser.add_argument("--disputes", action="store_true",
-                        help="only the table of scans the default and polish robust place differently, and "
-                             "whether their edges outvote them")
-    parser.add_argument("--vote", choices=sorted(VOTES), default="w0",
-                        help="with --identifiability: what a placement's support sums (default w0)")
+    parser.add_argument(
+        "--identifiability",
+        action="store_true",
+        help="only the table of outvoted scans and the recall they leave (only the oracle runs)",
+    )
+    parser.add_argument(
+        "--consensus",
+        action="store_true",
+        help="only the tables of the edges consistent with the default's answer, the oracle's and GT, "
+        "and of where the default's gaps lie",
+    )
+    parser.add_argument(
+        "--disputes",
+        action="store_true",
+        help="only the table of scans the default and polish robust place differently, and "
+        "whether their edges outvote them",
+    )
+    parser.add_argument(
+        "--vote",
+        choices=sorted(VOTES),
+        default="w0",
+        help="with --identifiability: what a placement's support sums (default w0)",
+    )
     args = parser.parse_args()
     unknown = [s for s in args.scenes if s not in SCENES and not GENERATED.fullmatch(s)]
     if unknown:
@@ -400,28 +534,62 @@ def main() -> None:
         runs = [Run(**json.loads(line)) for path in args.tables_from for line in open(path)]
         print(tables([r for r in runs if r.ratio in ratios], names, args.kinds, ratios))
         return
-    graphs = (f"{len(args.scenes)} scenes × {seeds} seeds from {args.first_seed}, top-k by "
-              f"{'noisy' if args.noisy_overlap else 'GT'} overlap")
+    graphs = (
+        f"{len(args.scenes)} scenes × {seeds} seeds from {args.first_seed}, top-k by "
+        f"{'noisy' if args.noisy_overlap else 'GT'} overlap"
+    )
     if args.identifiability:
         print(f"outvoted scans / gt.log recall left / all pairs left, votes {args.vote}, {graphs}")
-        print(identifiability(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
-                              args.vote, args.first_seed))
+        print(
+            identifiability(
+                args.scenes,
+                args.kinds,
+                [x for x in ratios if x > 0],
+                seeds,
+                args.noisy_overlap,
+                args.vote,
+                args.first_seed,
+            )
+        )
         return
     if args.disputes:
         print(graphs)
-        print(disputes(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
-                       args.first_seed, args.jobs))
+        print(
+            disputes(
+                args.scenes,
+                args.kinds,
+                [x for x in ratios if x > 0],
+                seeds,
+                args.noisy_overlap,
+                args.first_seed,
+                args.jobs,
+            )
+        )
         return
     if args.consensus:
         print(graphs)
-        print(consensus(args.scenes, args.kinds, [x for x in ratios if x > 0], seeds, args.noisy_overlap,
-                        args.first_seed, args.jobs))
+        print(
+            consensus(
+                args.scenes,
+                args.kinds,
+                [x for x in ratios if x > 0],
+                seeds,
+                args.noisy_overlap,
+                args.first_seed,
+                args.jobs,
+            )
+        )
         return
 
     # Ratio 0 is the same graph for both kinds: run it once, under the first kind.
-    tasks = [(scene, seed, kind, ratio, args.noisy_overlap, names) for kind in args.kinds for ratio in ratios
-             if ratio > 0 or kind == args.kinds[0] for scene in args.scenes
-             for seed in range(args.first_seed, args.first_seed + seeds)]
+    tasks = [
+        (scene, seed, kind, ratio, args.noisy_overlap, names)
+        for kind in args.kinds
+        for ratio in ratios
+        if ratio > 0 or kind == args.kinds[0]
+        for scene in args.scenes
+        for seed in range(args.first_seed, args.first_seed + seeds)
+    ]
     start = time.perf_counter()
     runs: list[Run] = []
     with Pool(args.jobs) as pool:
@@ -441,8 +609,13 @@ def main() -> None:
         columns, recall = tables_[f"{kind}_recall"]
         _, all_pairs = tables_[f"{kind}_all_pairs"]
         rows = [[a[0], *(f"{x} / {y}" for x, y in zip(a[1:], r[1:-1]))] for a, r in zip(all_pairs, recall)]
-        save(f"robustness_{scenes}_{kind}", rows, columns[:-1], section="Synchronization",
-             title=f"{kind} outliers: recall over all node pairs (5° / 0.2 m) / the paper's gt.log recall, {graphs}")
+        save(
+            f"robustness_{scenes}_{kind}",
+            rows,
+            columns[:-1],
+            section="Synchronization",
+            title=f"{kind} outliers: recall over all node pairs (5° / 0.2 m) / the paper's gt.log recall, {graphs}",
+        )
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench_memory import measured_run  # noqa: E402
+
 from sghr_gtsam.evaluate import score_run  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.result import DOUBTS  # noqa: E402
@@ -50,14 +51,26 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
     """The run's poses against GT (module doc)."""
     gt_names, gt = read_poses(scene / "gt_poses.txt")
     names, poses = read_poses(out / "poses.txt")
-    score = score_run(names, poses, gt_names, gt, unregistered=report["unregistered"],
-                      flagged={n for flag in DOUBTS for n in report[flag]}, max_deg=MAX_DEG, max_trans=MAX_TRANS)
+    score = score_run(
+        names,
+        poses,
+        gt_names,
+        gt,
+        unregistered=report["unregistered"],
+        flagged={n for flag in DOUBTS for n in report[flag]},
+        max_deg=MAX_DEG,
+        max_trans=MAX_TRANS,
+    )
     whole = score.certain or score.whole  # every placed scan flagged: aligned on all of them
     basis = np.array([n not in set(score.flagged) for n in score.placed]) if score.certain else slice(None)
-    return {"placed": len(score.placed), "within": int(whole.within(MAX_DEG, MAX_TRANS).sum()),
-            "wrong_unflagged": len(score.unflagged_wrong), "ate": float(np.sqrt(np.mean(whole.translation[basis] ** 2))),
-            "median_deg": float(np.median(whole.rotation_deg[basis])),
-            "flags": {flag: len(report[flag]) for flag in DOUBTS}}
+    return {
+        "placed": len(score.placed),
+        "within": int(whole.within(MAX_DEG, MAX_TRANS).sum()),
+        "wrong_unflagged": len(score.unflagged_wrong),
+        "ate": float(np.sqrt(np.mean(whole.translation[basis] ** 2))),
+        "median_deg": float(np.median(whole.rotation_deg[basis])),
+        "flags": {flag: len(report[flag]) for flag in DOUBTS},
+    }
 
 
 def _case(n: int, args: argparse.Namespace, work: Path) -> dict:
@@ -69,9 +82,17 @@ def _case(n: int, args: argparse.Namespace, work: Path) -> dict:
     report = json.loads((out / "report.json").read_text())
     # The pairwise stage's (top-k) pairs: the cache's pair registrations but the retry stage's.
     stage_pairs = sum(report["cache"]["pairs"].values()) - report["front_end"]["retry_tried"]
-    row = {"n": n, "k": report["parameters"]["k"], "generate_s": generated, **run, **_score(scene, out, report),
-           "stage_pairs": stage_pairs, "pair_s": run["seconds"]["pairwise"] * args.workers / max(stage_pairs, 1),
-           "scan_mb": _bytes(scene) / 1e6, "cache_mb": _bytes(out / "cache") / 1e6}
+    row = {
+        "n": n,
+        "k": report["parameters"]["k"],
+        "generate_s": generated,
+        **run,
+        **_score(scene, out, report),
+        "stage_pairs": stage_pairs,
+        "pair_s": run["seconds"]["pairwise"] * args.workers / max(stage_pairs, 1),
+        "scan_mb": _bytes(scene) / 1e6,
+        "cache_mb": _bytes(out / "cache") / 1e6,
+    }
     if not args.keep:
         shutil.rmtree(scene)
         shutil.rmtree(out)
@@ -90,8 +111,10 @@ def main() -> None:
     if args.workdir:
         args.workdir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(dir=args.workdir, prefix="bench_scale-"))
-    print(f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.kind}, seed {args.seed}, "
-          f"{args.workers} workers")
+    print(
+        f"load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.kind}, seed {args.seed}, "
+        f"{args.workers} workers"
+    )
     try:
         rows = [_case(n, args, work) for n in args.scans]
     finally:
@@ -99,26 +122,50 @@ def main() -> None:
             shutil.rmtree(work, ignore_errors=True)
     print(f"load after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}" + (f"; kept in {work}" if args.keep else ""))
     print()
-    header = (["scans", "k", "generate s", "run wall s", "CPU s", *STAGES, "top-k pairs", "pairs registered", "placed",
-               f"within {MAX_DEG:g}°/{MAX_TRANS:g} m", "unflagged wrong", *DOUBTS, "ATE m", "median °", "largest process GB", "all processes PSS GB", "s a pair × worker", "scans MB",
-               "cache MB"])
+    header = [
+        "scans",
+        "k",
+        "generate s",
+        "run wall s",
+        "CPU s",
+        *STAGES,
+        "top-k pairs",
+        "pairs registered",
+        "placed",
+        f"within {MAX_DEG:g}°/{MAX_TRANS:g} m",
+        "unflagged wrong",
+        *DOUBTS,
+        "ATE m",
+        "median °",
+        "largest process GB",
+        "all processes PSS GB",
+        "s a pair × worker",
+        "scans MB",
+        "cache MB",
+    ]
     print("| " + " | ".join(header) + " |\n" + "|---" * len(header) + "|")
     for r in rows:
         stages = " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in STAGES)
         flags = " | ".join(str(r["flags"][f]) for f in DOUBTS)
-        print(f"| {r['n']} | {r['k']} | {r['generate_s']:.1f} | {r['wall']:.0f} | {r['cpu']:.0f} | {stages} | "
-              f"{r['stage_pairs']} | {r['pairs']} | {r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%}) | "
-              f"{r['within']} | {r['wrong_unflagged']} | {flags} | {r['ate']:.3f} | {r['median_deg']:.2f} | "
-              f"{r['max_process_gb']:.2f} | {r['tree_pss_gb']:.2f} | {r['pair_s']:.3f} | {r['scan_mb']:.0f} | "
-              f"{r['cache_mb']:.0f} |")
+        print(
+            f"| {r['n']} | {r['k']} | {r['generate_s']:.1f} | {r['wall']:.0f} | {r['cpu']:.0f} | {stages} | "
+            f"{r['stage_pairs']} | {r['pairs']} | {r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%}) | "
+            f"{r['within']} | {r['wrong_unflagged']} | {flags} | {r['ate']:.3f} | {r['median_deg']:.2f} | "
+            f"{r['max_process_gb']:.2f} | {r['tree_pss_gb']:.2f} | {r['pair_s']:.3f} | {r['scan_mb']:.0f} | "
+            f"{r['cache_mb']:.0f} |"
+        )
     if len(rows) > 1:  # seconds = c · (N·k)^e: e from a least-squares line through the logs
         nk = np.array([r["n"] * r["k"] for r in rows], float)
         print(f"\nfitted exponent e of seconds ∝ (N·k)^e over N·k = {', '.join(f'{x:g}' for x in nk)}:")
-        series = {"run wall": [r["wall"] for r in rows], "CPU": [r["cpu"] for r in rows],
-                  **{stage: [r["seconds"].get(stage, 0.0) for r in rows] for stage in ("total", *STAGES)}}
+        series = {
+            "run wall": [r["wall"] for r in rows],
+            "CPU": [r["cpu"] for r in rows],
+            **{stage: [r["seconds"].get(stage, 0.0) for r in rows] for stage in ("total", *STAGES)},
+        }
         for label, seconds in series.items():
             if min(seconds) >= 0.1:  # a stage that did (almost) nothing somewhere has no exponent
                 print(f"- {label}: {np.polyfit(np.log(nk), np.log(seconds), 1)[0]:.2f}")
+
 
 if __name__ == "__main__":
     main()

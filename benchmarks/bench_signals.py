@@ -6,7 +6,8 @@ the earlier result in the output folder was left byte for byte.
     python benchmarks/bench_signals.py --trials 10 --signal SIGTERM --group --between 0.2 12
 
 Each run is `python -m sghr_gtsam run SCENE --workers 2 --no-cache --no-record` (default SCENE: the kitchen of the
-shared data; `--record` keeps the recording on); the moments are drawn uniformly in --between (seconds after the start), with --seed.
+shared data; `--record` keeps the recording on); the moments are drawn uniformly in --between (seconds after the
+start), with --seed.
 """
 
 from __future__ import annotations
@@ -45,11 +46,23 @@ def main() -> None:
     ap.add_argument("--group", action="store_true", help="to the run's process group (a terminal's Ctrl-C)")
     ap.add_argument("--between", type=float, nargs=2, default=(0.2, 4.0), metavar=("FROM", "TO"))
     ap.add_argument("--seed", type=int, default=11)
-    ap.add_argument("--record", action="store_true", help="with the recording (rerun writes through the recorder's pipe)")
+    ap.add_argument(
+        "--record", action="store_true", help="with the recording (rerun writes through the recorder's pipe)"
+    )
     args = ap.parse_args()
     signum = signal.Signals[args.signal]
-    command = [sys.executable, "-m", "sghr_gtsam", "run", str(args.scene), "--workers", "2", "--no-cache",
-               *([] if args.record else ["--no-record"]), "--quiet"]
+    command = [
+        sys.executable,
+        "-m",
+        "sghr_gtsam",
+        "run",
+        str(args.scene),
+        "--workers",
+        "2",
+        "--no-cache",
+        *([] if args.record else ["--no-record"]),
+        "--quiet",
+    ]
     draw = random.Random(args.seed)
     with tempfile.TemporaryDirectory() as d:
         out = Path(d) / "out"
@@ -61,8 +74,9 @@ def main() -> None:
         for _ in range(args.trials):
             at = draw.uniform(*args.between)
             with tempfile.TemporaryFile() as err:
-                proc = subprocess.Popen([*command, "--out", str(out)], stdout=subprocess.DEVNULL, stderr=err,
-                                        start_new_session=True)
+                proc = subprocess.Popen(
+                    [*command, "--out", str(out)], stdout=subprocess.DEVNULL, stderr=err, start_new_session=True
+                )
                 time.sleep(at)
                 if args.group:
                     os.killpg(proc.pid, signum)

@@ -23,7 +23,8 @@ The random and GT rows pass their scores to ``pipeline.register(..., scores=...)
 pipeline's own code.
 
 Scoring, against ``gt_poses.txt``: errors of each *registered* scan relative to the registered scan from which
-the most registered scans are within tolerance (the pipeline's anchor, unless it sits in a misplaced group); within tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
+the most registered scans are within tolerance (the pipeline's anchor, unless it sits in a misplaced group); within
+tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
 ``bench_pipeline.py``; kitchen registration recall (``evaluate.registration_recall``, 0.2 m) counted over
 *all* gt.log pairs among the 9 fragments, a pair with an unregistered scan counting as missed. Times are
 ``RunResult.timings`` (features + global graph + pairwise + sync; scans already loaded), wall clock; CPU s is
@@ -69,19 +70,21 @@ from data_tools.gt_overlap import overlap_matrix, relative_params  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 from data_tools.simulate import make_training_scene  # noqa: E402
 from sghr_gtsam import pipeline  # noqa: E402
-from sghr_gtsam.scene import load_scene  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
 from sghr_gtsam.evaluate import fragment_id, registration_recall, scan_errors  # noqa: E402
 from sghr_gtsam.features.local import default_voxel  # noqa: E402
 from sghr_gtsam.graph import bridge_components, top_k_edges  # noqa: E402
 from sghr_gtsam.io.poses import read_gt_info, read_gt_log, read_gt_overlap, read_poses  # noqa: E402
+from sghr_gtsam.scene import load_scene  # noqa: E402
 from sghr_gtsam.se3 import inv_T  # noqa: E402
 from sghr_gtsam.types import InputError  # noqa: E402
 
 DATA = data_root()
 # scene: (scan folder, GT folder, max rotation deg, max translation, unit name, unit scale for printing)
-SCENES = {"kitchen": ("kitchen", "kitchen/gt", 5.0, 0.2, "m", 1.0),
-          "bunny": ("bunny", "bunny", 1.0, 0.001, "mm", 1000.0)}
+SCENES = {
+    "kitchen": ("kitchen", "kitchen/gt", 5.0, 0.2, "m", 1.0),
+    "bunny": ("bunny", "bunny", 1.0, 0.001, "mm", 1000.0),
+}
 SIM_SEED = 2
 """Dataset seed of the simulated rooms: the shipped head trained on seed 0, bench_overlap --sim uses seed 1."""
 
@@ -118,19 +121,28 @@ def score_run(res: pipeline.RunResult, gt: np.ndarray, max_deg: float, max_t: fl
     reg = res.registered
     # Errors relative to the reference scan that has the most registered scans within tolerance: measured
     # from the pipeline's anchor alone, an anchor inside a misplaced group would make every right scan wrong.
-    best = max(((scan_errors(res.names, res.poses, gt, reference=r), r) for r in reg),
-               key=lambda e: int(np.sum(e[0].within(max_deg, max_t)[reg])))[0]
+    best = max(
+        ((scan_errors(res.names, res.poses, gt, reference=r), r) for r in reg),
+        key=lambda e: int(np.sum(e[0].within(max_deg, max_t)[reg])),
+    )[0]
     rot, trans = best.rotation_deg[reg], best.translation[reg]
     doubted = set().union(*res.flags.values())
-    row = {"pairs": res.graph.num_edges, "n": len(res.names), "registered": len(reg),
-           "within": int(np.sum((rot <= max_deg) & (trans <= max_t))),
-           "rot_mean": float(rot.mean()), "rot_max": float(rot.max()),
-           "t_mean": float(trans.mean()), "t_max": float(trans.max()),
-           "total": sum(res.timings.get(s, 0.0) for s in ("features", "global_graph", "pairwise", "sync")),
-           "pairwise": res.timings.get("pairwise", 0.0), "unregistered": res.unregistered,
-           "misplaced": len(reg) - int(np.sum((rot <= max_deg) & (trans <= max_t))),
-           "flagged": sum(res.names[k] in doubted for k in reg),
-           "caught": sum(res.names[k] in doubted for k, r, t in zip(reg, rot, trans) if r > max_deg or t > max_t)}
+    row = {
+        "pairs": res.graph.num_edges,
+        "n": len(res.names),
+        "registered": len(reg),
+        "within": int(np.sum((rot <= max_deg) & (trans <= max_t))),
+        "rot_mean": float(rot.mean()),
+        "rot_max": float(rot.max()),
+        "t_mean": float(trans.mean()),
+        "t_max": float(trans.max()),
+        "total": sum(res.timings.get(s, 0.0) for s in ("features", "global_graph", "pairwise", "sync")),
+        "pairwise": res.timings.get("pairwise", 0.0),
+        "unregistered": res.unregistered,
+        "misplaced": len(reg) - int(np.sum((rot <= max_deg) & (trans <= max_t))),
+        "flagged": sum(res.names[k] in doubted for k in reg),
+        "caught": sum(res.names[k] in doubted for k, r, t in zip(reg, rot, trans) if r > max_deg or t > max_t),
+    }
     if scene.recall is not None:
         row["recalled"], row["recall_total"] = scene.recall(res), scene.recall_total
     return row
@@ -146,14 +158,17 @@ def fmt_row(scene_unit: float, label: str, k: str, rows: list[dict], n_all: int,
         return f"{lo:{f}}" if lo == hi else f"{np.mean(vals):.1f} ({lo:{f}}–{hi:{f}})"
 
     pairs = span("pairs")
-    cells = [label, k, f"{pairs} ({100 * mean('pairs') / n_all:.0f} %)",
-             f"{span('registered')} / {span('within')}"]
+    cells = [label, k, f"{pairs} ({100 * mean('pairs') / n_all:.0f} %)", f"{span('registered')} / {span('within')}"]
     if has_recall:
         cells.append(f"{span('recalled')}/{rows[0]['recall_total']} = {mean('recalled') / rows[0]['recall_total']:.3f}")
-    cells += [f"{mean('rot_mean'):.3f} / {mean('rot_max'):.3f}",
-              f"{scene_unit * mean('t_mean'):.3f} / {scene_unit * mean('t_max'):.3f}",
-              f"{mean('total'):.2f}", f"{mean('cpu'):.2f}", f"{mean('pairwise'):.2f}",
-              f"{span('flagged')} ({span('caught')} of {span('misplaced')})"]
+    cells += [
+        f"{mean('rot_mean'):.3f} / {mean('rot_max'):.3f}",
+        f"{scene_unit * mean('t_mean'):.3f} / {scene_unit * mean('t_max'):.3f}",
+        f"{mean('total'):.2f}",
+        f"{mean('cpu'):.2f}",
+        f"{mean('pairwise'):.2f}",
+        f"{span('flagged')} ({span('caught')} of {span('misplaced')})",
+    ]
     unreg = sorted({u for r in rows for u in r["unregistered"]})
     cells.append(", ".join(u.rsplit(".", 1)[0] for u in unreg) or "-")
     return "| " + " | ".join(cells) + " |"
@@ -180,14 +195,25 @@ def real_scene(name: str, data: Path) -> Scene:
     scans, _ = load_scene(data / folder, Config(), log=lambda m: None)
     names = [s.name for s in scans]
     gt_names, gt_poses = read_poses(data / gt_dir / "gt_poses.txt")
-    scene = Scene(name, scans, gt_poses[[gt_names.index(s) for s in names]],
-                  gt_overlap(name, data, names, [s.read()[0] for s in scans]), max_deg, max_t, unit, scale)
+    scene = Scene(
+        name,
+        scans,
+        gt_poses[[gt_names.index(s) for s in names]],
+        gt_overlap(name, data, names, [s.read()[0] for s in scans]),
+        max_deg,
+        max_t,
+        unit,
+        scale,
+    )
     if (data / gt_dir / "gt.log").exists():
         gt_log, gt_info = read_gt_log(data / gt_dir / "gt.log"), read_gt_info(data / gt_dir / "gt.info")
         ids = set(fragment_id(s) for s in names)
         scene.recall_total = sum(1 for a, b in gt_log if abs(a - b) > 1 and a in ids and b in ids)
-        scene.recall = lambda res: int(registration_recall([fragment_id(res.names[k]) for k in res.registered],
-                                                           res.poses[res.registered], gt_log, gt_info).recalled.sum())
+        scene.recall = lambda res: int(
+            registration_recall(
+                [fragment_id(res.names[k]) for k in res.registered], res.poses[res.registered], gt_log, gt_info
+            ).recalled.sum()
+        )
     return scene
 
 
@@ -200,8 +226,9 @@ def sim_scene(index: int, n_scans: int) -> Scene:
     scans = [pipeline.Scan(f"scan_{k:03d}", P) for k, P in enumerate(room.scans)]
     scene = Scene(f"simulated room {index}", scans, room.poses, room.overlap, 5.0, 0.2, "m", 1.0)
     pairs = [(a, b) for a, b in itertools.combinations(range(n_scans), 2) if b - a > 1 and room.overlap[a, b] > 0.3]
-    sample = [P[np.random.default_rng(k).choice(len(P), min(len(P), 2000), replace=False)]
-              for k, P in enumerate(room.scans)]
+    sample = [
+        P[np.random.default_rng(k).choice(len(P), min(len(P), 2000), replace=False)] for k, P in enumerate(room.scans)
+    ]
 
     def recall(res: pipeline.RunResult) -> int:
         placed = set(res.registered)
@@ -228,9 +255,12 @@ def bench_scene(scene: Scene, ks: list[int], seeds: int, exhaustive_learned: boo
     if exhaustive_learned:
         plan.append(("exhaustive, learned weights", n - 1, "learned", None))
     for k in ks:
-        plan += [("learned head", k, "learned", None), ("VLAD codebook", k, "vlad", None),
-                 (f"random scores (mean of {seeds} seeds)", k, "vlad", "random"),
-                 ("GT overlap (upper reference)", k, "vlad", "gt")]
+        plan += [
+            ("learned head", k, "learned", None),
+            ("VLAD codebook", k, "vlad", None),
+            (f"random scores (mean of {seeds} seeds)", k, "vlad", "random"),
+            ("GT overlap (upper reference)", k, "vlad", "gt"),
+        ]
 
     try:  # warm-up (imports, torch); two scans that do not overlap are fine for that
         pipeline.register(scans[:2], Config(record=False, global_feature="learned"), log=lambda m: None)
@@ -258,29 +288,48 @@ def bench_scene(scene: Scene, ks: list[int], seeds: int, exhaustive_learned: boo
             rows.append(score_run(res, gt, max_deg, max_t, scene))
             rows[-1]["cpu"] = time.process_time() - cpu0
             r = rows[-1]
-            print(f"  {name} {label} k={k} [{kind}]: {r['pairs']} pairs, {r['registered']} reg, "
-                  f"{r['within']} within, rot max {r['rot_max']:.3f}, t max {r['t_max']:.4g}, "
-                  f"{r['total']:.1f} s", file=sys.stderr, flush=True)
+            print(
+                f"  {name} {label} k={k} [{kind}]: {r['pairs']} pairs, {r['registered']} reg, "
+                f"{r['within']} within, rot max {r['rot_max']:.3f}, t max {r['t_max']:.4g}, "
+                f"{r['total']:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
         k_label = f"{k} (= N−1)" if k >= n - 1 else str(k)
-        lines.append(fmt_row(scale, label, k_label, rows, n_all, has_recall) if rows
-                     else f"| {label} | {k_label} | every run failed |")
+        lines.append(
+            fmt_row(scale, label, k_label, rows, n_all, has_recall)
+            if rows
+            else f"| {label} | {k_label} | every run failed |"
+        )
     load1 = os.getloadavg()
-    print(f"\n#### {name}: {n} scans, {n_all} pairs in the exhaustive graph; tolerance {max_deg:g}° / "
-          f"{scale * max_t:g} {unit}; load average {load0[0]:.1f} at start, {load1[0]:.1f} at end "
-          f"({os.cpu_count()} cores); {time.perf_counter() - t0:.0f} s for the table\n")
+    print(
+        f"\n#### {name}: {n} scans, {n_all} pairs in the exhaustive graph; tolerance {max_deg:g}° / "
+        f"{scale * max_t:g} {unit}; load average {load0[0]:.1f} at start, {load1[0]:.1f} at end "
+        f"({os.cpu_count()} cores); {time.perf_counter() - t0:.0f} s for the table\n"
+    )
     head = ["graph (scores)", "k", "pairs (% of all)", "registered / within tol."]
     if has_recall:
         head.append("registration recall")
-    head += ["rot. err. mean / worst (°)", f"trans. err. mean / worst ({unit})", "time s", "CPU s", "pairwise s",
-             "flagged (of the misplaced)", "unregistered (random: union over seeds)"]
+    head += [
+        "rot. err. mean / worst (°)",
+        f"trans. err. mean / worst ({unit})",
+        "time s",
+        "CPU s",
+        "pairwise s",
+        "flagged (of the misplaced)",
+        "unregistered (random: union over seeds)",
+    ]
     print("| " + " | ".join(head) + " |")
     print("|---|---|" + "---:|" * (len(head) - 3) + "---|")
     for line in lines:
         print(line)
 
 
-STEPS_PLAN = {"on": ("top-k + steps 2-4 (default)", False, True), "off": ("top-k, steps 2-4 off", False, False),
-              "exhaustive": ("exhaustive, steps 2-4 off", True, False)}
+STEPS_PLAN = {
+    "on": ("top-k + steps 2-4 (default)", False, True),
+    "off": ("top-k, steps 2-4 off", False, False),
+    "exhaustive": ("exhaustive, steps 2-4 off", True, False),
+}
 """row name: (label, exhaustive, steps 2-4 on) of the ``--steps`` rows."""
 
 
@@ -305,19 +354,34 @@ def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = 
     except InputError:
         pass
     t0 = time.perf_counter()
-    print(f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
-          f"load average {os.getloadavg()[0]:.1f} at start ({os.cpu_count()} cores)"
-          + "".join(f"; {key}={value}" for key, value in (overrides or {}).items()) + "\n")
-    print("| graph | k | global registrations (% of all pairs) | retry registered / tried | groups moved / tried "
-          "(edges) | loops closed / tried (ICP) | refined / tried | kept edges | registered / within tol. "
-          "| registration recall | rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s "
-          "| CPU s (this process) | flagged (of the misplaced) | unregistered |")
+    print(
+        f"\n#### {scene.name}: {n} scans, {n_all} pairs; tolerance {scene.max_deg:g}° / {scene.max_t:g} m; "
+        f"load average {os.getloadavg()[0]:.1f} at start ({os.cpu_count()} cores)"
+        + "".join(f"; {key}={value}" for key, value in (overrides or {}).items())
+        + "\n"
+    )
+    print(
+        "| graph | k | global registrations (% of all pairs) | retry registered / tried | groups moved / tried "
+        "(edges) | loops closed / tried (ICP) | refined / tried | kept edges | registered / within tol. "
+        "| registration recall | rot. err. mean / worst (°) | trans. err. mean / worst (m) | wall s "
+        "| CPU s (this process) | flagged (of the misplaced) | unregistered |"
+    )
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|", flush=True)
     for row in rows:
         label, exhaustive, on = STEPS_PLAN[row]
         kk = n - 1 if exhaustive else k
-        config = Config(**{**(overrides or {}), "k": kk, "record": False, "workers": 2, "refine": on, "loops": on,
-                           "retry": on, "groups": on})
+        config = Config(
+            **{
+                **(overrides or {}),
+                "k": kk,
+                "record": False,
+                "workers": 2,
+                "refine": on,
+                "loops": on,
+                "retry": on,
+                "groups": on,
+            }
+        )
         w0, cpu0 = time.perf_counter(), time.process_time()
         res = run_row(scene.scans, config, None)
         wall, cpu = time.perf_counter() - w0, time.process_time() - cpu0
@@ -326,13 +390,16 @@ def bench_steps(scene: Scene, k: int, rows: list[str], overrides: dict | None = 
         g = global_pairs(res, kk, config.connect)
         kept = int(np.sum(res.sync.weights > 0))
         unreg = ", ".join(u.rsplit(".", 1)[0] for u in r["unregistered"]) or "-"
-        print(f"| {label} | {kk} | {g} ({100 * g / n_all:.0f} %) | {d.get('retry_registered', 0)}/"
-              f"{d.get('retry_tried', 0)} | {d.get('groups_moved', 0)}/{d.get('groups_tried', 0)} "
-              f"({d.get('group_edges', 0)}) | {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} "
-              f"| {d.get('refined', 0)}/{d.get('refine_tried', 0)} | {kept} | {r['registered']} / {r['within']} "
-              f"| {r['recalled']}/{r['recall_total']} = {r['recalled'] / r['recall_total']:.3f} "
-              f"| {r['rot_mean']:.3f} / {r['rot_max']:.3f} | {r['t_mean']:.3f} / {r['t_max']:.3f} | {wall:.0f} "
-              f"| {cpu:.0f} | {r['flagged']} ({r['caught']} of {r['misplaced']}) | {unreg} |", flush=True)
+        print(
+            f"| {label} | {kk} | {g} ({100 * g / n_all:.0f} %) | {d.get('retry_registered', 0)}/"
+            f"{d.get('retry_tried', 0)} | {d.get('groups_moved', 0)}/{d.get('groups_tried', 0)} "
+            f"({d.get('group_edges', 0)}) | {d.get('loops_closed', 0)}/{d.get('loops_tried', 0)} "
+            f"| {d.get('refined', 0)}/{d.get('refine_tried', 0)} | {kept} | {r['registered']} / {r['within']} "
+            f"| {r['recalled']}/{r['recall_total']} = {r['recalled'] / r['recall_total']:.3f} "
+            f"| {r['rot_mean']:.3f} / {r['rot_max']:.3f} | {r['t_mean']:.3f} / {r['t_max']:.3f} | {wall:.0f} "
+            f"| {cpu:.0f} | {r['flagged']} ({r['caught']} of {r['misplaced']}) | {unreg} |",
+            flush=True,
+        )
     print(f"\nload average {os.getloadavg()[0]:.1f} at the end; {time.perf_counter() - t0:.0f} s for the table")
 
 
@@ -342,14 +409,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     ap.add_argument("--ks", nargs="+", type=int, default=None, help="default 2 3 4; 10 with --steps")
     ap.add_argument("--random-seeds", type=int, default=5)
-    ap.add_argument("--sim-rooms", type=int, nargs="+", default=[],
-                    help="instead of the real scenes: these simulated rooms (indices; the paper's scale)")
+    ap.add_argument(
+        "--sim-rooms",
+        type=int,
+        nargs="+",
+        default=[],
+        help="instead of the real scenes: these simulated rooms (indices; the paper's scale)",
+    )
     ap.add_argument("--sim-scans", type=int, default=50, help="scans per simulated room (default 50)")
-    ap.add_argument("--steps", nargs="*", choices=list(STEPS_PLAN), default=None,
-                    help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive; "
-                         "no value: all three rows")
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="with --steps: override a Config field in every row (repeatable)")
+    ap.add_argument(
+        "--steps",
+        nargs="*",
+        choices=list(STEPS_PLAN),
+        default=None,
+        help="with --sim-rooms: top-k with/without steps 2-4 against exhaustive; no value: all three rows",
+    )
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="with --steps: override a Config field in every row (repeatable)",
+    )
     args = ap.parse_args(argv)
     if args.set and args.steps is None:
         ap.error("--set needs --steps")
@@ -357,8 +438,12 @@ def main(argv: list[str] | None = None) -> int:
         if not args.sim_rooms:
             ap.error("--steps needs --sim-rooms")
         for index in args.sim_rooms:
-            bench_steps(sim_scene(index, args.sim_scans), (args.ks or [10])[0], args.steps or list(STEPS_PLAN),
-                        parse_overrides(args.set, Config))
+            bench_steps(
+                sim_scene(index, args.sim_scans),
+                (args.ks or [10])[0],
+                args.steps or list(STEPS_PLAN),
+                parse_overrides(args.set, Config),
+            )
         return 0
     args.ks = args.ks or [2, 3, 4]
     if args.sim_rooms:

@@ -18,8 +18,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # data_tools
 from data_tools.scene_gt import data_root  # noqa: E402
-IMPORT = ("import time; t = time.perf_counter(); import matplotlib.figure, matplotlib.collections; "
-          "from matplotlib.backends import backend_agg; print(time.perf_counter() - t)")
+
+IMPORT = (
+    "import time; t = time.perf_counter(); import matplotlib.figure, matplotlib.collections; "
+    "from matplotlib.backends import backend_agg; print(time.perf_counter() - t)"
+)
 
 
 def main() -> None:
@@ -30,12 +33,14 @@ def main() -> None:
 
     import sghr_gtsam.io.results as results
     from sghr_gtsam.config import Config
-    from sghr_gtsam.registration.edges import edge_status
     from sghr_gtsam.pipeline import run
     from sghr_gtsam.plots import write_summary
+    from sghr_gtsam.registration.edges import edge_status
 
-    imports = [float(subprocess.run([sys.executable, "-c", IMPORT], capture_output=True, text=True,
-                                    check=True).stdout) for _ in range(args.repeat)]
+    imports = [
+        float(subprocess.run([sys.executable, "-c", IMPORT], capture_output=True, text=True, check=True).stdout)
+        for _ in range(args.repeat)
+    ]
     config = Config(workers=1, record=False)
     with tempfile.TemporaryDirectory() as tmp:
         results.write_summary = lambda *a, **k: None
@@ -55,8 +60,10 @@ def main() -> None:
     print(f"| write stage without summary.png (s) | {without.timings['write']:.2f} |")
     print(f"| write stage with summary.png, first drawing of the process (s) | {result.timings['write']:.2f} |")
     print(f"| summary.png drawn again, warm, median of {args.repeat} (s) | {sorted(warm)[len(warm) // 2]:.2f} |")
-    print(f"| matplotlib import in a fresh process, median of {args.repeat} (s) | "
-          f"{sorted(imports)[len(imports) // 2]:.2f} |")
+    print(
+        f"| matplotlib import in a fresh process, median of {args.repeat} (s) | "
+        f"{sorted(imports)[len(imports) // 2]:.2f} |"
+    )
     print(f"| whole run with summary.png (s) | {result.timings['total']:.1f} |")
     print(f"| summary.png size (kB) | {size // 1024} |")
 

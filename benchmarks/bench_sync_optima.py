@@ -21,8 +21,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # data_tools, benc
 from benchmarks._results import save  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 
-GRAPHS = {"sphere2500": 1.687e3, "parking-garage": 1.263e0, "tinyGrid3D": None, "smallGrid3D": None,
-          "sphere_bignoise_vertex3": None}
+GRAPHS = {
+    "sphere2500": 1.687e3,
+    "parking-garage": 1.263e0,
+    "tinyGrid3D": None,
+    "smallGrid3D": None,
+    "sphere_bignoise_vertex3": None,
+}
 
 
 def main() -> None:
@@ -42,14 +47,29 @@ def main() -> None:
             t0 = time.perf_counter()
             result = synchronize(graph, method=Config().method, polish=polish)
             seconds = time.perf_counter() - t0
-            rows.append([name, f"{graph.n} / {graph.num_edges}", published, f"{f_lm:.7g}", polish,
-                         f"{sesync_objective(result.poses, graph):.7g}", int((result.weights > 0).sum()),
-                         int(result.component.max()) + 1, round(seconds, 1)])
+            rows.append(
+                [
+                    name,
+                    f"{graph.n} / {graph.num_edges}",
+                    published,
+                    f"{f_lm:.7g}",
+                    polish,
+                    f"{sesync_objective(result.poses, graph):.7g}",
+                    int((result.weights > 0).sum()),
+                    int(result.component.max()) + 1,
+                    round(seconds, 1),
+                ]
+            )
             print("| " + " | ".join("–" if c is None else str(c) for c in rows[-1]) + " |", flush=True)
-    save("sync_optima", rows, columns, section="Pose graphs",
-         title="`sync` on the shared g2o pose graphs, SE-Sync's isotropic noise: objective reached",
-         notes="f is the SE-Sync objective at the output; `published f*` is Rosen et al. 2019, Table 2 "
-               "(given to 4 digits); plain LM (`f (lm)`) reaches the optimum where none is published.")
+    save(
+        "sync_optima",
+        rows,
+        columns,
+        section="Pose graphs",
+        title="`sync` on the shared g2o pose graphs, SE-Sync's isotropic noise: objective reached",
+        notes="f is the SE-Sync objective at the output; `published f*` is Rosen et al. 2019, Table 2 "
+        "(given to 4 digits); plain LM (`f (lm)`) reaches the optimum where none is published.",
+    )
 
 
 if __name__ == "__main__":

@@ -43,8 +43,10 @@ SIZES = ("500:2500", "1000:5000", "2000:10000", "4000:20000", "10000:50000", "20
 ISOLATED = (8000, 24000, 100000)
 ROT_NOISE_DEG = 1.0
 TRANS_NOISE = 0.02
-NOTES = ("A random walk with uniformly random loop closures (`random`), and a 1,000-pose graph with vertices without "
-         "edges making up the rest (`isolated`); seconds are wall-clock, with the load average in the machine line.")
+NOTES = (
+    "A random walk with uniformly random loop closures (`random`), and a 1,000-pose graph with vertices without "
+    "edges making up the rest (`isolated`); seconds are wall-clock, with the load average in the machine line."
+)
 
 
 def random_graph(n: int, edges: int, seed: int = 0) -> tuple[np.ndarray, PoseGraph]:
@@ -60,11 +62,19 @@ def random_graph(n: int, edges: int, seed: int = 0) -> tuple[np.ndarray, PoseGra
     i = rng.integers(0, n, closures)
     j = (i + rng.integers(1, n, closures)) % n
     i, j = np.r_[np.arange(n - 1), i], np.r_[np.arange(1, n), j]
-    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(ROT_NOISE_DEG), (len(i), 3))).as_matrix(),
-                   rng.normal(0.0, TRANS_NOISE, (len(i), 3)))
+    noise = make_T(
+        Rotation.from_rotvec(rng.normal(0.0, np.radians(ROT_NOISE_DEG), (len(i), 3))).as_matrix(),
+        rng.normal(0.0, TRANS_NOISE, (len(i), 3)),
+    )
     information = np.diag(np.r_[np.full(3, np.radians(ROT_NOISE_DEG) ** -2), np.full(3, TRANS_NOISE**-2)])
-    graph = PoseGraph(n=n, i=i, j=j, T=inv_T(poses[i]) @ poses[j] @ noise, weight=np.ones(len(i)),
-                      information=np.tile(information, (len(i), 1, 1)))
+    graph = PoseGraph(
+        n=n,
+        i=i,
+        j=j,
+        T=inv_T(poses[i]) @ poses[j] @ noise,
+        weight=np.ones(len(i)),
+        information=np.tile(information, (len(i), 1, 1)),
+    )
     return poses, graph
 
 
@@ -80,8 +90,15 @@ def run_sync(path: Path, timeout: float) -> dict:
     """`sync` on the g2o file ``path`` in a subprocess: its seconds, peak memory (MB), exit code and last line."""
     command = [sys.executable, "-m", "sghr_gtsam", "sync", str(path), "--out", str(path.with_suffix(".out.g2o"))]
     started = time.perf_counter()
-    proc = subprocess.Popen(command, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            env={**os.environ, "PYTHONPATH": str(ROOT)}, start_new_session=True)
+    proc = subprocess.Popen(
+        command,
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        start_new_session=True,
+    )
     try:
         output, _ = proc.communicate(timeout=timeout)
         outcome = "done" if proc.returncode == 0 else "refused" if proc.returncode == 2 else "failed"
@@ -91,17 +108,23 @@ def run_sync(path: Path, timeout: float) -> dict:
         outcome = f"stopped after {timeout:.0f} s"
     seconds = time.perf_counter() - started
     lines = [line for line in output.splitlines() if line.strip()]
-    return {"seconds": round(seconds, 2), "outcome": outcome, "exit_code": proc.returncode,
-            "last_line": lines[-1][:300] if lines else ""}
+    return {
+        "seconds": round(seconds, 2),
+        "outcome": outcome,
+        "exit_code": proc.returncode,
+        "last_line": lines[-1][:300] if lines else "",
+    }
 
 
 def _measured(kind: str, n: int, edges: int, timeout: float) -> dict:
     """One row, measured in a fresh interpreter so that ``ru_maxrss`` of its children is this run's peak."""
-    script = (f"import json, resource, sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
-              f"from bench_sync_scaling import _row; "
-              f"row = _row({kind!r}, {n}, {edges}, {timeout}); "
-              f"row['peak_mb'] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1); "
-              f"print(json.dumps(row))")
+    script = (
+        f"import json, resource, sys; sys.path.insert(0, {str(ROOT / 'benchmarks')!r}); "
+        f"from bench_sync_scaling import _row; "
+        f"row = _row({kind!r}, {n}, {edges}, {timeout}); "
+        f"row['peak_mb'] = round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1); "
+        f"print(json.dumps(row))"
+    )
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=ROOT)
     if done.returncode:
         raise SystemExit(done.stderr)
@@ -119,8 +142,9 @@ def _row(kind: str, n: int, edges: int, timeout: float) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", nargs="*", default=list(SIZES), help="POSES:EDGES of the random graphs")
-    parser.add_argument("--isolated", nargs="*", type=int, default=list(ISOLATED),
-                        help="poses of the rows with vertices without edges")
+    parser.add_argument(
+        "--isolated", nargs="*", type=int, default=list(ISOLATED), help="poses of the rows with vertices without edges"
+    )
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds before a run is stopped")
     args = parser.parse_args()
     plan = [("random", *map(int, size.split(":"))) for size in args.sizes]
@@ -130,12 +154,19 @@ def main() -> None:
     for kind, n, edges in plan:
         row = _measured(kind, n, edges, args.timeout)
         rows.append(row)
-        print(f"{row['graph']:<10}{row['poses']:>8}{row['edges']:>9}{row['seconds']:>10.1f}{row['peak_mb']:>10.0f}  "
-              f"{row['outcome']}" + (f": {row['last_line']}" if row["outcome"] != "done" else ""), flush=True)
+        print(
+            f"{row['graph']:<10}{row['poses']:>8}{row['edges']:>9}{row['seconds']:>10.1f}{row['peak_mb']:>10.0f}  "
+            f"{row['outcome']}" + (f": {row['last_line']}" if row["outcome"] != "done" else ""),
+            flush=True,
+        )
     columns = ["graph", "poses", "edges", "seconds", "peak MB", "outcome"]
-    cells = [[r["graph"], r["poses"], r["edges"], round(r["seconds"], 2), round(r["peak_mb"], 1), r["outcome"]]
-             for r in rows]
-    print(f"-> {save('sync_scaling', cells, columns, section='Scale and speed', title='`sync` on large g2o graphs', notes=NOTES)}")
+    cells = [
+        [r["graph"], r["poses"], r["edges"], round(r["seconds"], 2), round(r["peak_mb"], 1), r["outcome"]] for r in rows
+    ]
+    path = save(
+        "sync_scaling", cells, columns, section="Scale and speed", title="`sync` on large g2o graphs", notes=NOTES
+    )
+    print(f"-> {path}")
 
 
 if __name__ == "__main__":

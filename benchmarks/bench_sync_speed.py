@@ -17,7 +17,8 @@ BLAS threads are set to 1 unless OPENBLAS_NUM_THREADS / OMP_NUM_THREADS is alrea
 blocks are tiny, and a multithreaded BLAS on a busy 2-core machine spends its time synchronising threads.
 
 Run from the repository root (installed, or with ``PYTHONPATH=.``):
-``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish loops] [--outliers 0.2]``;
+``python benchmarks/bench_sync_speed.py [--sizes 50 200 1000 5000] [--reweight authors] [--polish loops] [--outliers
+0.2]``;
 a real graph: ``--run-dir <output of sghr_gtsam run> --gt <scene>/gt_poses.txt`` (every polish).
 """
 
@@ -53,8 +54,9 @@ ROT_NOISE_DEG = 1.0
 TRANS_NOISE = 0.02
 
 
-def make_scene(n: int, seed: int, layout: str = "plane", outliers: float = OUTLIERS
-               ) -> tuple[np.ndarray, PoseGraph, np.ndarray]:
+def make_scene(
+    n: int, seed: int, layout: str = "plane", outliers: float = OUTLIERS
+) -> tuple[np.ndarray, PoseGraph, np.ndarray]:
     """Ground-truth poses, the measured k-nearest-neighbour graph and its outlier mask."""
     rng = np.random.default_rng(seed)
     if layout == "plane":
@@ -72,8 +74,10 @@ def make_scene(n: int, seed: int, layout: str = "plane", outliers: float = OUTLI
     T[:, :3, :3] = T[:, :3, :3] @ noise
     T[:, :3, 3] += rng.normal(scale=TRANS_NOISE, size=(E, 3))
     outlier = rng.random(E) < outliers
-    T[outlier] = make_T(Rotation.random(int(outlier.sum()), random_state=rng).as_matrix(),
-                        rng.normal(scale=2.0, size=(int(outlier.sum()), 3)))
+    T[outlier] = make_T(
+        Rotation.random(int(outlier.sum()), random_state=rng).as_matrix(),
+        rng.normal(scale=2.0, size=(int(outlier.sum()), 3)),
+    )
     overlap = np.where(outlier, rng.uniform(0.2, 0.7, E), rng.uniform(0.4, 1.0, E))
     inliers = np.where(outlier, rng.uniform(10, 100, E), rng.uniform(50, 500, E))
     return poses, PoseGraph(n=n, i=i, j=j, T=T, weight=overlap * inliers), outlier
@@ -91,8 +95,10 @@ def real_graph(run_dir: Path, gt_file: Path, polishes: list[str], repeats: int) 
     truth = np.stack([gt[k] for k in ids])
     synchronize(graph, iters=2)
     print(f"{run_dir}: {graph.n} scans, {graph.num_edges} edges; load average {os.getloadavg()[0]:.1f}")
-    print("| polish | median s | median CPU s | all pairs (5° / 0.2 m) | kept edges | groups placed rigidly "
-          "(scans: fragments (turn)) |\n|---|---:|---:|---:|---:|---|")
+    print(
+        "| polish | median s | median CPU s | all pairs (5° / 0.2 m) | kept edges | groups placed rigidly "
+        "(scans: fragments (turn)) |\n|---|---:|---:|---:|---:|---|"
+    )
     for polish in polishes:
         seconds, cpu = [], []
         for _ in range(repeats):
@@ -100,28 +106,42 @@ def real_graph(run_dir: Path, gt_file: Path, polishes: list[str], repeats: int) 
             result = synchronize(graph, polish=polish)
             seconds.append(time.perf_counter() - start)
             cpu.append(time.process_time() - cpu_start)
-        print(f"| {polish} | {np.median(seconds):.3f} | {np.median(cpu):.3f} | {all_pairs(result.poses, truth):.3f} | "
-              f"{int((result.weights > 0).sum())} | {'; '.join(placement_groups(result.poses, truth, ids))} |")
+        print(
+            f"| {polish} | {np.median(seconds):.3f} | {np.median(cpu):.3f} | {all_pairs(result.poses, truth):.3f} | "
+            f"{int((result.weights > 0).sum())} | {'; '.join(placement_groups(result.poses, truth, ids))} |"
+        )
 
 
 def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str, polish: str) -> dict[str, float]:
     stamps: list[tuple[str, float]] = []
     start, cpu = time.perf_counter(), time.process_time()
-    result = synchronize(graph, reweight=reweight, polish=polish,
-                         on_iteration=lambda r: stamps.append((r.stage, time.perf_counter())))
+    result = synchronize(
+        graph, reweight=reweight, polish=polish, on_iteration=lambda r: stamps.append((r.stage, time.perf_counter()))
+    )
     total, cpu = time.perf_counter() - start, time.process_time() - cpu
     irls_end = max(t for stage, t in stamps if stage == "irls")
-    robust_end = max((t for stage, t in stamps if stage in ("consensus", "gnc") or stage.startswith("loops")),
-                     default=irls_end)
+    robust_end = max(
+        (t for stage, t in stamps if stage in ("consensus", "gnc") or stage.startswith("loops")), default=irls_end
+    )
     main = result.component == 0
     anchor = np.flatnonzero(main)[0]
     rel = inv_T(result.poses[anchor]) @ result.poses[main]
     rot, trans = relative_errors(rel, inv_T(truth[anchor]) @ truth[main])
-    return {"edges": graph.num_edges, "total": total, "cpu": cpu, "irls": irls_end - start,
-            "robust": robust_end - irls_end, "lm": total - (robust_end - start),
-            "lm_iters": sum(stage == "lm" for stage, _ in stamps), "rot_max": rot.max(), "trans_max": trans.max(),
-            "registered": int(main.sum()), "outliers_kept": int((result.weights[outlier] > 0).sum()),
-            "all_pairs": all_pairs(result.poses, truth), "oracle": all_pairs(oracle(graph, ~outlier).poses, truth)}
+    return {
+        "edges": graph.num_edges,
+        "total": total,
+        "cpu": cpu,
+        "irls": irls_end - start,
+        "robust": robust_end - irls_end,
+        "lm": total - (robust_end - start),
+        "lm_iters": sum(stage == "lm" for stage, _ in stamps),
+        "rot_max": rot.max(),
+        "trans_max": trans.max(),
+        "registered": int(main.sum()),
+        "outliers_kept": int((result.weights[outlier] > 0).sum()),
+        "all_pairs": all_pairs(result.poses, truth),
+        "oracle": all_pairs(oracle(graph, ~outlier).poses, truth),
+    }
 
 
 def all_pairs(poses: np.ndarray, truth: np.ndarray) -> float:
@@ -147,11 +167,16 @@ def main() -> None:
         return
 
     synchronize(make_scene(20, 0)[1], iters=2)  # imports gtsam and warms caches outside the timings
-    print(f"layout = {args.layout}, k = {K}, {args.outliers:.0%} outliers, noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, "
-          f"M = 50, reweight = {args.reweight}, polish = {args.polish}, BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
-          f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    print(f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'robust s':>8} {'LM s':>7} {'LM it':>5} "
-          f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10} {'all pairs':>9} {'oracle':>6}")
+    print(
+        f"layout = {args.layout}, k = {K}, {args.outliers:.0%} outliers, "
+        f"noise {ROT_NOISE_DEG}°/axis + {TRANS_NOISE} m, M = 50, reweight = {args.reweight}, polish = {args.polish}, "
+        f"BLAS threads = {os.environ['OPENBLAS_NUM_THREADS']}, "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"
+    )
+    print(
+        f"{'N':>6} {'edges':>7} {'total s':>8} {'CPU s':>7} {'IRLS s':>8} {'robust s':>8} {'LM s':>7} {'LM it':>5} "
+        f"{'rot max°':>8} {'trans max':>9} {'registered':>10} {'outl. kept':>10} {'all pairs':>9} {'oracle':>6}"
+    )
     edges, totals = [], []
     for n in args.sizes:
         scene = make_scene(n, seed=n, layout=args.layout, outliers=args.outliers)
@@ -159,10 +184,13 @@ def main() -> None:
         best = min((run(*scene, args.reweight, args.polish) for _ in range(repeats)), key=lambda r: r["total"])
         edges.append(best["edges"])
         totals.append(best["total"])
-        print(f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} "
-              f"{best['robust']:>8.3f} {best['lm']:>7.3f} "
-              f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
-              f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10} {best['all_pairs']:>9.3f} {best['oracle']:>6.3f}")
+        print(
+            f"{n:>6} {best['edges']:>7} {best['total']:>8.3f} {best['cpu']:>7.3f} {best['irls']:>8.3f} "
+            f"{best['robust']:>8.3f} {best['lm']:>7.3f} "
+            f"{best['lm_iters']:>5} {best['rot_max']:>8.3f} {best['trans_max']:>9.4f} "
+            f"{best['registered']:>6}/{n:<3} {best['outliers_kept']:>10} {best['all_pairs']:>9.3f} "
+            f"{best['oracle']:>6.3f}"
+        )
     if len(edges) > 1:
         slope = np.polyfit(np.log(edges), np.log(totals), 1)[0]
         print(f"fitted exponent (least squares on log-log, all sizes): total time ∝ edges^{slope:.2f}")

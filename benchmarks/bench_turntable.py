@@ -65,21 +65,38 @@ def errors(res: pipeline.RunResult, gt: np.ndarray) -> tuple[np.ndarray, np.ndar
 def run(step: int, seed: int, steps_on: bool, workers: int, noise: float, overrides: dict) -> dict:
     scene = make_turntable(round(360 / step), seed, noise=noise)
     scans = [pipeline.Scan(name, P) for name, P in zip(scene.names, scene.scans)]
-    config = Config(**{**overrides, "record": False, "workers": workers, "refine": steps_on, "loops": steps_on,
-                       "retry": steps_on})
+    config = Config(
+        **{**overrides, "record": False, "workers": workers, "refine": steps_on, "loops": steps_on, "retry": steps_on}
+    )
     t0 = time.perf_counter()
     res = pipeline.register(scans, config, log=lambda m: None)
     seconds = time.perf_counter() - t0
     rot, trans = errors(res, scene.poses)
     kept, loops = cycle_rank(len(scans), res.graph.i, res.graph.j, res.sync.weights > 0)
     d = res.densify
-    return {"step": step, "seed": seed, "on": steps_on, "n": len(scans), "unverified": len(res.unverified),
-            "unregistered": len(res.unregistered), "rot_max": float(rot.max()), "rot_med": float(np.median(rot)),
-            "t_max": 1000 * float(trans.max()), "within": int(np.sum(rot <= GOAL_DEG)), "registered": len(rot),
-            "edges": res.graph.num_edges, "kept": kept, "loops": loops, "seconds": seconds,
-            "densify": (f"{d.get('refined', 0)}/{d.get('refine_tried', 0)}, {d.get('loops_closed', 0)}/"
-                        f"{d.get('loops_tried', 0)}, {d.get('retry_registered', 0)}/{d.get('retry_tried', 0)}"
-                        if steps_on else "-")}
+    return {
+        "step": step,
+        "seed": seed,
+        "on": steps_on,
+        "n": len(scans),
+        "unverified": len(res.unverified),
+        "unregistered": len(res.unregistered),
+        "rot_max": float(rot.max()),
+        "rot_med": float(np.median(rot)),
+        "t_max": 1000 * float(trans.max()),
+        "within": int(np.sum(rot <= GOAL_DEG)),
+        "registered": len(rot),
+        "edges": res.graph.num_edges,
+        "kept": kept,
+        "loops": loops,
+        "seconds": seconds,
+        "densify": (
+            f"{d.get('refined', 0)}/{d.get('refine_tried', 0)}, {d.get('loops_closed', 0)}/"
+            f"{d.get('loops_tried', 0)}, {d.get('retry_registered', 0)}/{d.get('retry_tried', 0)}"
+            if steps_on
+            else "-"
+        ),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -88,42 +105,91 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--noise", type=float, default=0.001, help="range noise std (m; the object is ~1 m across)")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="override a Config field in every run (repeatable)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a Config field in every run (repeatable)",
+    )
     args = ap.parse_args(argv)
     overrides = parse_overrides(args.set, Config)
     if any(s <= 0 or 360 % s for s in args.steps):
         ap.error("each step must divide 360")
     warm = make_turntable(10)  # warm-up run on two neighbours: imports and caches stay out of the first row
-    pipeline.register([pipeline.Scan(n, P) for n, P in zip(warm.names[:2], warm.scans[:2])],
-                      Config(record=False, workers=1), log=lambda m: None)
+    pipeline.register(
+        [pipeline.Scan(n, P) for n, P in zip(warm.names[:2], warm.scans[:2])],
+        Config(record=False, workers=1),
+        log=lambda m: None,
+    )
     rows = []
     for step in args.steps:
         for seed in args.seeds:
             for on in (False, True):
                 r = run(step, seed, on, args.workers, args.noise, overrides)
                 rows.append(r)
-                print(f"  {step}° seed {seed} steps {'on' if on else 'off'}: max {r['rot_max']:.3f}°, "
-                      f"{r['unverified']} unverified, {r['seconds']:.0f} s", file=sys.stderr, flush=True)
+                print(
+                    f"  {step}° seed {seed} steps {'on' if on else 'off'}: max {r['rot_max']:.3f}°, "
+                    f"{r['unverified']} unverified, {r['seconds']:.0f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
     if overrides:
         print("Config: " + ", ".join(f"{key}={value}" for key, value in overrides.items()) + "\n")
-    columns = ["step", "seed", "scans", "steps 2-4", "unverified", "unregistered", f"scans within {GOAL_DEG}°",
-               "rot. err. max / median (°)", "trans. err. max (mm)", "edges", "kept edges", "independent loops",
-               "refined, loops closed, retry registered (/ tried)", "s"]
-    cells = [[f"{r['step']}°", r["seed"], r["n"], "on" if r["on"] else "off", r["unverified"], r["unregistered"],
-              f"{r['within']}/{r['n']}", f"{r['rot_max']:.3f} / {r['rot_med']:.3f}", f"{r['t_max']:.1f}", r["edges"],
-              r["kept"], r["loops"], r["densify"], f"{r['seconds']:.0f}"] for r in rows]
+    columns = [
+        "step",
+        "seed",
+        "scans",
+        "steps 2-4",
+        "unverified",
+        "unregistered",
+        f"scans within {GOAL_DEG}°",
+        "rot. err. max / median (°)",
+        "trans. err. max (mm)",
+        "edges",
+        "kept edges",
+        "independent loops",
+        "refined, loops closed, retry registered (/ tried)",
+        "s",
+    ]
+    cells = [
+        [
+            f"{r['step']}°",
+            r["seed"],
+            r["n"],
+            "on" if r["on"] else "off",
+            r["unverified"],
+            r["unregistered"],
+            f"{r['within']}/{r['n']}",
+            f"{r['rot_max']:.3f} / {r['rot_med']:.3f}",
+            f"{r['t_max']:.1f}",
+            r["edges"],
+            r["kept"],
+            r["loops"],
+            r["densify"],
+            f"{r['seconds']:.0f}",
+        ]
+        for r in rows
+    ]
     print("| " + " | ".join(columns) + " |")
     print("|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|")
     for row in cells:
         print("| " + " | ".join(str(c) for c in row) + " |")
     met = [r for r in rows if r["on"] and not r["unverified"] and r["within"] == r["n"]]
-    verdict = (f"Goal (steps on: no scan unverified, all {GOAL_DEG}° of GT): met on {len(met)} of "
-               f"{sum(r['on'] for r in rows)} objects.")
+    verdict = (
+        f"Goal (steps on: no scan unverified, all {GOAL_DEG}° of GT): met on {len(met)} of "
+        f"{sum(r['on'] for r in rows)} objects."
+    )
     print("\n" + verdict)
     if not overrides:
-        save("turntable", cells, columns, section="Objects", notes=verdict,
-             title=f"Simulated turntable objects, {args.noise * 1000:g} mm range noise, with and without steps 2–4")
+        save(
+            "turntable",
+            cells,
+            columns,
+            section="Objects",
+            notes=verdict,
+            title=f"Simulated turntable objects, {args.noise * 1000:g} mm range noise, with and without steps 2–4",
+        )
     return 0
 
 

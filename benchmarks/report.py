@@ -16,8 +16,15 @@ from typing import Any
 
 from benchmarks._results import RESULTS, ROOT
 
-SECTIONS = ["3DMatch end to end", "Objects", "Synchronization", "Pose graphs", "Covariances", "Scale and speed",
-            "Other"]
+SECTIONS = [
+    "3DMatch end to end",
+    "Objects",
+    "Synchronization",
+    "Pose graphs",
+    "Covariances",
+    "Scale and speed",
+    "Other",
+]
 NOT_KEPT = "not_kept.json"
 HEADER = """# Benchmarks
 
@@ -45,9 +52,16 @@ def _machine(m: dict) -> str:
 def table(record: dict) -> list[str]:
     """One result as markdown: its title, provenance, the table and its notes."""
     origin = "transcribed from the journal, measured" if record.get("transcribed") else "measured"
-    lines = [f"### {record['title']}", "", f"`{record['command']}`", "",
-             f"{origin} at {record['commit']} on {record.get('date', '?')}; {_machine(record.get('machine', {}))}",
-             "", "| " + " | ".join(record["columns"]) + " |", "|" + "---|" * len(record["columns"])]
+    lines = [
+        f"### {record['title']}",
+        "",
+        f"`{record['command']}`",
+        "",
+        f"{origin} at {record['commit']} on {record.get('date', '?')}; {_machine(record.get('machine', {}))}",
+        "",
+        "| " + " | ".join(record["columns"]) + " |",
+        "|" + "---|" * len(record["columns"]),
+    ]
     lines += ["| " + " | ".join(_cell(c) for c in row) + " |" for row in record["rows"]]
     if record.get("notes"):
         lines += ["", record["notes"].strip()]
@@ -67,9 +81,13 @@ def render(folder: Path) -> str:
         lines += table(record)
     not_kept = folder / NOT_KEPT
     if not_kept.exists():
-        lines += ["## Measured, not kept", "",
-                  "Ideas measured and left out, one line each with the commit it was measured at (the journal at "
-                  "that commit has the tables).", ""]
+        lines += [
+            "## Measured, not kept",
+            "",
+            "Ideas measured and left out, one line each with the commit it was measured at (the journal at "
+            "that commit has the tables).",
+            "",
+        ]
         lines += [f"- {item['what']} ({item['commit']})" for item in json.loads(not_kept.read_text())]
         lines.append("")
     return "\n".join(lines)

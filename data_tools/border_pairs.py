@@ -55,8 +55,9 @@ class Registration:
     right: bool
 
 
-def border_pairs(scans: list[np.ndarray], poses: np.ndarray, group: set[int], voxel: float,
-                 min_overlap: float | None = MIN_OVERLAP) -> list[tuple[int, int]]:
+def border_pairs(
+    scans: list[np.ndarray], poses: np.ndarray, group: set[int], voxel: float, min_overlap: float | None = MIN_OVERLAP
+) -> list[tuple[int, int]]:
     """Pairs ``(a, b)``, ``a`` outside ``group`` and ``b`` in it, whose larger directed overlap under ``poses``
     exceeds ``min_overlap`` (the scans' points taken on a ``voxel`` grid); every such pair when it is None (what a
     search that does not know the GT would have to weigh)."""
@@ -97,15 +98,20 @@ def families(moves: np.ndarray, weights: np.ndarray, tolerance: tuple[float, flo
     return out
 
 
-def register_border(scans: list[np.ndarray], poses: np.ndarray, pairs: list[tuple[int, int]], voxel: float,
-                    descriptor: str) -> list[Registration]:
+def register_border(
+    scans: list[np.ndarray], poses: np.ndarray, pairs: list[tuple[int, int]], voxel: float, descriptor: str
+) -> list[Registration]:
     """``register_pair`` of every border pair on ``descriptor``, judged against ``poses`` (the GT)."""
-    features = {k: compute_features(scans[k], voxel, descriptor=descriptor) for k in sorted({x for p in pairs for x in p})}
+    features = {
+        k: compute_features(scans[k], voxel, descriptor=descriptor) for k in sorted({x for p in pairs for x in p})
+    }
     out = []
     for a, b in pairs:
         result = register_pair(features[a], features[b], voxel)
         rot, trans = relative_errors(result.T[None], (inv_T(poses[a]) @ poses[b])[None])
-        out.append(Registration(a, b, result.T, result.inliers, bool(rot[0] <= TOLERANCE[0] and trans[0] <= TOLERANCE[1])))
+        out.append(
+            Registration(a, b, result.T, result.inliers, bool(rot[0] <= TOLERANCE[0] and trans[0] <= TOLERANCE[1]))
+        )
     return out
 
 
@@ -118,8 +124,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scene", type=Path)
     ap.add_argument("group", help="LO-HI: the group's scans cloud_bin_LO ... cloud_bin_HI")
     ap.add_argument("--descriptors", nargs="+", default=["fpfh", "learned"], choices=sorted(MIN_INLIERS))
-    ap.add_argument("--all-pairs", action="store_true",
-                    help=f"every pair across the border, not only those whose GT overlap exceeds {MIN_OVERLAP}")
+    ap.add_argument(
+        "--all-pairs",
+        action="store_true",
+        help=f"every pair across the border, not only those whose GT overlap exceeds {MIN_OVERLAP}",
+    )
     args = ap.parse_args(argv)
     lo, hi = (int(x) for x in args.group.split("-"))
     gt_names, gt_poses = read_poses(args.scene / "gt_poses.txt")
@@ -140,10 +149,15 @@ def main(argv: list[str] | None = None) -> int:
         strong = [r for r in registrations if r.inliers >= FAMILY_INLIERS]
         if strong:
             centre = poses[sorted(group), :3, 3].mean(axis=0)
-            found = [[strong[k] for k in f] for f in families(group_moves(poses, strong, centre), [r.inliers for r in strong])]
+            found = [
+                [strong[k] for k in f]
+                for f in families(group_moves(poses, strong, centre), [r.inliers for r in strong])
+            ]
             for members in sorted(found, key=lambda f: (-len(f), -sum(r.inliers for r in f)))[:4]:
                 kind = "right" if members[0].right else "wrong"
-                print(f"  family of {len(members)}, {sum(r.inliers for r in members)} inliers, {kind}: {_listed(members)}")
+                print(
+                    f"  family of {len(members)}, {sum(r.inliers for r in members)} inliers, {kind}: {_listed(members)}"
+                )
     return 0
 
 

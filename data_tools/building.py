@@ -215,8 +215,9 @@ def _inside(rng: np.random.Generator, floor: _Floor, cell: tuple[int, int]) -> n
     r, c = cell
     mx = min(WALL_MARGIN, (floor.xs[c + 1] - floor.xs[c]) / 3)
     my = min(WALL_MARGIN, (floor.ys[r + 1] - floor.ys[r]) / 3)
-    return np.array([rng.uniform(floor.xs[c] + mx, floor.xs[c + 1] - mx),
-                     rng.uniform(floor.ys[r] + my, floor.ys[r + 1] - my)])
+    return np.array(
+        [rng.uniform(floor.xs[c] + mx, floor.xs[c + 1] - mx), rng.uniform(floor.ys[r] + my, floor.ys[r + 1] - my)]
+    )
 
 
 def _walk(rng: np.random.Generator, floor: _Floor, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -277,8 +278,9 @@ def _cast(caster: o3d.t.geometry.RaycastingScene, origins: np.ndarray, direction
     return caster.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(float)
 
 
-def _scans(rng: np.random.Generator, caster: o3d.t.geometry.RaycastingScene, positions: np.ndarray,
-           headings: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
+def _scans(
+    rng: np.random.Generator, caster: o3d.t.geometry.RaycastingScene, positions: np.ndarray, headings: np.ndarray
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """Each scan's pose (n, 4, 4) and its surface points (K_i, 3) in its own frame."""
     n = len(positions)
     poses, points = np.zeros((n, 4, 4)), []
@@ -287,8 +289,13 @@ def _scans(rng: np.random.Generator, caster: o3d.t.geometry.RaycastingScene, pos
         look = LOOK_KEEP * look + rng.normal(0.0, LOOK_STEP)
         height = HEIGHT_KEEP * height + rng.normal(0.0, HEIGHT_STEP)
         for _ in range(8):
-            T = _camera(positions[k], np.clip(np.mean(CAMERA_HEIGHT) + height, *CAMERA_HEIGHT), headings[k] + look,
-                        PITCH + rng.normal(0.0, PITCH_SD), rng.normal(0.0, ROLL_SD))
+            T = _camera(
+                positions[k],
+                np.clip(np.mean(CAMERA_HEIGHT) + height, *CAMERA_HEIGHT),
+                headings[k] + look,
+                PITCH + rng.normal(0.0, PITCH_SD),
+                rng.normal(0.0, ROLL_SD),
+            )
             d = _rays(rng, POINTS)
             t = _cast(caster, np.tile(T[:3, 3], (POINTS, 1)), d @ T[:3, :3].T)
             p = d * t[:, None]
@@ -300,8 +307,9 @@ def _scans(rng: np.random.Generator, caster: o3d.t.geometry.RaycastingScene, pos
     return poses, points
 
 
-def _seen_by(caster: o3d.t.geometry.RaycastingScene, poses: np.ndarray,
-             points: list[np.ndarray]) -> dict[int, dict[int, np.ndarray]]:
+def _seen_by(
+    caster: o3d.t.geometry.RaycastingScene, poses: np.ndarray, points: list[np.ndarray]
+) -> dict[int, dict[int, np.ndarray]]:
     """For every scan a and every other scan b that sees any of its points: the mask of a's points b sees."""
     centres = poses[:, :3, 3]
     half = np.tan([FOV_X / 2, FOV_Y / 2])

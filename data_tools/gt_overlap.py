@@ -18,7 +18,8 @@ all 36 pairs                                0.0040           0.0256
 
 (The larger errors involve fragments 6, 21, 34, which the shared data holds only on a 2.5 cm grid, so their
 1 cm grid cannot be rebuilt.) A grid search over voxel 0–2.5 cm × radius 1–10 cm found nothing better:
-the authors' training radius of 8 cm (symmetric mean, 1 cm grid) reads 0.067 too high on average, and the symmetric mean (both directions
+the authors' training radius of 8 cm (symmetric mean, 1 cm grid) reads 0.067 too high on average, and the symmetric
+mean (both directions
 averaged) at 3 cm / 1 cm is off from the log by 0.018 on average, 0.078 at most, because the log is one-sided.
 
 In units of the pipeline's default voxel on that scene (4.18 cm, ``features.local.default_voxel``) the
@@ -84,8 +85,10 @@ def directed_overlap_matrix(
     error is then at most 0.5/sqrt(max_points). Pairs whose padded bounding boxes are disjoint are 0."""
     rng = np.random.default_rng(seed)
     world = [_to_world(T, grid_points(P, voxel)) for T, P in zip(poses, scans)]
-    queries = [w if max_points is None or len(w) <= max_points else w[rng.choice(len(w), max_points, replace=False)]
-               for w in world]
+    queries = [
+        w if max_points is None or len(w) <= max_points else w[rng.choice(len(w), max_points, replace=False)]
+        for w in world
+    ]
     lo = np.array([w.min(0) for w in world]) - radius
     hi = np.array([w.max(0) for w in world]) + radius
     trees = [cKDTree(w) for w in world]
@@ -113,25 +116,47 @@ def combine(M: np.ndarray, mode: str = "mean") -> np.ndarray:
     raise ValueError(f"unknown overlap mode {mode!r} ({', '.join(MODES)})")
 
 
-def overlap_matrix(scans: list[np.ndarray], poses: np.ndarray, radius: float = KITCHEN_RADIUS,
-                   voxel: float | None = KITCHEN_GRID, mode: str = "mean", **kwargs) -> np.ndarray:
+def overlap_matrix(
+    scans: list[np.ndarray],
+    poses: np.ndarray,
+    radius: float = KITCHEN_RADIUS,
+    voxel: float | None = KITCHEN_GRID,
+    mode: str = "mean",
+    **kwargs,
+) -> np.ndarray:
     """(N, N) GT overlaps of every pair of ``scans`` under ``poses`` (see ``directed_overlap_matrix``)."""
     return combine(directed_overlap_matrix(scans, poses, radius, voxel, **kwargs), mode)
 
 
-def pair_overlap(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, radius: float = KITCHEN_RADIUS,
-                 voxel: float | None = KITCHEN_GRID, mode: str = "mean") -> float:
+def pair_overlap(
+    P_i: np.ndarray,
+    P_j: np.ndarray,
+    T_ij: np.ndarray,
+    radius: float = KITCHEN_RADIUS,
+    voxel: float | None = KITCHEN_GRID,
+    mode: str = "mean",
+) -> float:
     """GT overlap of one pair; ``T_ij`` maps points of scan j into the frame of scan i."""
     M = directed_overlap_matrix([P_i, P_j], np.stack([np.eye(4), np.asarray(T_ij, float)]), radius, voxel)
     return float(combine(M, mode)[0, 1])
 
 
-KITCHEN_SCANS = ("cloud_bin_0", "cloud_bin_1", "cloud_bin_2", "cloud_bin_3", "cloud_bin_4", "cloud_bin_5",
-                 "cloud_bin_6", "cloud_bin_21", "cloud_bin_34")
+KITCHEN_SCANS = (
+    "cloud_bin_0",
+    "cloud_bin_1",
+    "cloud_bin_2",
+    "cloud_bin_3",
+    "cloud_bin_4",
+    "cloud_bin_5",
+    "cloud_bin_6",
+    "cloud_bin_21",
+    "cloud_bin_34",
+)
 
 
-def reproduce_kitchen(data_dir: str | Path, radius: float = KITCHEN_RADIUS, voxel: float | None = KITCHEN_GRID,
-                      mode: str = "first") -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
+def reproduce_kitchen(
+    data_dir: str | Path, radius: float = KITCHEN_RADIUS, voxel: float | None = KITCHEN_GRID, mode: str = "first"
+) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray]:
     """Fragment pairs (i < j) among the kitchen scans of the shared data, our overlaps and the
     ``gt/gt_overlap.log`` values, in the same order."""
     from sghr_gtsam.evaluate import fragment_id
@@ -156,8 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("scene_dir", type=Path, help="scans + gt_poses.txt")
     parser.add_argument("--radius", type=float, default=KITCHEN_RADIUS, help="metres (default: kitchen fit)")
     parser.add_argument("--voxel", type=float, default=KITCHEN_GRID, help="grid in metres; 0 = every point")
-    parser.add_argument("--relative", action="store_true",
-                        help="radius and grid scaled to the scene's default pipeline voxel (0.72 / 0.24 voxels)")
+    parser.add_argument(
+        "--relative",
+        action="store_true",
+        help="radius and grid scaled to the scene's default pipeline voxel (0.72 / 0.24 voxels)",
+    )
     parser.add_argument("--mode", choices=MODES, default="mean")
     args = parser.parse_args(argv)
 
@@ -169,7 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     scans = [load_scan(args.scene_dir / n) for n in names]
     radius, voxel = relative_params(default_voxel(scans)) if args.relative else (args.radius, args.voxel)
     M = overlap_matrix(scans, poses, radius, voxel, mode=args.mode)
-    print(f"# {args.scene_dir}: radius {radius:.5g}, grid {voxel:.5g}, mode {args.mode}; indices = order of gt_poses.txt")
+    print(
+        f"# {args.scene_dir}: radius {radius:.5g}, grid {voxel:.5g}, mode {args.mode}; indices = order of gt_poses.txt"
+    )
     for i, j in itertools.combinations(range(len(names)), 2):
         print(f"{i},{j},{M[i, j]:.4f}")
     return 0

@@ -39,8 +39,14 @@ def _points(path: Path) -> np.ndarray:
 
     # the repository's files were pickled by numpy 1, whose names (numpy.core) numpy 2 keeps only as aliases
     reconstruct, float64 = np._core.multiarray._reconstruct, type(np.dtype(np.float64))
-    allowed = [reconstruct, (reconstruct, "numpy.core.multiarray._reconstruct"), np.ndarray, np.dtype, float64,
-               (float64, "numpy.dtype[float64]")]
+    allowed = [
+        reconstruct,
+        (reconstruct, "numpy.core.multiarray._reconstruct"),
+        np.ndarray,
+        np.dtype,
+        float64,
+        (float64, "numpy.dtype[float64]"),
+    ]
     with torch.serialization.safe_globals(allowed):
         P = np.asarray(torch.load(path, weights_only=True), dtype=np.float64)
     if P.ndim != 2 or P.shape[1] != 3 or not np.isfinite(P).all():
@@ -92,9 +98,11 @@ def convert(source: Path, data: Path, out: Path, name: str) -> str:
     if deg > MAX_GT_DEG or m > MAX_GT_M:
         raise ValueError(f"{name}: poses disagree with gt.log by {deg:.2g}° / {m:.2g} m")
     with open(target / "gt_poses.txt", "w") as f:
-        f.write(f"# DERIVED for 3DMatch test scene {scene}, {count} fragments, by data_tools.other_3dmatch_scenes:\n"
-                f"# T_i = P(inv(M_0) @ M_i) from viratzzs/icp-3dmatch test/{scene}/cloud_bin_<i>.info.txt, P the\n"
-                f"# SVD projection to SO(3); within {deg:.1g}° / {m:.1g} m of the scene's gt.log. p_world = T @ p_scan.\n")
+        f.write(
+            f"# DERIVED for 3DMatch test scene {scene}, {count} fragments, by data_tools.other_3dmatch_scenes:\n"
+            f"# T_i = P(inv(M_0) @ M_i) from viratzzs/icp-3dmatch test/{scene}/cloud_bin_<i>.info.txt, P the\n"
+            f"# SVD projection to SO(3); within {deg:.1g}° / {m:.1g} m of the scene's gt.log. p_world = T @ p_scan.\n"
+        )
         for i, T in enumerate(poses):
             f.write(f"cloud_bin_{i}.ply\n" + "\n".join(" ".join(f"{v:.10f}" for v in row) for row in T) + "\n")
     return f"{name}: {count} fragments, gt.log within {deg:.1g}° / {m:.1g} m"
@@ -103,10 +111,18 @@ def convert(source: Path, data: Path, out: Path, name: str) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("source", type=Path, help="the test/ folder of a clone of viratzzs/icp-3dmatch")
-    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data",
-                    help="the shared data (for 3dmatch-test-gt)")
-    ap.add_argument("--out", type=Path, help="where to write (default: --data is read-only, so ./other-scenes)",
-                    default=Path("other-scenes"))
+    ap.add_argument(
+        "--data",
+        type=Path,
+        default=Path(__file__).resolve().parents[2] / "shared" / "data",
+        help="the shared data (for 3dmatch-test-gt)",
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        help="where to write (default: --data is read-only, so ./other-scenes)",
+        default=Path("other-scenes"),
+    )
     args = ap.parse_args()
     gt = args.data / "3dmatch-test-gt"
     if not gt.is_dir():

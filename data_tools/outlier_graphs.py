@@ -98,14 +98,22 @@ def ground_truth(scene: str, seed: int, root: Path | None = None) -> SceneGT:
     return make_building(int(generated.group(1)), seed)
 
 
-def make_graph(scene: str, ratio: float, kind: str, seed: int, noisy_overlap: bool = False,
-               root: Path | None = None, weight: str = "s*r") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def make_graph(
+    scene: str,
+    ratio: float,
+    kind: str,
+    seed: int,
+    noisy_overlap: bool = False,
+    root: Path | None = None,
+    weight: str = "s*r",
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """``corrupt`` on the ground truth of ``scene`` (``ground_truth``: a real scene or ``gen<N>``)."""
     return corrupt(ground_truth(scene, seed, root), ratio, kind, seed, noisy_overlap, weight)
 
 
-def corrupt(gt: SceneGT, ratio: float, kind: str, seed: int, noisy_overlap: bool = False,
-            weight: str = "s*r") -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def corrupt(
+    gt: SceneGT, ratio: float, kind: str, seed: int, noisy_overlap: bool = False, weight: str = "s*r"
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """The top-k pose graph of ``gt`` with ``round(ratio · E)`` outlier edges of ``kind``; ``weight``: one of
     ``WEIGHTS`` (the same edges and measurements whichever is chosen). The random streams are keyed by
     ``seed`` and ``gt.name``.
@@ -140,8 +148,10 @@ def corrupt(gt: SceneGT, ratio: float, kind: str, seed: int, noisy_overlap: bool
     is_outlier = np.zeros(E, dtype=bool)
     if kind == "random":
         chosen = out_rng.choice(E, n_out, replace=False, p=p_out / p_out.sum())
-        T[chosen] = make_T(Rotation.random(n_out, random_state=out_rng).as_matrix(),
-                           out_rng.uniform(-RANDOM_TRANSLATION, RANDOM_TRANSLATION, (n_out, 3)))
+        T[chosen] = make_T(
+            Rotation.random(n_out, random_state=out_rng).as_matrix(),
+            out_rng.uniform(-RANDOM_TRANSLATION, RANDOM_TRANSLATION, (n_out, 3)),
+        )
         inliers[chosen] = MIN_INLIERS + out_rng.poisson(FAILED_INLIERS, n_out)
         is_outlier[chosen] = True
     else:
@@ -168,11 +178,19 @@ def add_random_outliers(graph: PoseGraph, count: int, seed: int) -> tuple[PoseGr
     i = rng.integers(0, graph.n, count)
     j = (i + rng.integers(1, graph.n, count)) % graph.n
     like = rng.integers(0, graph.num_edges, count)
-    T = make_T(Rotation.random(count, random_state=rng).as_matrix(),
-               rng.uniform(-RANDOM_TRANSLATION, RANDOM_TRANSLATION, (count, 3)))
+    T = make_T(
+        Rotation.random(count, random_state=rng).as_matrix(),
+        rng.uniform(-RANDOM_TRANSLATION, RANDOM_TRANSLATION, (count, 3)),
+    )
     info = None if graph.information is None else np.concatenate([graph.information, graph.information[like]])
-    out = PoseGraph(n=graph.n, i=np.r_[graph.i, i], j=np.r_[graph.j, j], T=np.concatenate([graph.T, T]),
-                    weight=np.r_[graph.weight, graph.weight[like]], information=info)
+    out = PoseGraph(
+        n=graph.n,
+        i=np.r_[graph.i, i],
+        j=np.r_[graph.j, j],
+        T=np.concatenate([graph.T, T]),
+        weight=np.r_[graph.weight, graph.weight[like]],
+        information=info,
+    )
     return out, np.r_[np.zeros(graph.num_edges, dtype=bool), np.ones(count, dtype=bool)]
 
 
@@ -183,8 +201,9 @@ def _perturbations(rng: np.random.Generator, E: int) -> np.ndarray:
     return make_T(R, SCAN_CENTRE - R @ SCAN_CENTRE + shift)
 
 
-def _structured_groups(rng: np.random.Generator, n: int, i: np.ndarray, j: np.ndarray, p_out: np.ndarray,
-                       n_out: int) -> list[tuple[int, np.ndarray]]:
+def _structured_groups(
+    rng: np.random.Generator, n: int, i: np.ndarray, j: np.ndarray, p_out: np.ndarray, n_out: int
+) -> list[tuple[int, np.ndarray]]:
     """Split ``n_out`` edges into groups (scan, edge indices), each group's edges all touching its scan.
 
     Scans are drawn by the summed outlier probability of their free edges, then the group's edges by theirs.

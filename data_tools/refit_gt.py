@@ -68,8 +68,14 @@ def refit(scans: list[np.ndarray], gt: np.ndarray, voxel: float) -> Refit:
     graph, pairs, moves, failed = gtsam.NonlinearFactorGraph(), [], [], []
     for a, b in zip(i.tolist(), j.tolist()):
         T_gt = inv_T(gt[a]) @ gt[b]
-        icp = _reg.registration_icp(clouds[b], clouds[a], 2 * voxel, T_gt, _reg.TransformationEstimationPointToPlane(),
-                                    _reg.ICPConvergenceCriteria(max_iteration=60))
+        icp = _reg.registration_icp(
+            clouds[b],
+            clouds[a],
+            2 * voxel,
+            T_gt,
+            _reg.TransformationEstimationPointToPlane(),
+            _reg.ICPConvergenceCriteria(max_iteration=60),
+        )
         T = icp.transformation
         move = relative_errors(T, T_gt)
         if move[0] > MAX_MOVE[0] or move[1] > MAX_MOVE[1]:
@@ -78,8 +84,10 @@ def refit(scans: list[np.ndarray], gt: np.ndarray, voxel: float) -> Refit:
         # Open3D's information perturbs T on the left (in scan a's frame); gtsam's BetweenFactor on the right.
         info = _reg.get_information_matrix_from_point_clouds(clouds[b], clouds[a], 2 * voxel, T)
         adjoint = gtsam.Pose3(T).AdjointMap()
-        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(HUBER),
-                                               gtsam.noiseModel.Gaussian.Information(adjoint.T @ info @ adjoint))
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(HUBER),
+            gtsam.noiseModel.Gaussian.Information(adjoint.T @ info @ adjoint),
+        )
         graph.add(gtsam.BetweenFactorPose3(a, b, gtsam.Pose3(T), noise))
         pairs.append((a, b))
         moves.append(move)
@@ -101,11 +109,18 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     names, gt = read_poses(args.gt_poses)
     r = refit([load_scan(args.scene / n) for n in names], gt, args.voxel)
-    write_poses(args.out, names, r.poses, comment=f"{args.gt_poses} re-fitted to the scans by data_tools.refit_gt (not ground truth)")
+    write_poses(
+        args.out,
+        names,
+        r.poses,
+        comment=f"{args.gt_poses} re-fitted to the scans by data_tools.refit_gt (not ground truth)",
+    )
     rot, trans = r.icp_move.T
-    print(f"{len(r.pairs)} pairs re-fitted, {len(r.failed)} left out; ICP optimum from GT: rotation median / 90 % / max "
-          f"{np.median(rot):.2f} / {np.quantile(rot, 0.9):.2f} / {rot.max():.2f}°, translation "
-          f"{np.median(trans):.3f} / {np.quantile(trans, 0.9):.3f} / {trans.max():.3f} m")
+    print(
+        f"{len(r.pairs)} pairs re-fitted, {len(r.failed)} left out; ICP optimum from GT: rotation median / 90 % / max "
+        f"{np.median(rot):.2f} / {np.quantile(rot, 0.9):.2f} / {rot.max():.2f}°, translation "
+        f"{np.median(trans):.3f} / {np.quantile(trans, 0.9):.3f} / {trans.max():.3f} m"
+    )
     for name, T, G in zip(names, r.poses, gt):
         dr, dt = relative_errors(T, G)
         print(f"{name}: re-fitted {dr:.2f}° {dt:.3f} m from GT")

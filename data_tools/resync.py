@@ -50,9 +50,14 @@ def run_graph(run: Path) -> tuple[PoseGraph, list[str], list[str]]:
             weight.append(float(row["initial_weight"]))
             information.append(graph.information[e])
             status.append(row["status"])
-    graph = PoseGraph(n=len(scans), i=np.array(i, dtype=np.int64), j=np.array(j, dtype=np.int64),
-                      T=np.array(T).reshape(-1, 4, 4), weight=np.array(weight),
-                      information=np.array(information).reshape(-1, 6, 6))
+    graph = PoseGraph(
+        n=len(scans),
+        i=np.array(i, dtype=np.int64),
+        j=np.array(j, dtype=np.int64),
+        T=np.array(T).reshape(-1, 4, 4),
+        weight=np.array(weight),
+        information=np.array(information).reshape(-1, 6, 6),
+    )
     return graph, scans, status
 
 
@@ -66,8 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     graph, scans, status = run_graph(args.run)
     result = synchronize(graph, method=args.method, polish=args.polish)
     kept, before = result.weights > 0, np.isin(status, KEPT)
-    print(f"{args.run}: {graph.num_edges} edges; the run kept {int(before.sum())}, kept now {int(kept.sum())}, "
-          f"{int(np.sum(kept != before))} changed")
+    print(
+        f"{args.run}: {graph.num_edges} edges; the run kept {int(before.sum())}, kept now {int(kept.sum())}, "
+        f"{int(np.sum(kept != before))} changed"
+    )
     if args.out:
         main_part = np.flatnonzero(result.component == 0)
         write_poses(args.out, [scans[k] for k in main_part], result.poses[main_part])

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +45,7 @@ def log_overlaps(path: Path, ids: list[int]) -> np.ndarray:
     return overlap
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_scene(scene: str, root: Path | None = None) -> SceneGT:
     """Read one scene's GT; cached, so callers must not modify the arrays."""
     base = (root or data_root()) / "3dmatch-test-gt"
@@ -60,8 +60,9 @@ def load_scene(scene: str, root: Path | None = None) -> SceneGT:
     positions = poses[:, :3, 3] - poses[:, :3, 3].mean(axis=0)
     vertical = np.linalg.eigh(positions.T @ positions)[1][:, 0]
     scene_dir = base / "3DMatch" / scene
-    return SceneGT(scene, ids, poses, overlap, vertical,
-                   read_gt_log(scene_dir / "gt.log"), read_gt_info(scene_dir / "gt.info"))
+    return SceneGT(
+        scene, ids, poses, overlap, vertical, read_gt_log(scene_dir / "gt.log"), read_gt_info(scene_dir / "gt.info")
+    )
 
 
 def placement_groups(poses: np.ndarray, truth: np.ndarray, ids: list[int]) -> list[str]:

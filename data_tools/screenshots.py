@@ -39,8 +39,13 @@ def demo_pictures(scans: int, seed: int) -> None:
     """The summary picture and the terminal output of a demo run."""
     env = {**os.environ, "PYTHONPATH": str(ROOT), "COLUMNS": "100"}
     with tempfile.TemporaryDirectory(prefix="sghr_screens_") as tmp:
-        proc = subprocess.run([sys.executable, "-m", "sghr_gtsam", "demo", "--out", tmp, "--scans", str(scans),
-                               "--seed", str(seed)], capture_output=True, text=True, env=env, cwd=ROOT)
+        proc = subprocess.run(
+            [sys.executable, "-m", "sghr_gtsam", "demo", "--out", tmp, "--scans", str(scans), "--seed", str(seed)],
+            capture_output=True,
+            text=True,
+            env=env,
+            cwd=ROOT,
+        )
         if proc.returncode:
             raise SystemExit(f"demo failed:\n{proc.stderr}")
         _save_small_png((Path(tmp) / "results" / "summary.png").read_bytes(), IMAGES / "summary.png")
@@ -59,8 +64,13 @@ def notebook_pictures() -> None:
     for cell in nb.cells:  # run-dependent metadata (timings) would make every regeneration a diff
         cell.metadata.pop("execution", None)
     nbformat.write(nb, NOTEBOOK)
-    figures = {cell.id: base64.b64decode(out["data"]["image/png"]) for cell in nb.cells if cell.cell_type == "code"
-               for out in cell.outputs if "image/png" in out.get("data", {})}
+    figures = {
+        cell.id: base64.b64decode(out["data"]["image/png"])
+        for cell in nb.cells
+        if cell.cell_type == "code"
+        for out in cell.outputs
+        if "image/png" in out.get("data", {})
+    }
     if set(figures) != {"summary-figure", "weights-figure"}:
         raise SystemExit(f"expected the notebook's two figures, found {sorted(figures)}")
     _save_small_png(figures["weights-figure"], IMAGES / "tour_weights.png")

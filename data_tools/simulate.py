@@ -23,7 +23,8 @@ kitchen: 4.3–7.5k, bunny: 4.0–4.8k); raw scans have 8k–90k points (real fr
 ``make_training_scene`` returns the scans, poses and GT overlaps (``data_tools.gt_overlap``, kitchen
 calibration scaled to the scene's voxel: radius 0.72 voxel on a 0.24-voxel grid, symmetric mean);
 ``make_turntable`` is an evaluation scene, not training data: an object turned in equal steps in front of one
-sensor (``benchmarks/bench_turntable.py``). ``cache_dataset`` adds FPFH descriptors (``sghr_gtsam.features.local.compute_features`` at the scene's voxel)
+sensor (``benchmarks/bench_turntable.py``). ``cache_dataset`` adds FPFH descriptors
+(``sghr_gtsam.features.local.compute_features`` at the scene's voxel)
 and writes one file per scene in the form ``sghr_gtsam.train`` reads. Command line (resumable: scenes already
 in the folder are kept)::
 
@@ -46,8 +47,16 @@ import open3d as o3d
 from data_tools.gt_overlap import combine, directed_overlap_matrix, relative_params
 from sghr_gtsam.features.local import compute_features, default_voxel
 from sghr_gtsam.se3 import inv_T, make_T
-from sghr_gtsam.synthetic.geometry import (SyntheticScene, _Sensor, _clutter, _look_at, _object, _random_rotation, _room,
-                                  _scan)
+from sghr_gtsam.synthetic.geometry import (
+    SyntheticScene,
+    _clutter,
+    _look_at,
+    _object,
+    _random_rotation,
+    _room,
+    _scan,
+    _Sensor,
+)
 
 KINDS = ("room", "object")
 MIN_SCANS, MAX_SCANS = 8, 60
@@ -97,8 +106,9 @@ def _free(scene: o3d.t.geometry.RaycastingScene, eye: np.ndarray, ceiling: float
     return eye[2] + scene.cast_rays(up)["t_hit"].numpy()[0] > ceiling - 0.15
 
 
-def _room_poses(n: int, scene: o3d.t.geometry.RaycastingScene, half: np.ndarray,
-                rng: np.random.Generator) -> list[tuple[np.ndarray, float]]:
+def _room_poses(
+    n: int, scene: o3d.t.geometry.RaycastingScene, half: np.ndarray, rng: np.random.Generator
+) -> list[tuple[np.ndarray, float]]:
     """Sensor poses along a random walk; each with an orientation drawn later (see ``_room_views``)."""
     lo = np.r_[-half[:2] + 0.5, 1.0]
     hi = np.r_[half[:2] - 0.5, min(1.9, 2 * half[2] - 0.4)]
@@ -196,10 +206,12 @@ def _object_scans(n: int, rng: np.random.Generator) -> tuple[list[np.ndarray], n
     return scans, np.stack(poses)
 
 
-def make_turntable(n_scans: int, seed: int = 0, noise: float = 0.001, elevation_deg: float = 20.0,
-                   distance: float = 2.2) -> SyntheticScene:
+def make_turntable(
+    n_scans: int, seed: int = 0, noise: float = 0.001, elevation_deg: float = 20.0, distance: float = 2.2
+) -> SyntheticScene:
     """An object on a turntable: ``n_scans`` range scans ``360 / n_scans`` degrees apart, as one fixed sensor sees
-    the demo's lumpy object (``synthetic.geometry._object``, ~1 m across) turned in equal steps. In the object's frame the
+    the demo's lumpy object (``synthetic.geometry._object``, ~1 m across) turned in equal steps. In the object's frame
+    the
     sensor moves on a horizontal circle of radius ``distance`` · cos(elevation), ``elevation_deg`` above the
     turntable's centre, looking at that centre with no roll; 40° field of view, 220 × 220 rays with sub-ray jitter,
     Gaussian range noise of std ``noise`` m (1 mm: the middle of the training objects' 0.5–2 mm). Scans in the
@@ -232,8 +244,9 @@ def make_training_scene(kind: str, n_scans: int, seed: int | list[int]) -> Train
     scans, poses = (_room_scans if kind == "room" else _object_scans)(n_scans, rng)
     voxel = default_voxel(scans)
     radius, grid = relative_params(voxel)
-    directed = directed_overlap_matrix(scans, poses, radius, grid, max_points=LABEL_QUERIES,
-                                       seed=int(rng.integers(2**31)))
+    directed = directed_overlap_matrix(
+        scans, poses, radius, grid, max_points=LABEL_QUERIES, seed=int(rng.integers(2**31))
+    )
     return TrainingScene(kind, scans, poses, voxel, directed, combine(directed, "mean"))
 
 
@@ -266,13 +279,21 @@ def _cache_one(args: tuple[Path, int, int, float]) -> tuple[int, str, int, float
     kind, n, scene_seed = scene_plan(index, seed, object_fraction)
     scene = make_training_scene(kind, n, scene_seed)
     desc = scene_descriptors(scene, seed=index)
-    write_cache_scene(cache_path(folder, index), desc, scene.overlap, directed=scene.directed,
-                      poses=scene.poses, voxel=scene.voxel, kind=kind)
+    write_cache_scene(
+        cache_path(folder, index),
+        desc,
+        scene.overlap,
+        directed=scene.directed,
+        poses=scene.poses,
+        voxel=scene.voxel,
+        kind=kind,
+    )
     return index, kind, n, time.perf_counter() - t0
 
 
-def cache_dataset(folder: str | Path, scenes: int, seed: int = 0, jobs: int = 1, object_fraction: float = 0.4,
-                  progress: bool = True) -> list[Path]:
+def cache_dataset(
+    folder: str | Path, scenes: int, seed: int = 0, jobs: int = 1, object_fraction: float = 0.4, progress: bool = True
+) -> list[Path]:
     """Simulate scenes 0 .. ``scenes``-1 of dataset ``seed`` and cache their descriptors and GT overlaps in
     ``folder`` (one ``scene_XXXXX.npz`` each, written atomically; those already there are kept)."""
     from tqdm import tqdm
@@ -300,8 +321,9 @@ def cache_dataset(folder: str | Path, scenes: int, seed: int = 0, jobs: int = 1,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description="Simulate training scenes and cache their FPFH descriptors "
-                                                 "and GT overlaps for sghr_gtsam.train.")
+    parser = argparse.ArgumentParser(
+        description="Simulate training scenes and cache their FPFH descriptors and GT overlaps for sghr_gtsam.train."
+    )
     parser.add_argument("cache_dir", type=Path, help="where the scene files go (outside the repository)")
     parser.add_argument("--scenes", type=int, default=60)
     parser.add_argument("--seed", type=int, default=0)

@@ -8,22 +8,29 @@ and values) and ``sg.Session`` (scan by scan, with the caller's own factors). Ea
 
 from typing import TYPE_CHECKING
 
-from ._open3d_extras import defer as _defer_open3d_extras
+from sghr_gtsam._open3d_extras import defer as _defer_open3d_extras
 
 _defer_open3d_extras()  # before any module of the package imports open3d
 
-_LAZY = {"run": "pipeline", "register": "pipeline", "Config": "config", "synchronize": "sync",
-         "load_results": "io.results", "to_gtsam": "gtsam_api", "Session": "incremental"}
+_LAZY = {
+    "run": "pipeline",
+    "register": "pipeline",
+    "Config": "config",
+    "synchronize": "sync",
+    "load_results": "io.results",
+    "to_gtsam": "gtsam_api",
+    "Session": "incremental",
+}
 """Top-level name -> the module (under the package) that defines it."""
 __all__ = ["run", "register", "Config", "synchronize", "load_results", "to_gtsam", "Session"]
 
 if TYPE_CHECKING:
-    from .config import Config
-    from .gtsam_api import to_gtsam
-    from .incremental import Session
-    from .io.results import load_results
-    from .pipeline import register, run
-    from .sync import synchronize
+    from sghr_gtsam.config import Config
+    from sghr_gtsam.gtsam_api import to_gtsam
+    from sghr_gtsam.incremental import Session
+    from sghr_gtsam.io.results import load_results
+    from sghr_gtsam.pipeline import register, run
+    from sghr_gtsam.sync import synchronize
 
 
 def __getattr__(name: str) -> object:

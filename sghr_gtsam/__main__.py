@@ -11,13 +11,13 @@ def main(prog_name: str | None = None) -> None:
     for s in (signal.SIGINT, signal.SIGTERM):
         signal.signal(s, lambda signum, frame: arrived.append(signum))
     atexit.register(_last)  # first registered, run last: after every library's exit handler
-    from .cli import _main as command_line
+    from sghr_gtsam.cli import _main as command_line
 
     command_line(prog_name, arrived)
 
 
 def _last() -> None:
-    from .cli import skip_teardown
+    from sghr_gtsam.cli import skip_teardown
 
     skip_teardown()
 

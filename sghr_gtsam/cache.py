@@ -28,18 +28,25 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from .executor import parallel_map
-from .io.atomic import atomic_write
+from sghr_gtsam.executor import parallel_map
+from sghr_gtsam.io.atomic import atomic_write
 
 if TYPE_CHECKING:
-    from .config import Config
-    from .types import Scan
+    from sghr_gtsam.config import Config
+    from sghr_gtsam.types import Scan
 
 FORMAT = 2
 """Bumped when what a file holds changes meaning (2: each entry holds its own key)."""
 KINDS = ("features", "pyramids", "pairs", "refined")
-_SOURCES = ("features/local.py", "features/learned.py", "weights/patch_rooms.npz", "registration/pairwise.py",
-            "registration/estimators.py", "registration/information.py", "registration/refine.py")
+_SOURCES = (
+    "features/local.py",
+    "features/learned.py",
+    "weights/patch_rooms.npz",
+    "registration/pairwise.py",
+    "registration/estimators.py",
+    "registration/information.py",
+    "registration/refine.py",
+)
 """The modules whose code (and constants) and the weights that make the cached results."""
 _LIBRARIES = ("numpy", "scipy", "open3d-cpu", "small-gicp", "kiss-matcher")
 _STALE_SECONDS = 60.0
@@ -77,12 +84,20 @@ def _key(*parts: Any) -> str:
     return h.hexdigest()
 
 
-def scan_key(scan: "Scan", voxel: float, config: "Config") -> str:
+def scan_key(scan: Scan, voxel: float, config: Config) -> str:
     """A scan's features: its points, given keypoints and centre, the voxel, the radii and the descriptor."""
     given = scan.keypoints
-    return _key("scan", scan.statistics().digest, None if given is None else given.points,
-                None if given is None else given.descriptors, scan.centre, float(voxel), config.normal_radius,
-                config.fpfh_radius, config.descriptor)
+    return _key(
+        "scan",
+        scan.statistics().digest,
+        None if given is None else given.points,
+        None if given is None else given.descriptors,
+        scan.centre,
+        float(voxel),
+        config.normal_radius,
+        config.fpfh_radius,
+        config.descriptor,
+    )
 
 
 def pyramid_key(scan: str) -> str | None:
@@ -90,7 +105,7 @@ def pyramid_key(scan: str) -> str | None:
     return _key("pyramid", scan) if scan else None
 
 
-def pair_key(a: str, b: str, config: "Config") -> str | None:
+def pair_key(a: str, b: str, config: Config) -> str | None:
     """A pair's global registration, from its scans' keys (None when one is not known: not cached)."""
     return _key("pair", a, b, config.matcher, config.icp_distance, config.seed) if a and b else None
 
@@ -189,9 +204,18 @@ class Cache:
             with atomic_write(path, "wb") as f:
                 np.savez(f, **arrays, **{_KEY: np.array(key)})
 
-    def map(self, kind: Kind, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str | None],
-            workers: int | None, on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,
-            keep: Callable[[Any], Any] | None = None) -> list:
+    def map(
+        self,
+        kind: Kind,
+        fn: Callable,
+        shared: Any,
+        tasks: Sequence,
+        keys: Sequence[str | None],
+        workers: int | None,
+        on_result: Callable[[int, Any], None] | None = None,
+        ray: str | None = None,
+        keep: Callable[[Any], Any] | None = None,
+    ) -> list:
         """``executor.parallel_map(fn, shared, tasks, workers, on_result, ray, keep)`` for the tasks whose ``keys``
         miss the cache, each result stored as it arrives; the others read back. ``on_result`` is told of the
         cached results first, then of the computed ones as they arrive; ``keep(result)`` is what the list holds
@@ -247,10 +271,18 @@ MISS = object()
 """``Cache.load``'s answer for a result it does not hold."""
 
 
-def cached_map(cache: Cache | None, kind: Kind, fn: Callable, shared: Any, tasks: Sequence,
-               keys: Sequence[str | None], workers: int | None,
-               on_result: Callable[[int, Any], None] | None = None, ray: str | None = None,
-               keep: Callable[[Any], Any] | None = None) -> list:
+def cached_map(
+    cache: Cache | None,
+    kind: Kind,
+    fn: Callable,
+    shared: Any,
+    tasks: Sequence,
+    keys: Sequence[str | None],
+    workers: int | None,
+    on_result: Callable[[int, Any], None] | None = None,
+    ray: str | None = None,
+    keep: Callable[[Any], Any] | None = None,
+) -> list:
     """``cache.map(...)``, or ``executor.parallel_map`` of every task without a cache."""
     if cache is None:
         return parallel_map(fn, shared, tasks, workers, on_result, ray, keep)

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .types import InputError
+from sghr_gtsam.types import InputError
 
 MATCHERS = ("sc2", "kiss", "ransac")
 """Pairwise estimators (``registration.pairwise.register_pair``)."""
@@ -181,14 +181,22 @@ class Config:
     again redoes only what is missing (``sghr_gtsam.cache``). False: neither read nor written (the run keeps its
     features and grids in a temporary folder beside ``OUT`` while it runs: ``sghr_gtsam.store``)."""
 
-    def validate(self) -> "Config":
+    def validate(self) -> Config:
         """Raise ``InputError`` (one line) for a value no stage accepts, before any work is done."""
-        from .sync import MAX_ITERS, METHODS, POLISHES
-        from .sync.irls import REWEIGHTS
+        from sghr_gtsam.sync import MAX_ITERS, METHODS, POLISHES
+        from sghr_gtsam.sync.irls import REWEIGHTS
 
-        choices = {"descriptor": DESCRIPTORS, "global_feature": ("vlad", "learned"), "matcher": MATCHERS,
-                   "method": tuple(METHODS), "polish": tuple(POLISHES), "reweight": REWEIGHTS,
-                   "initial_weight": ("s*r", "s", "r"), "noise_model": NOISE_MODELS, "kernel": KERNELS}
+        choices = {
+            "descriptor": DESCRIPTORS,
+            "global_feature": ("vlad", "learned"),
+            "matcher": MATCHERS,
+            "method": tuple(METHODS),
+            "polish": tuple(POLISHES),
+            "reweight": REWEIGHTS,
+            "initial_weight": ("s*r", "s", "r"),
+            "noise_model": NOISE_MODELS,
+            "kernel": KERNELS,
+        }
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
                 raise InputError(f"{name} must be one of {', '.join(allowed)}; got {getattr(self, name)!r}")
@@ -215,8 +223,10 @@ class Config:
         if self.overlap_head is not None and not Path(self.overlap_head).is_file():  # before hours of features
             raise InputError(f"overlap head {self.overlap_head} is not a file")
         if self.features is not None and self.descriptor != "fpfh":
-            raise InputError(f"descriptor {self.descriptor!r} describes the voxel grid, and --features gives the "
-                             "descriptors to match: choose one")
+            raise InputError(
+                f"descriptor {self.descriptor!r} describes the voxel grid, and --features gives the "
+                "descriptors to match: choose one"
+            )
         if self.inlier_bar < 0:
             raise InputError(f"min_inliers must be a non-negative integer; got {self.min_inliers!r}")
         if not 0 <= self.seed < 2**31:  # open3d's RANSAC takes a C int
@@ -240,7 +250,7 @@ class Config:
         return json.dumps(asdict(self), indent=2)
 
     @classmethod
-    def from_json(cls, path: str | Path) -> "Config":
+    def from_json(cls, path: str | Path) -> Config:
         try:
             data = json.loads(Path(path).read_text())
         except (OSError, UnicodeDecodeError, ValueError, RecursionError) as e:  # ValueError: also a 5000-digit int

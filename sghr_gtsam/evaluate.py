@@ -12,11 +12,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .se3 import inv_T, make_T, project_to_so3, relative_errors
-from .types import InputError
+from sghr_gtsam.se3 import inv_T, make_T, project_to_so3, relative_errors
+from sghr_gtsam.types import InputError
 
 if TYPE_CHECKING:
-    from .result import RunResult
+    from sghr_gtsam.result import RunResult
 
 
 @dataclass
@@ -35,8 +35,10 @@ def _scored(names: list[str], poses: np.ndarray, gt_poses: np.ndarray) -> tuple[
     """``poses`` and ``gt_poses`` as float arrays, or an ``InputError`` unless both are (N, 4, 4) for the N names."""
     poses, gt_poses = np.asarray(poses, dtype=float), np.asarray(gt_poses, dtype=float)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or gt_poses.shape != poses.shape or len(names) != len(poses):
-        raise InputError(f"{len(names)} names, poses {poses.shape} and GT poses {gt_poses.shape}: need N names and "
-                         f"two (N, 4, 4) arrays")
+        raise InputError(
+            f"{len(names)} names, poses {poses.shape} and GT poses {gt_poses.shape}: need N names and "
+            f"two (N, 4, 4) arrays"
+        )
     return poses, gt_poses
 
 
@@ -71,8 +73,9 @@ class RecallResult:
         return float(self.recalled.mean()) if len(self.recalled) else float("nan")
 
 
-def registration_recall(ids: list[int], poses: np.ndarray, gt_log: dict, gt_info: dict,
-                        threshold: float = 0.2) -> RecallResult:
+def registration_recall(
+    ids: list[int], poses: np.ndarray, gt_log: dict, gt_info: dict, threshold: float = 0.2
+) -> RecallResult:
     """The paper's registration recall (authors' ``T_eval``) over the ``gt.log`` pairs among ``ids``.
 
     For every GT pair (i, j) with |i − j| > 1 and both scans present: ``E = inv(T_gt) @ inv(T_i) @ T_j``,
@@ -104,16 +107,20 @@ def registration_recall(ids: list[int], poses: np.ndarray, gt_log: dict, gt_info
     return RecallResult(pairs, rmse_arr, rmse_arr <= threshold, threshold)
 
 
-def registration_recall_counting_unplaced(ids: list[int], poses: np.ndarray, gt_log: dict, gt_info: dict,
-                                          scene_ids: list[int], threshold: float = 0.2) -> RecallResult:
+def registration_recall_counting_unplaced(
+    ids: list[int], poses: np.ndarray, gt_log: dict, gt_info: dict, scene_ids: list[int], threshold: float = 0.2
+) -> RecallResult:
     """The paper's protocol in full: like ``registration_recall``, but a ``gt.log`` pair (|i − j| > 1) whose
     fragments are both in the scene (``scene_ids``) while one of them was not placed (not in ``ids``)
     counts as FAILED (rmse ``inf``) instead of being skipped. Pairs naming a fragment outside the scene
     (a folder holding 9 of a scene's 60 fragments) are left out."""
     placed = registration_recall(ids, poses, gt_log, gt_info, threshold)
     scene, index = set(scene_ids), set(ids)
-    unplaced = [(a, b) for (a, b) in sorted(gt_log) if abs(a - b) > 1 and a in scene and b in scene
-                and not (a in index and b in index)]
+    unplaced = [
+        (a, b)
+        for (a, b) in sorted(gt_log)
+        if abs(a - b) > 1 and a in scene and b in scene and not (a in index and b in index)
+    ]
     rmse = np.concatenate([placed.rmse, np.full(len(unplaced), np.inf)])
     return RecallResult(placed.pairs + unplaced, rmse, rmse <= threshold, threshold)
 
@@ -148,7 +155,7 @@ class WholeModelErrors:
     @property
     def ate_rmse(self) -> float:
         """Absolute trajectory error: RMS of the position errors after alignment (evo's APE rmse)."""
-        return float(np.sqrt(np.mean(self.translation ** 2))) if len(self.translation) else float("nan")
+        return float(np.sqrt(np.mean(self.translation**2))) if len(self.translation) else float("nan")
 
     def within(self, max_deg: float, max_trans: float) -> np.ndarray:
         return (self.rotation_deg <= max_deg) & (self.translation <= max_trans)
@@ -175,8 +182,9 @@ def align_poses(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return make_T(R, (dst[:, :3, 3] - src[:, :3, 3] @ R.T).mean(0))
 
 
-def whole_model_errors(names: list[str], poses: np.ndarray, gt_poses: np.ndarray,
-                       align: str = "positions", fit: np.ndarray | None = None) -> WholeModelErrors:
+def whole_model_errors(
+    names: list[str], poses: np.ndarray, gt_poses: np.ndarray, align: str = "positions", fit: np.ndarray | None = None
+) -> WholeModelErrors:
     """Align ``poses`` (N, 4, 4) to ``gt_poses`` (same order) by their positions (``align_rigid``, as
     ``evo_ape --align``) or by whole poses (``align_poses``), then per scan the rotation error (degrees) and
     position error of ``A @ T_i`` against ``T_i^gt``. ``fit``: (N,) bool, the scans the alignment is fitted to
@@ -246,17 +254,28 @@ class SceneScore:
         return [n for n in self.certain.doubted(self.max_deg, self.max_trans) if n not in flagged]
 
 
-def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses: np.ndarray, *,
-              unregistered: list[str] = (), flagged: Iterable[str] = (), gt_log: dict | None = None,
-              gt_info: dict | None = None, max_deg: float = 5.0, max_trans: float = 0.2,
-              align: str = "positions") -> SceneScore:
+def score_run(
+    names: list[str],
+    poses: np.ndarray,
+    gt_names: list[str],
+    gt_poses: np.ndarray,
+    *,
+    unregistered: list[str] = (),
+    flagged: Iterable[str] = (),
+    gt_log: dict | None = None,
+    gt_info: dict | None = None,
+    max_deg: float = 5.0,
+    max_trans: float = 0.2,
+    align: str = "positions",
+) -> SceneScore:
     """Score estimated ``poses`` of ``names`` (scans in ``unregistered`` have no pose that counts; ``flagged`` the
     run doubted) against GT poses by name (``io.poses.read_poses`` of a ``gt_poses.txt``); with
     ``gt_log``/``gt_info`` also the registration recall by the paper's protocol
     (``registration_recall_counting_unplaced``)."""
     if len(names) != len(poses) or len(gt_names) != len(gt_poses):
-        raise InputError(f"{len(names)} names for {len(poses)} poses, {len(gt_names)} GT names for {len(gt_poses)} "
-                         f"GT poses")
+        raise InputError(
+            f"{len(names)} names for {len(poses)} poses, {len(gt_names)} GT names for {len(gt_poses)} GT poses"
+        )
     gt_index = {n: k for k, n in enumerate(gt_names)}
     if len(gt_index) != len(gt_names) or len(set(names)) != len(names):
         raise InputError("scan names must be distinct (in the run and in the ground truth)")
@@ -279,18 +298,34 @@ def score_run(names: list[str], poses: np.ndarray, gt_names: list[str], gt_poses
     recall = None
     if gt_log is not None and gt_info is not None:
         recall = registration_recall_counting_unplaced(
-            [fragment_id(n) for n in placed], poses[keep], gt_log, gt_info,
-            scene_ids=[fragment_id(n) for n in gt_names])
-    return SceneScore(len(gt_names), placed, missing, [n for n in placed if n in doubted], recall, errors(),
-                      errors(sure) if sure.sum() >= 3 else None, max_deg, max_trans)
+            [fragment_id(n) for n in placed], poses[keep], gt_log, gt_info, scene_ids=[fragment_id(n) for n in gt_names]
+        )
+    return SceneScore(
+        len(gt_names),
+        placed,
+        missing,
+        [n for n in placed if n in doubted],
+        recall,
+        errors(),
+        errors(sure) if sure.sum() >= 3 else None,
+        max_deg,
+        max_trans,
+    )
 
 
 def score_result(result: RunResult, gt_names: list[str], gt_poses: np.ndarray, **kwargs) -> SceneScore:
     """``score_run`` of a pipeline ``RunResult`` (its poses and unregistered scans), every scan outside its trusted
     model flagged (doubtful, or in a part whose join to the world failed: ``verify.Verdict.trusted``)."""
     trusted = set(result.names if result.verdict is None else result.verdict.trusted())
-    return score_run(result.names, result.poses, gt_names, gt_poses, unregistered=result.unregistered,
-                     flagged={n for n in result.names if n not in trusted}, **kwargs)
+    return score_run(
+        result.names,
+        result.poses,
+        gt_names,
+        gt_poses,
+        unregistered=result.unregistered,
+        flagged={n for n in result.names if n not in trusted},
+        **kwargs,
+    )
 
 
 @dataclass
@@ -310,8 +345,15 @@ class PartsScore:
         return [n for n in self.misplaced if n in set(self.doubted)]
 
 
-def score_parts(names: list[str], poses: np.ndarray, gt_poses: np.ndarray, parts: list[list[str]],
-                doubted: Iterable[str], max_deg: float = 15.0, max_trans: float = 0.6) -> PartsScore:
+def score_parts(
+    names: list[str],
+    poses: np.ndarray,
+    gt_poses: np.ndarray,
+    parts: list[list[str]],
+    doubted: Iterable[str],
+    max_deg: float = 15.0,
+    max_trans: float = 0.6,
+) -> PartsScore:
     """``PartsScore`` of ``parts`` (lists of names) of the scans ``names`` at ``poses`` against ``gt_poses``."""
     poses, gt_poses = _scored(names, poses, gt_poses)
     index = {n: k for k, n in enumerate(names)}

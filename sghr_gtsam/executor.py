@@ -115,9 +115,15 @@ def _call(fn: Callable[[Any, T], R], task: T) -> R:
     return fn(_SHARED, task)
 
 
-def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None = None,
-                 on_result: Callable[[int, R], None] | None = None, ray: str | None = None,
-                 keep: Callable[[R], Any] | None = None) -> list:
+def parallel_map(
+    fn: Callable[[Any, T], R],
+    shared: Any,
+    tasks: Sequence[T],
+    workers: int | None = None,
+    on_result: Callable[[int, R], None] | None = None,
+    ray: str | None = None,
+    keep: Callable[[R], Any] | None = None,
+) -> list:
     """``[fn(shared, t) for t in tasks]`` over ``workers`` processes (None: every core; 1: in this process), or
     on the Ray cluster ``ray`` (``Config.ray``) over ``workers`` of its CPUs (None: all).
 
@@ -127,7 +133,7 @@ def parallel_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], wor
     a ``kept_workers`` block of as many workers, the block's pool runs the tasks.
     """
     if ray is not None:
-        from .executor_ray import ray_map
+        from sghr_gtsam.executor_ray import ray_map
 
         if workers is None and ray == "local":
             workers = default_workers()
@@ -208,8 +214,9 @@ def kept_workers(workers: int | None, ray: str | None = None) -> Iterator[None]:
 
 def _new_pool(workers: int, shared: Any) -> ProcessPoolExecutor:
     context = multiprocessing.get_context("forkserver")
-    return ProcessPoolExecutor(workers, mp_context=context, initializer=_receive,
-                               initargs=(shared, context.Value("i", 0), os.getpid()))
+    return ProcessPoolExecutor(
+        workers, mp_context=context, initializer=_receive, initargs=(shared, context.Value("i", 0), os.getpid())
+    )
 
 
 def _call_staged(fn: Callable[[Any, T], R], stage: int, state: bytes, task: T) -> R:
@@ -220,8 +227,9 @@ def _call_staged(fn: Callable[[Any, T], R], stage: int, state: bytes, task: T) -
     return fn(_SHARED, task)
 
 
-def _pool_map(pool: ProcessPoolExecutor, fn: Callable, calls: list[tuple], on_result: Callable | None,
-              keep: Callable | None) -> list:
+def _pool_map(
+    pool: ProcessPoolExecutor, fn: Callable, calls: list[tuple], on_result: Callable | None, keep: Callable | None
+) -> list:
     """``pool.submit(*call)`` of each call, results in order; ends the pool's workers if anything fails."""
     try:
         # One future a task keeps both workers busy when task costs vary (a wrong pair costs more than a right

@@ -31,7 +31,7 @@ from typing import Any, TypeVar
 import ray
 from ray.exceptions import RayTaskError
 
-from .types import InputError
+from sghr_gtsam.types import InputError
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -133,8 +133,9 @@ def _disconnect() -> None:
         ray.shutdown()
 
 
-def ray_map(fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None,
-            address: str) -> Iterator[R]:
+def ray_map(
+    fn: Callable[[Any, T], R], shared: Any, tasks: Sequence[T], workers: int | None, address: str
+) -> Iterator[R]:
     """``fn(shared, t)`` for each of ``tasks`` over the Ray cluster at ``address`` (``Config.ray``) on ``workers``
     CPUs (None: every CPU of the cluster; 'local' needs a number), yielded in the tasks' order as they complete;
     ``executor.parallel_map`` is the public call."""

@@ -34,10 +34,10 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from .errors import InputError, one_line
-from .se3 import inv_T, make_T
-from .sync.rotation import connected_components, rotation_residuals
-from .types import IterationRecord, PoseGraph
+from sghr_gtsam.errors import InputError, one_line
+from sghr_gtsam.se3 import inv_T, make_T
+from sghr_gtsam.sync.rotation import connected_components, rotation_residuals
+from sghr_gtsam.types import IterationRecord, PoseGraph
 
 ROT_SIGMA_DEG = 2.0
 """Base rotation sigma of an edge without information: a typical pairwise-registration error."""
@@ -66,8 +66,9 @@ is fast and exact: the pose-graph benchmarks need at most 6e8 (sphere_bignoise_v
 1.2e9 (5,000 scans over a floor), and keep it; its 5,000 scans filling a cube (2.3e10) do not."""
 
 
-def edge_information(graph: PoseGraph, weights: np.ndarray, *, rot_sigma_deg: float = ROT_SIGMA_DEG,
-                     trans_sigma: float | None = None) -> np.ndarray:
+def edge_information(
+    graph: PoseGraph, weights: np.ndarray, *, rot_sigma_deg: float = ROT_SIGMA_DEG, trans_sigma: float | None = None
+) -> np.ndarray:
     """(E, 6, 6) information of every edge for the polish: ``Ω_e`` where ``w_e > 0`` with the graph's own
     information, else ``(w_e / ŵ) · diag(σ_r⁻², σ_t⁻²)`` (module doc).
 
@@ -135,9 +136,18 @@ def anchor_prior(peak: float) -> gtsam.noiseModel.Isotropic:
     return gtsam.noiseModel.Isotropic.Precision(6, _PRIOR_SCALE * max(peak, 1.0))
 
 
-def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, component: np.ndarray, *,
-           weights: np.ndarray | None = None, max_iters: int = 100, relative_tol: float = 1e-6,
-           iterative: bool = False, on_iteration: Callable[[IterationRecord], None] | None = None) -> PolishResult:
+def polish(
+    graph: PoseGraph,
+    poses: np.ndarray,
+    information: np.ndarray,
+    component: np.ndarray,
+    *,
+    weights: np.ndarray | None = None,
+    max_iters: int = 100,
+    relative_tol: float = 1e-6,
+    iterative: bool = False,
+    on_iteration: Callable[[IterationRecord], None] | None = None,
+) -> PolishResult:
     """Levenberg–Marquardt from ``poses`` over the edges with nonzero ``information`` (see module doc).
 
     ``component``: (N,) part labels; the first node of each part gets the anchor prior. One
@@ -176,9 +186,13 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
         error = optimizer.error() / scale
         current = _poses(optimizer.values())
         record = IterationRecord(
-            stage="lm", iteration=k, poses=current, weights=record_weights.copy(),
+            stage="lm",
+            iteration=k,
+            poses=current,
+            weights=record_weights.copy(),
             residual_deg=np.degrees(rotation_residuals(current[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])),
-            cost=error)
+            cost=error,
+        )
         history.append(record)
         if on_iteration is not None:
             on_iteration(record)
@@ -190,15 +204,17 @@ def polish(graph: PoseGraph, poses: np.ndarray, information: np.ndarray, compone
     # (one product for every node: a loop over the parts took minutes where 100,000 poses had no edge)
     a = anchors[component]
     current = poses[a] @ inv_T(current[a]) @ current
-    return PolishResult(poses=current, initial_error=float(initial), final_error=float(error),
-                        converged=converged, history=history)
+    return PolishResult(
+        poses=current, initial_error=float(initial), final_error=float(error), converged=converged, history=history
+    )
 
 
 # --- baselines (sghr_gtsam.sync.baselines) ---------------------------------------------------------------
 
 
-def gnc_tls_poses(graph: PoseGraph, init: np.ndarray, information: np.ndarray,
-                  iters: int) -> tuple[np.ndarray, np.ndarray]:
+def gnc_tls_poses(
+    graph: PoseGraph, init: np.ndarray, information: np.ndarray, iters: int
+) -> tuple[np.ndarray, np.ndarray]:
     """gtsam GNC (TLS loss, default inlier threshold: χ²₆ at 0.99) over the edges with nonzero
     ``information``, from ``init``; ``iters`` caps each inner Levenberg–Marquardt run. Returns the poses
     and the (E,) GNC weights (0 for edges left out)."""
@@ -231,10 +247,15 @@ def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray
     index = np.full(graph.n, -1)
     index[nodes] = np.arange(len(nodes))
     precision = np.trace(information[edges, :3, :3], axis1=1, axis2=2) / 3.0
-    measurements = [gtsam.BinaryMeasurementRot3(int(index[graph.i[e]]), int(index[graph.j[e]]),
-                                                gtsam.Rot3(graph.T[e, :3, :3]),
-                                                gtsam.noiseModel.Isotropic.Precision(3, float(p)))
-                    for e, p in zip(edges, precision)]
+    measurements = [
+        gtsam.BinaryMeasurementRot3(
+            int(index[graph.i[e]]),
+            int(index[graph.j[e]]),
+            gtsam.Rot3(graph.T[e, :3, :3]),
+            gtsam.noiseModel.Isotropic.Precision(3, float(p)),
+        )
+        for e, p in zip(edges, precision)
+    ]
     params = gtsam.ShonanAveragingParameters3(gtsam.LevenbergMarquardtParams.CeresDefaults())
     averaging = gtsam.ShonanAveraging3(measurements, params)
     Q = gtsam.Values()
@@ -249,8 +270,10 @@ def shonan_rotations(graph: PoseGraph, init: np.ndarray, information: np.ndarray
                 break
             Q = averaging.initializeWithDescent(p + 1, Q, min_eigenvector, min_eigenvalue)
     except RuntimeError as e:  # its eigensolver, on precisions far apart (measured: 1 and 1e140 in one loop)
-        raise InputError(f"Shonan averaging failed ({one_line(e)}) on rotation precisions from {precision.min():.3g} "
-                         f"to {precision.max():.3g}: try another method") from None
+        raise InputError(
+            f"Shonan averaging failed ({one_line(e)}) on rotation precisions from {precision.min():.3g} "
+            f"to {precision.max():.3g}: try another method"
+        ) from None
     rounded = averaging.roundSolution(Q)
     R = np.array(init, dtype=float)
     R[nodes] = np.stack([rounded.atRot3(k).matrix() for k in range(len(nodes))])

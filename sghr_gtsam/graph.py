@@ -9,7 +9,7 @@ they choose exactly the same edges; near-equal scores are ranked as these float3
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg.blas import ssyrk
@@ -35,7 +35,7 @@ def gram32(F: np.ndarray) -> np.ndarray:
     for i0 in range(0, n, _TILE):
         i1 = min(i0 + _TILE, n)
         for j0 in range(0, i0, _TILE):
-            G[j0:j0 + _TILE, i0:i1] = G[i0:i1, j0:j0 + _TILE].T
+            G[j0 : j0 + _TILE, i0:i1] = G[i0:i1, j0 : j0 + _TILE].T
         block = G[i0:i1, i0:i1]
         upper = np.triu_indices(i1 - i0, 1)
         block[upper] = block.T[upper]
@@ -81,13 +81,14 @@ def _rowwise_top_k(V: np.ndarray, k: int, key: Callable[[np.ndarray], np.ndarray
     first ``k`` of a stable sort by descending key. Returns (rows, cols), ``k`` per row.
 
     ``key`` must be monotone non-decreasing (float64 out). ``np.argpartition`` (by blocks of rows, which keeps
-    it in cache: 4x faster at N = 5000) takes the ``K = k + 1 + _PAD`` largest raw values of each row; a row is settled from them when the key of their smallest is below the row's k-th
+    it in cache: 4x faster at N = 5000) takes the ``K = k + 1 + _PAD`` largest raw values of each row; a row is
+    settled from them when the key of their smallest is below the row's k-th
     best key (then no other column can reach or tie it). Other rows (ties spilling past ``K``) are solved
     exactly on the full row.
     """
     n = len(V)
     K = min(k + 1 + _PAD, n)
-    cols = np.concatenate([np.argpartition(V[r:r + _CHUNK], n - K, axis=1)[:, n - K:] for r in range(0, n, _CHUNK)])
+    cols = np.concatenate([np.argpartition(V[r : r + _CHUNK], n - K, axis=1)[:, n - K :] for r in range(0, n, _CHUNK)])
     vals = np.take_along_axis(V, cols, 1)
     rows = np.arange(n)
     by_col = np.argsort(cols, axis=1)
@@ -104,7 +105,7 @@ def _rowwise_top_k(V: np.ndarray, k: int, key: Callable[[np.ndarray], np.ndarray
     out_rows, out_cols = [np.repeat(rows[settled], k)], [cols[settled][take[settled]]]
     hard = np.flatnonzero(~settled)
     for c0 in range(0, len(hard), _CHUNK):
-        r = hard[c0:c0 + _CHUNK]
+        r = hard[c0 : c0 + _CHUNK]
         full = key(V[r])
         better = full > kth[r, None]
         ties = full == kth[r, None]

@@ -27,17 +27,17 @@ import networkx as nx
 import numpy as np
 from scipy.special import chdtri  # chi2.ppf(q, df) is chdtri(df, 1 - q); scipy.stats costs ~1 s to import
 
-from .config import KERNELS, NOISE_MODELS
-from .factor_graph import _ABSOLUTE_TOL, _METIS_NODES, anchor_prior, edge_information
-from .io.g2o import check_information, isotropic_information
-from .io.poses import check_rigid
-from .se3 import project_to_so3
-from .sync import checked_graph
-from .types import InputError, PoseGraph
+from sghr_gtsam.config import KERNELS, NOISE_MODELS
+from sghr_gtsam.factor_graph import _ABSOLUTE_TOL, _METIS_NODES, anchor_prior, edge_information
+from sghr_gtsam.io.g2o import check_information, isotropic_information
+from sghr_gtsam.io.poses import check_rigid
+from sghr_gtsam.se3 import project_to_so3
+from sghr_gtsam.sync import checked_graph
+from sghr_gtsam.types import InputError, PoseGraph
 
 if TYPE_CHECKING:
-    from .registration.pairwise import PairResult
-    from .result import RunResult
+    from sghr_gtsam.registration.pairwise import PairResult
+    from sghr_gtsam.result import RunResult
 
 KERNEL_THRESHOLD = float(np.sqrt(chdtri(6, 1 - 0.99)))
 """Whitened residual norm where Huber turns linear and Cauchy halves a factor's weight: the 99 % point of a
@@ -58,8 +58,11 @@ def _key_table(keys: Keys, nodes: Sequence[int], n: int) -> dict[int, int]:
         if len(keys) != n:
             raise InputError(f"keys: {len(keys)} given for {n} nodes")
     table = {k: keys(k) if callable(keys) else keys[k] for k in nodes}
-    odd = [v for v in table.values()
-           if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < 2**64]
+    odd = [
+        v
+        for v in table.values()
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < 2**64
+    ]
     if odd:
         raise InputError(f"keys must be integers in [0, 2^64), got {odd[0]!r}")
     if len(set(table.values())) != len(table):
@@ -122,7 +125,7 @@ def _noise_model(information: np.ndarray, kernel: str) -> gtsam.noiseModel.Base:
     return gaussian
 
 
-def _edges_of(result: "RunResult") -> tuple[np.ndarray, list[int]]:
+def _edges_of(result: RunResult) -> tuple[np.ndarray, list[int]]:
     """(E,) mask of the edges a run's poses rest on (kept by synchronization, both ends registered) and the
     registered scans."""
     nodes = result.registered
@@ -144,14 +147,22 @@ def graph_information(graph: PoseGraph, edges: np.ndarray, noise: str = "informa
         try:
             info[edges] = isotropic_information(info[edges])
         except np.linalg.LinAlgError:
-            raise InputError("isotropic noise needs each chosen edge's rotation and translation information "
-                             "invertible") from None
+            raise InputError(
+                "isotropic noise needs each chosen edge's rotation and translation information invertible"
+            ) from None
     return info
 
 
-def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *, keys: Keys = None,
-             noise: str = "information", kernel: str = "none", edges: np.ndarray | None = None,
-             calibrated: bool = True) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+def to_gtsam(
+    source: RunResult | PoseGraph,
+    poses: np.ndarray | None = None,
+    *,
+    keys: Keys = None,
+    noise: str = "information",
+    kernel: str = "none",
+    edges: np.ndarray | None = None,
+    calibrated: bool = True,
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """The factor graph and initial values of a run (``RunResult``: its kept edges among registered scans, its
     final poses) or of a ``PoseGraph`` with ``poses`` (N, 4, 4) (default ``edges``: those with weight > 0).
 
@@ -177,16 +188,23 @@ def to_gtsam(source: "RunResult | PoseGraph", poses: np.ndarray | None = None, *
     return _factor_graph(graph, _poses(poses, graph.n, nodes), chosen, nodes, keys, noise, kernel)
 
 
-def _factor_graph(graph: PoseGraph, poses: np.ndarray, chosen: np.ndarray, nodes: Sequence[int], keys: Keys,
-                  noise: str, kernel: str) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+def _factor_graph(
+    graph: PoseGraph, poses: np.ndarray, chosen: np.ndarray, nodes: Sequence[int], keys: Keys, noise: str, kernel: str
+) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
     """``to_gtsam`` of a checked graph, its poses, the chosen edges and the nodes that get values."""
     check_choice("kernel", kernel, KERNELS)
     key = _key_table(keys, nodes, graph.n)
     information = graph_information(graph, chosen, noise)
     factors = gtsam.NonlinearFactorGraph()
     for e in np.flatnonzero(chosen):
-        factors.add(gtsam.BetweenFactorPose3(key[int(graph.i[e])], key[int(graph.j[e])], gtsam.Pose3(graph.T[e]),
-                                             _noise_model(information[e], kernel)))
+        factors.add(
+            gtsam.BetweenFactorPose3(
+                key[int(graph.i[e])],
+                key[int(graph.j[e])],
+                gtsam.Pose3(graph.T[e]),
+                _noise_model(information[e], kernel),
+            )
+        )
     values = gtsam.Values()
     for k in nodes:
         values.insert(key[k], gtsam.Pose3(poses[k]))
@@ -210,8 +228,13 @@ def _lm_params(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> gts
     return params
 
 
-def optimize(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, *, kernel: str = "none",
-             known_inliers: Sequence[int] | None = None) -> gtsam.Values:
+def optimize(
+    factors: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    *,
+    kernel: str = "none",
+    known_inliers: Sequence[int] | None = None,
+) -> gtsam.Values:
     """Optimize from ``values``: Levenberg–Marquardt as the pipeline's polish, or with ``kernel="tls"`` gtsam GNC
     (truncated least squares, inlier threshold χ²₆ at 0.99, the polish's LM inside). ``known_inliers``: factor
     indices GNC must not reject; default every factor that is not a ``BetweenFactorPose3`` (priors, GNSS).
@@ -222,8 +245,7 @@ def optimize(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, *, kerne
     if kernel != "tls":
         return gtsam.LevenbergMarquardtOptimizer(factors, values, params).optimize()
     if known_inliers is None:
-        known_inliers = [f for f in range(factors.size())
-                         if not isinstance(factors.at(f), gtsam.BetweenFactorPose3)]
+        known_inliers = [f for f in range(factors.size()) if not isinstance(factors.at(f), gtsam.BetweenFactorPose3)]
     outside = [f for f in known_inliers if not (isinstance(f, (int, np.integer)) and 0 <= f < factors.size())]
     if outside:
         raise InputError(f"known_inliers: {outside[0]!r} is not a factor index of [0, {factors.size()})")
@@ -237,12 +259,12 @@ def _check_keys(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> No
     """``InputError`` unless every key of ``factors`` has a value (gtsam would raise deep inside)."""
     missing = {k for f in range(factors.size()) for k in factors.at(f).keys() if not values.exists(k)}
     if missing:
-        raise InputError(f"{len(missing)} key(s) of the factors have no value, e.g. "
-                         f"{gtsam.DefaultKeyFormatter(min(missing))}")
+        raise InputError(
+            f"{len(missing)} key(s) of the factors have no value, e.g. {gtsam.DefaultKeyFormatter(min(missing))}"
+        )
 
 
-def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values,
-                         keys: Sequence[int]) -> np.ndarray:
+def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: Sequence[int]) -> np.ndarray:
     """(K, 6, 6) marginal covariance of each Pose3 key, [rotation (rad), translation] at the pose. The graph must
     be anchored (a prior or another absolute factor), else the covariances are unbounded and gtsam raises."""
     _check_keys(factors, values)
@@ -253,7 +275,7 @@ def marginal_covariances(factors: gtsam.NonlinearFactorGraph, values: gtsam.Valu
     return np.stack([marginals.marginalCovariance(int(k)) for k in keys]) if len(keys) else np.zeros((0, 6, 6))
 
 
-def variance_factor(result: "RunResult", *, noise: str = "information") -> float:
+def variance_factor(result: RunResult, *, noise: str = "information") -> float:
     """The a posteriori variance factor ``σ̂₀² = Σ_e r_eᵀ Ω_e r_e / (6 (E − N + 1))`` of a run's kept edges at its
     poses (E edges among N registered scans; ``r_e`` the edge's residual, ``Ω_e`` the information the poses were
     solved with): 1 when the edges' residuals are as large as their information says, above 1 when the loops of
@@ -267,7 +289,7 @@ def _variance_factor(factors: gtsam.NonlinearFactorGraph, values: gtsam.Values, 
     return 2.0 * factors.error(values) / dof if dof > 0 else float("nan")
 
 
-def calibrated_information(result: "RunResult", *, noise: str = "information", shared: bool = True) -> np.ndarray:
+def calibrated_information(result: RunResult, *, noise: str = "information", shared: bool = True) -> np.ndarray:
     """(E, 6, 6) information of a run's edges scaled to what its errors bear out (zero on the edges its poses do
     not rest on): what ``to_gtsam(result)`` hands gtsam. The information the poses were solved with (``noise``)
     times ``calibration``'s one number (``shared`` as there), so that its optimum stays the run's poses."""
@@ -275,7 +297,7 @@ def calibrated_information(result: "RunResult", *, noise: str = "information", s
     return graph_information(result.graph, chosen, noise) * calibration(result, noise=noise, shared=shared)
 
 
-def calibration(result: "RunResult", *, noise: str = "information", shared: bool = True) -> float:
+def calibration(result: RunResult, *, noise: str = "information", shared: bool = True) -> float:
     """The one factor, at most 1, that makes a run's edge information (as in its graph, ``noise``) as large as its
     errors: ``1 / (max(1, σ̂₀²) · d)``. Neither number is fitted to any scene:
     - ``σ̂₀²``, the variance factor of the graph's loops (``variance_factor``): the edges' own errors, as large as
@@ -296,8 +318,9 @@ def calibration(result: "RunResult", *, noise: str = "information", shared: bool
     return 1.0 / (max(factor, 1.0) * degree) if np.isfinite(factor) else 1.0 / degree
 
 
-def pose_covariances(result: "RunResult", *, noise: str = "information", grid: bool = True,
-                     shared: bool = True) -> np.ndarray:
+def pose_covariances(
+    result: RunResult, *, noise: str = "information", grid: bool = True, shared: bool = True
+) -> np.ndarray:
     """(N, 6, 6) covariance of each scan's pose relative to the world scan (which gets zeros), from the kept
     edges' information with the directions their geometry leaves free bounded by the overlap alone
     (``PairResult.bounded``) and, with ``grid``, each refined edge's
@@ -306,29 +329,31 @@ def pose_covariances(result: "RunResult", *, noise: str = "information", grid: b
     ``to_gtsam(result)``."""
     result = _reported(result, grid)
     information = calibrated_information(result, noise=noise, shared=shared)
-    factors, values = to_gtsam(replace(result, graph=replace(result.graph, information=information)),
-                               calibrated=False)
+    factors, values = to_gtsam(replace(result, graph=replace(result.graph, information=information)), calibrated=False)
     nodes = result.registered
     out = np.full((len(result.names), 6, 6), np.nan)
     anchor = int(np.flatnonzero(result.sync.component == 0)[0])
-    factors.add(gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]),
-                                       _anchor_prior(information)))
+    factors.add(
+        gtsam.PriorFactorPose3(gtsam.symbol("x", anchor), gtsam.Pose3(result.poses[anchor]), _anchor_prior(information))
+    )
     out[nodes] = marginal_covariances(factors, values, [gtsam.symbol("x", k) for k in nodes])
     out[anchor] = 0.0
     return out
 
 
-def _reported(result: "RunResult", grid: bool) -> "RunResult":
+def _reported(result: RunResult, grid: bool) -> RunResult:
     """``result`` with each edge's ``_reported_information`` in its graph."""
-    if result.graph.information is not None and any(p.bounded is not None or (grid and p.grid is not None)
-                                                     for p in result.pairs):
-        information = np.stack([_reported_information(p, info, grid)
-                                for p, info in zip(result.pairs, result.graph.information)])
+    if result.graph.information is not None and any(
+        p.bounded is not None or (grid and p.grid is not None) for p in result.pairs
+    ):
+        information = np.stack(
+            [_reported_information(p, info, grid) for p, info in zip(result.pairs, result.graph.information)]
+        )
         result = replace(result, graph=replace(result.graph, information=information))
     return result
 
 
-def _reported_information(pair: "PairResult", information: np.ndarray, grid: bool) -> np.ndarray:
+def _reported_information(pair: PairResult, information: np.ndarray, grid: bool) -> np.ndarray:
     """The information ``pose_covariances`` gives an edge: ``bounded`` (free directions bounded by the overlap)
     or its ``information`` in the graph (a pair without any has a placeholder there), and with ``grid`` the inverse
     of its covariance plus ``grid gridᵀ`` (Sherman-Morrison)."""
@@ -358,8 +383,15 @@ def sigmas(covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return rot, trans
 
 
-def repolish(graph: PoseGraph, poses: np.ndarray, edges: np.ndarray, component: np.ndarray, *,
-             noise: str = "information", kernel: str = "none") -> np.ndarray:
+def repolish(
+    graph: PoseGraph,
+    poses: np.ndarray,
+    edges: np.ndarray,
+    component: np.ndarray,
+    *,
+    noise: str = "information",
+    kernel: str = "none",
+) -> np.ndarray:
     """``poses`` re-optimized over ``graph``'s ``edges`` (a boolean mask) with ``noise`` and ``kernel``
     (``optimize``), every part of ``component`` (N,) held at its first node's pose by a stiff prior; nodes on no
     edge stay as they are. Bad input (``to_gtsam``'s checks, a ``component`` of another shape) is an

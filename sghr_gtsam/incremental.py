@@ -57,23 +57,23 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from . import local_frame
-from .local_frame import graph_to_input_frame, translation
-from .config import Config
-from .features.local import ScanFeatures, compute_features
-from .features.netvlad import global_features, load_default_head
-from .gtsam_api import noise_model, pose_covariances
-from .io.g2o import check_information
-from .io.poses import unwritable_name
-from .io.scans import finite_points
-from .registration.pairwise import PairResult, register_pair
-from .registration.refine import Pyramid, build_pyramid, confirms, refine_pair
-from .result import RunResult
-from .se3 import inv_T, non_rigid, rotation_angle
-from .sync import synchronize
-from .sync.consensus import MAX_DEG, consistent_edges, translation_tolerance
-from .sync.rotation import connected_components, rotation_residuals
-from .types import InputError, PoseGraph, SyncResult
+from sghr_gtsam import local_frame
+from sghr_gtsam.config import Config
+from sghr_gtsam.features.local import ScanFeatures, compute_features
+from sghr_gtsam.features.netvlad import global_features, load_default_head
+from sghr_gtsam.gtsam_api import noise_model, pose_covariances
+from sghr_gtsam.io.g2o import check_information
+from sghr_gtsam.io.poses import unwritable_name
+from sghr_gtsam.io.scans import finite_points
+from sghr_gtsam.local_frame import graph_to_input_frame, translation
+from sghr_gtsam.registration.pairwise import PairResult, register_pair
+from sghr_gtsam.registration.refine import Pyramid, build_pyramid, confirms, refine_pair
+from sghr_gtsam.result import RunResult
+from sghr_gtsam.se3 import inv_T, non_rigid, rotation_angle
+from sghr_gtsam.sync import synchronize
+from sghr_gtsam.sync.consensus import MAX_DEG, consistent_edges, translation_tolerance
+from sghr_gtsam.sync.rotation import connected_components, rotation_residuals
+from sghr_gtsam.types import InputError, PoseGraph, SyncResult
 
 PRIOR_PRECISION = 1e12
 """Anchor prior precision (the first scan is the world), stiff next to any edge of the weighted graph."""
@@ -174,8 +174,10 @@ class Session:
         start = time.perf_counter()
         cfg = self.config
         if self.voxel is None:
-            raise InputError("add_scan: give the session a voxel (the grid size in scene units; Config.voxel is not "
-                             "set either, and a session cannot derive it from scans not seen yet)")
+            raise InputError(
+                "add_scan: give the session a voxel (the grid size in scene units; Config.voxel is not "
+                "set either, and a session cannot derive it from scans not seen yet)"
+            )
         self._check_name(name)
         try:
             P = np.asarray(points, dtype=np.float64)
@@ -189,8 +191,9 @@ class Session:
         centre = local_frame.centres(np.median(P, axis=0)[None], self.voxel)[0]
         P = P - centre
         try:
-            f = compute_features(P, self.voxel, cfg.normal_radius, cfg.fpfh_radius, sensor=-centre,
-                                 descriptor=cfg.descriptor)
+            f = compute_features(
+                P, self.voxel, cfg.normal_radius, cfg.fpfh_radius, sensor=-centre, descriptor=cfg.descriptor
+            )
         except InputError as e:
             raise InputError(f"{name}: {e}") from None
         if self._head is None:
@@ -203,13 +206,23 @@ class Session:
         node = len(self.names)
         for s in np.argsort(-scores, kind="stable")[: cfg.k]:
             i = scanned[s]
-            pair = register_pair(self.features[i], f, self.voxel, matcher=cfg.matcher,
-                                 icp_distance=cfg.icp_distance, seed=cfg.seed)
+            pair = register_pair(
+                self.features[i], f, self.voxel, matcher=cfg.matcher, icp_distance=cfg.icp_distance, seed=cfg.seed
+            )
             if pair.inliers >= cfg.inlier_bar and cfg.refine:
                 # The batch's refinement, from the registration itself: the session has no synchronized
                 # guess before the scan is placed, and from either start ICP lands in the same basin.
-                refined, near = refine_pair(self.features[i], f, self._pyramids[i], pyramid, pair.T, self.voxel,
-                                            cfg.icp_distance, cfg.inlier_bar, pair.matches)
+                refined, near = refine_pair(
+                    self.features[i],
+                    f,
+                    self._pyramids[i],
+                    pyramid,
+                    pair.T,
+                    self.voxel,
+                    cfg.icp_distance,
+                    cfg.inlier_bar,
+                    pair.matches,
+                )
                 if confirms(refined, near, cfg.inlier_bar):
                     pair = refined
             tried.append(pair)
@@ -273,13 +286,17 @@ class Session:
             if node is None:
                 raise InputError(f"add_factor: key {gtsam.DefaultKeyFormatter(k)} is not a node's key (Session.key)")
             if node not in self._placed:
-                raise InputError(f"add_factor: node {node} ({self.names[node]}) is not placed yet (add_between or "
-                                 f"add_prior places it)")
+                raise InputError(
+                    f"add_factor: node {node} ({self.names[node]}) is not placed yet (add_between or "
+                    f"add_prior places it)"
+                )
             nodes.append(node)
         centred = [k for k in {0, *nodes} if self._centres[k].any()]
         if centred:
-            raise InputError(f"add_factor: node {centred[0]} ({self.names[centred[0]]}) was registered centred (far "
-                             f"from the origin): give its factors by add_prior, add_between or add_position")
+            raise InputError(
+                f"add_factor: node {centred[0]} ({self.names[centred[0]]}) was registered centred (far "
+                f"from the origin): give its factors by add_prior, add_between or add_position"
+            )
         self._add_factor(factor, tuple(nodes), {}, "add_factor")
 
     def add_prior(self, node: int | str, pose: np.ndarray, information: np.ndarray) -> None:
@@ -311,8 +328,9 @@ class Session:
         factor = gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(T), noise_model(info))
         self._add_factor(factor, (i, j), values, "add_between")
 
-    def add_position(self, node: int | str, position: np.ndarray, information: np.ndarray,
-                     point: np.ndarray = (0.0, 0.0, 0.0)) -> None:
+    def add_position(
+        self, node: int | str, position: np.ndarray, information: np.ndarray, point: np.ndarray = (0.0, 0.0, 0.0)
+    ) -> None:
         """A GNSS fix (``GPSFactorArm``): ``point`` (3,) of ``node``'s input frame (the antenna; default its origin)
         is at ``position`` (3,) in the world, with its 3×3 information (positive definite). It leaves the rotation
         free, so it cannot place a node: the node must be placed already."""
@@ -321,14 +339,19 @@ class Session:
         p = _array(point, (3,), "add_position: point")
         info = _array(information, (3, 3), "add_position: information")
         info = (info + info.T) / 2.0
-        if np.abs(info - np.asarray(information, dtype=float)).max() > 1e-9 * np.abs(info).max() \
-                or np.linalg.eigvalsh(info)[0] <= 0:
+        if (
+            np.abs(info - np.asarray(information, dtype=float)).max() > 1e-9 * np.abs(info).max()
+            or np.linalg.eigvalsh(info)[0] <= 0
+        ):
             raise InputError("add_position: information is not symmetric positive definite")
         if k not in self._placed:
-            raise InputError(f"add_position: node {k} ({self.names[k]}) is not placed yet (a position leaves its "
-                             f"rotation free: add_prior or add_between places it)")
-        factor = gtsam.GPSFactorArm(_key(k), q - self._centres[0], p - self._centres[k],
-                                    gtsam.noiseModel.Gaussian.Information(info))
+            raise InputError(
+                f"add_position: node {k} ({self.names[k]}) is not placed yet (a position leaves its "
+                f"rotation free: add_prior or add_between places it)"
+            )
+        factor = gtsam.GPSFactorArm(
+            _key(k), q - self._centres[0], p - self._centres[k], gtsam.noiseModel.Gaussian.Information(info)
+        )
         self._add_factor(factor, (k,), {}, "add_position")
 
     @property
@@ -369,10 +392,19 @@ class Session:
         voxel = float("nan") if self.voxel is None else self.voxel  # the back end alone: no grid
         features = [f if f is not None else _no_points(voxel) for f in self.features]
         sync = SyncResult(poses=poses.copy(), weights=weights, residual_deg=residual, component=component)
-        out = RunResult(names=list(self.names), poses=poses, voxel=voxel, scores=scores, graph=graph,
-                        pairs=[e.pair for e in self.edges], sync=sync,
-                        unregistered=[self.names[k] for k in range(n) if not placed[k]], skipped={},
-                        features=features, global_feature="learned NetVLAD head, one scan at a time")
+        out = RunResult(
+            names=list(self.names),
+            poses=poses,
+            voxel=voxel,
+            scores=scores,
+            graph=graph,
+            pairs=[e.pair for e in self.edges],
+            sync=sync,
+            unregistered=[self.names[k] for k in range(n) if not placed[k]],
+            skipped={},
+            features=features,
+            global_feature="learned NetVLAD head, one scan at a time",
+        )
         out.covariances = np.full((n, 6, 6), np.nan)
         if weights.any():
             try:
@@ -394,8 +426,9 @@ class Session:
             raise InputError(f"{what}: {node!r} is not the index of a node so far (0..{len(self.names) - 1})")
         return int(node)
 
-    def _add_factor(self, factor: gtsam.NonlinearFactor, nodes: tuple[int, ...], values: dict[int, np.ndarray],
-                    what: str) -> None:
+    def _add_factor(
+        self, factor: gtsam.NonlinearFactor, nodes: tuple[int, ...], values: dict[int, np.ndarray], what: str
+    ) -> None:
         """Add the caller's checked ``factor`` on ``nodes`` (placing ``values``' nodes there first), settle, and place
         any scan that waited for them; all undone if gtsam cannot solve it."""
         saved = self._save()
@@ -426,13 +459,22 @@ class Session:
         """``InputError`` unless ``name`` is new and reads back from a pose file (one name a line, stripped, '#'
         starting a comment: ``io.poses``)."""
         if why := unwritable_name(name):
-            raise InputError(f"scan name {name!r} {why} (a pose file: one name a line, read back stripped, '#' "
-                             f"starting a comment)")
+            raise InputError(
+                f"scan name {name!r} {why} (a pose file: one name a line, read back stripped, '#' starting a comment)"
+            )
         if name in self.names:
             raise InputError(f"scan name {name!r} is already in the session (node {self.names.index(name)})")
 
-    def _add_node(self, name: str, centre: np.ndarray, features: ScanFeatures | None, F: np.ndarray | None,
-                  pyramid: Pyramid | None, edges: list[Edge], tried: list[PairResult]) -> Step:
+    def _add_node(
+        self,
+        name: str,
+        centre: np.ndarray,
+        features: ScanFeatures | None,
+        F: np.ndarray | None,
+        pyramid: Pyramid | None,
+        edges: list[Edge],
+        tried: list[PairResult],
+    ) -> Step:
         """Append the node and its checked ``edges`` (centred frames) and run the back end; all undone if it fails."""
         start = time.perf_counter()
         saved = self._save()
@@ -471,8 +513,15 @@ class Session:
 
     def _save(self) -> tuple:
         """What ``_add_node`` changes, to undo it (gtsam's ISAM2 copy constructor copies its Bayes tree)."""
-        return (len(self.names), len(self.edges), [(e.kept, e.in_isam) for e in self.edges], dict(self._placed),
-                self.robust_runs, gtsam.ISAM2(self._isam), len(self._factors))
+        return (
+            len(self.names),
+            len(self.edges),
+            [(e.kept, e.in_isam) for e in self.edges],
+            dict(self._placed),
+            self.robust_runs,
+            gtsam.ISAM2(self._isam),
+            len(self._factors),
+        )
 
     def _restore(self, saved: tuple) -> None:
         """The session as ``_save`` found it."""
@@ -500,11 +549,14 @@ class Session:
     def _graph(self) -> PoseGraph:
         """Every edge so far as a ``PoseGraph`` in the centred frames."""
         e = self.edges
-        return PoseGraph(n=len(self.names), i=np.array([x.i for x in e], dtype=np.int64),
-                         j=np.array([x.j for x in e], dtype=np.int64),
-                         T=np.stack([x.T for x in e]) if e else np.zeros((0, 4, 4)),
-                         weight=np.array([x.weight for x in e]),
-                         information=np.stack([x.information for x in e]) if e else None)
+        return PoseGraph(
+            n=len(self.names),
+            i=np.array([x.i for x in e], dtype=np.int64),
+            j=np.array([x.j for x in e], dtype=np.int64),
+            T=np.stack([x.T for x in e]) if e else np.zeros((0, 4, 4)),
+            weight=np.array([x.weight for x in e]),
+            information=np.stack([x.information for x in e]) if e else None,
+        )
 
     def _reset_isam(self) -> None:
         params = gtsam.ISAM2Params()
@@ -516,8 +568,13 @@ class Session:
         kernel = self.config.kernel if self.config.kernel != "tls" else "none"
         return gtsam.BetweenFactorPose3(_key(e.i), _key(e.j), gtsam.Pose3(e.T), noise_model(e.information, kernel))
 
-    def _isam_add(self, edges: list[int], values: dict[int, np.ndarray], prior: bool = False,
-                  extra: Sequence[gtsam.NonlinearFactor] = ()) -> None:
+    def _isam_add(
+        self,
+        edges: list[int],
+        values: dict[int, np.ndarray],
+        prior: bool = False,
+        extra: Sequence[gtsam.NonlinearFactor] = (),
+    ) -> None:
         """One ISAM2 update with ``edges``' factors, ``extra`` ones, the anchor's prior with ``prior``, and
         ``values`` (node -> initial pose)."""
         factors = gtsam.NonlinearFactorGraph()
@@ -556,8 +613,11 @@ class Session:
                 self._place(b, T)
                 current[b] = new_values[b] = T
                 moved = True
-        edges = [k for k, e in enumerate(self.edges)
-                 if e.kept and not e.in_isam and e.i in self._placed and e.j in self._placed]
+        edges = [
+            k
+            for k, e in enumerate(self.edges)
+            if e.kept and not e.in_isam and e.i in self._placed and e.j in self._placed
+        ]
         for k in edges:
             self.edges[k].in_isam = True
         if edges or new_values:
@@ -574,8 +634,9 @@ class Session:
         proposals = np.stack([estimate.atPose3(_key(self.edges[k].i)).matrix() @ self.edges[k].T for k in linked])
         weights = np.array([self.edges[k].weight for k in linked])
         D = inv_T(proposals)[:, None] @ proposals[None]
-        agree = ((np.degrees(rotation_angle(D[..., :3, :3])) <= MAX_DEG)
-                 & (np.linalg.norm(D[..., :3, 3], axis=-1) <= translation_tolerance(self._graph())))
+        agree = (np.degrees(rotation_angle(D[..., :3, :3])) <= MAX_DEG) & (
+            np.linalg.norm(D[..., :3, 3], axis=-1) <= translation_tolerance(self._graph())
+        )
         support = agree @ weights
         best = int(np.argmax(support))
         if support[best] <= 0.5 * weights.sum():
@@ -586,13 +647,20 @@ class Session:
 
     def _contradicted(self, new: list[int]) -> bool:
         """Does an edge just added disagree with the updated poses?"""
-        idx = [k for k in new
-               if self.edges[k].kept and self.edges[k].i in self._placed and self.edges[k].j in self._placed]
+        idx = [
+            k for k in new if self.edges[k].kept and self.edges[k].i in self._placed and self.edges[k].j in self._placed
+        ]
         if not idx:
             return False
         graph = self._graph()
-        sub = PoseGraph(n=graph.n, i=graph.i[idx], j=graph.j[idx], T=graph.T[idx], weight=graph.weight[idx],
-                        information=graph.information[idx])
+        sub = PoseGraph(
+            n=graph.n,
+            i=graph.i[idx],
+            j=graph.j[idx],
+            T=graph.T[idx],
+            weight=graph.weight[idx],
+            information=graph.information[idx],
+        )
         poses = np.nan_to_num(self._local_poses(True))
         # The fixed tolerances scale with the median edge length: measure it on every edge so far.
         return not consistent_edges(sub, poses, max_trans=translation_tolerance(graph)).all()
@@ -604,8 +672,14 @@ class Session:
         self.robust_runs += 1
         graph = self._graph()
         cfg = self.config
-        result = synchronize(graph, method=cfg.method, iters=cfg.iters, reweight=cfg.reweight, polish=cfg.polish,
-                             min_weight=cfg.min_weight)
+        result = synchronize(
+            graph,
+            method=cfg.method,
+            iters=cfg.iters,
+            reweight=cfg.reweight,
+            polish=cfg.polish,
+            min_weight=cfg.min_weight,
+        )
         estimate = self._isam.calculateEstimate()
         before = {k: estimate.atPose3(_key(k)).matrix() for k in self._placed}
         parts = {int(result.component[0]): 0}  # part -> its node placed before, through which it is placed again
@@ -623,8 +697,12 @@ class Session:
             e.in_isam = e.kept
         self._placed = {int(k): poses[k] for k in np.flatnonzero(keep)}
         self._reset_isam()
-        self._isam_add([k for k, e in enumerate(self.edges) if e.kept], dict(self._placed), prior=self.anchor,
-                       extra=[factor for factor, _ in self._factors])
+        self._isam_add(
+            [k for k, e in enumerate(self.edges) if e.kept],
+            dict(self._placed),
+            prior=self.anchor,
+            extra=[factor for factor, _ in self._factors],
+        )
         if self._factors:
             self._settle()
 

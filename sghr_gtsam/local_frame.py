@@ -10,8 +10,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from .result import RunResult
-from .types import PoseGraph
+from sghr_gtsam.result import RunResult
+from sghr_gtsam.types import PoseGraph
 
 FAR_VOXELS = 1e4
 """Scans farther than this many voxels from the origin are centred (``centres``): float32 code (kiss-matcher's
@@ -61,10 +61,18 @@ def to_input_frame(run: RunResult, centres: np.ndarray) -> None:
     run.poses[anchor] = np.eye(4)  # exactly: its rounding residue would be multiplied by the offset
     run.poses = translation(centres[anchor]) @ run.poses @ translation(-centres)
     back = graph_to_input_frame(g, centres)
-    run.pairs = [replace(p, T=T, grid=None if p.grid is None else np.linalg.solve(A, p.grid),  # ξ' = Ad(c_j) ξ
-                         **{name: None if getattr(p, name) is None else A.T @ getattr(p, name) @ A
-                            for name in ("information", "bounded", "loose")})
-                 for p, T, A in zip(run.pairs, g.T, back)]
+    run.pairs = [
+        replace(
+            p,
+            T=T,
+            grid=None if p.grid is None else np.linalg.solve(A, p.grid),  # ξ' = Ad(c_j) ξ
+            **{
+                name: None if getattr(p, name) is None else A.T @ getattr(p, name) @ A
+                for name in ("information", "bounded", "loose")
+            },
+        )
+        for p, T, A in zip(run.pairs, g.T, back)
+    ]
     if run.covariances is not None:
         forward = _adjoint(centres)
         run.covariances = forward @ run.covariances @ np.swapaxes(forward, 1, 2)

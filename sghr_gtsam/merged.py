@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .result import RunResult
+from sghr_gtsam.result import RunResult
 
 
 def merged_cloud(result: RunResult) -> np.ndarray:

@@ -13,44 +13,40 @@ from pathlib import Path
 
 import numpy as np
 
-from . import local_frame
-from .cache import Cache, pyramid_key, scan_key, unusable
-from .config import Config
-from .executor import kept_workers, start_server
-from .features.local import FEATURES, scan_features
-from .features.netvlad import (
-    DEFAULT_HEAD,
-    codebook_features,
-    global_features,
-    load_default_head,
-)
-from .graph import bridge_components, top_k_edges, top_k_graph
-from .gtsam_api import pose_covariances
-from .io.atomic import staged_folder
-from .io.results import CACHE, check_output_folder, write_results
-from .merged import merged_cloud
-from .progress import QUIET, Progress
-from .recording import Recorder
-from .registration import WORKER_MODULES
-from .registration.batch import register_edges
-from .registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
-from .registration.edges import GUESSED, EdgeSet, edge_status
-from .registration.overrule import Viewpoints, look_alikes, overruled_edges
-from .registration.refine import PYRAMIDS, scan_pyramid
-from .registration.retry import weak_scans
-from .registration.visibility import contradicted_placements
-from .result import RunResult
-from .scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
-from .se3 import inv_T
-from .store import Attribute, Store, Stored
-from .sync import synchronize, unverified
-from .types import InputError, IterationRecord, PoseGraph, Scan, SyncResult
-from .verify import Verdict, Verification, verify
+from sghr_gtsam import local_frame
+from sghr_gtsam.cache import Cache, pyramid_key, scan_key, unusable
+from sghr_gtsam.config import Config
+from sghr_gtsam.executor import kept_workers, start_server
+from sghr_gtsam.features.local import FEATURES, scan_features
+from sghr_gtsam.features.netvlad import DEFAULT_HEAD, codebook_features, global_features, load_default_head
+from sghr_gtsam.graph import bridge_components, top_k_edges, top_k_graph
+from sghr_gtsam.gtsam_api import pose_covariances
+from sghr_gtsam.io.atomic import staged_folder
+from sghr_gtsam.io.results import CACHE, check_output_folder, write_results
+from sghr_gtsam.merged import merged_cloud
+from sghr_gtsam.progress import QUIET, Progress
+from sghr_gtsam.recording import Recorder
+from sghr_gtsam.registration import WORKER_MODULES
+from sghr_gtsam.registration.batch import register_edges
+from sghr_gtsam.registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
+from sghr_gtsam.registration.edges import GUESSED, EdgeSet, edge_status
+from sghr_gtsam.registration.overrule import Viewpoints, look_alikes, overruled_edges
+from sghr_gtsam.registration.refine import PYRAMIDS, scan_pyramid
+from sghr_gtsam.registration.retry import weak_scans
+from sghr_gtsam.registration.visibility import contradicted_placements
+from sghr_gtsam.result import RunResult
+from sghr_gtsam.scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
+from sghr_gtsam.se3 import inv_T
+from sghr_gtsam.store import Attribute, Store, Stored
+from sghr_gtsam.sync import synchronize, unverified
+from sghr_gtsam.types import InputError, IterationRecord, PoseGraph, Scan, SyncResult
+from sghr_gtsam.verify import Verdict, Verification, verify
 
 
 class _Timer:
-    def __init__(self, on_stage: Callable[[str], None] | None = None,
-                 on_end: Callable[[str, float], None] | None = None) -> None:
+    def __init__(
+        self, on_stage: Callable[[str], None] | None = None, on_end: Callable[[str, float], None] | None = None
+    ) -> None:
         self.seconds: dict[str, float] = {}
         self._on_stage = on_stage  # told each stage's name as it starts (the recording's steps)
         self._on_end = on_end  # told each stage's name and seconds as it ends (the recording's data)
@@ -79,8 +75,9 @@ def _global_features(features: Stored, counts: list[int], config: Config) -> tup
         head = load_default_head(config.overlap_head)
         path = config.overlap_head or DEFAULT_HEAD
         if head.centroids.shape[1] != dim:
-            raise InputError(f"overlap head {path} takes {head.centroids.shape[1]}-d descriptors, "
-                             f"the scans have {kind}")
+            raise InputError(
+                f"overlap head {path} takes {head.centroids.shape[1]}-d descriptors, the scans have {kind}"
+            )
         F = global_features(head, descriptors, seed=config.seed)
         return F, f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
@@ -119,9 +116,11 @@ class _Stages:
                 new = edges.check_free_space(self.features, self.voxel, self.centres, self.views)
             if new:  # said again only when new registrations were checked (overrule rounds add none)
                 checked = int(np.isfinite(edges.conflict).sum())
-                self.log(f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
-                         f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their "
-                         f"origins{'' if self.views is None else ' nor vouched for'})")
+                self.log(
+                    f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
+                    f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their "
+                    f"origins{'' if self.views is None else ' nor vouched for'})"
+                )
         graph = edges.pose_graph(len(self.features), self.scores, self.config.inlier_bar, self.config.initial_weight)
         if self.recorder:
             self.recorder.log_graph(graph, self.scores)
@@ -132,13 +131,21 @@ class _Stages:
         config, recorder = self.config, self.recorder
         with self.timer.stage("sync"):
             with self.progress.stage(label, config.iters) as tick:
+
                 def observe(record: IterationRecord) -> None:
                     if recorder:
                         recorder.on_iteration(record)
                     tick(record)
 
-                result = synchronize(graph, method=config.method, iters=config.iters, reweight=config.reweight,
-                                     polish=config.polish, min_weight=config.min_weight, on_iteration=observe)
+                result = synchronize(
+                    graph,
+                    method=config.method,
+                    iters=config.iters,
+                    reweight=config.reweight,
+                    polish=config.polish,
+                    min_weight=config.min_weight,
+                    on_iteration=observe,
+                )
             if recorder:
                 recorder.log_sync(result)
         return result
@@ -153,8 +160,10 @@ class _Stages:
             if not overruled.any():
                 break
             edges.overruled |= overruled
-            self.log(f"free space: {int(overruled.sum())} registrations overruled (they held a group of scans where "
-                     f"the scans' free space rules it out)")
+            self.log(
+                f"free space: {int(overruled.sum())} registrations overruled (they held a group of scans where "
+                f"the scans' free space rules it out)"
+            )
             graph = self.pose_graph(edges)
             result = self.synchronize(graph, "synchronization (overruled edges out)")
         return graph, result
@@ -172,10 +181,17 @@ def _silent(message: str) -> None:
     """The API's default ``log``: it prints nothing (the CLI passes its own)."""
 
 
-def register(scans: list[Scan], config: Config, recorder: Recorder | None = None,
-             log: Log | None = None, skipped: dict[str, str] | None = None,
-             scores: np.ndarray | None = None, progress: Progress = QUIET, cache: Cache | None = None,
-             store: Store | None = None) -> RunResult:
+def register(
+    scans: list[Scan],
+    config: Config,
+    recorder: Recorder | None = None,
+    log: Log | None = None,
+    skipped: dict[str, str] | None = None,
+    scores: np.ndarray | None = None,
+    progress: Progress = QUIET,
+    cache: Cache | None = None,
+    store: Store | None = None,
+) -> RunResult:
     """Register ``scans`` (at least two) into one frame. The recorder and the progress only observe. ``log``: called
     with each stage message, a line of text (``log=print`` shows them as the command line does); by default nothing is
     printed.
@@ -205,20 +221,33 @@ def register(scans: list[Scan], config: Config, recorder: Recorder | None = None
     owned, store = store is None, store or Store(cache)
     try:
         with kept_workers(config.workers, config.ray):
-            return _register(scans, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress,
-                             cache)
+            return _register(
+                scans, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress, cache
+            )
     except BaseException:
         if owned:  # a store it made goes with a failed run; the caller's is the caller's
             store.close()
         raise
 
 
-def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Config, store: Store,
-              recorder: Recorder | None, log: Log, skipped: dict[str, str], timer: _Timer, scores: np.ndarray | None,
-              progress: Progress, cache: Cache | None) -> RunResult:
+def _register(
+    scans: list[Scan],
+    centres: np.ndarray,
+    voxel: float,
+    config: Config,
+    store: Store,
+    recorder: Recorder | None,
+    log: Log,
+    skipped: dict[str, str],
+    timer: _Timer,
+    scores: np.ndarray | None,
+    progress: Progress,
+    cache: Cache | None,
+) -> RunResult:
     """``register`` from the features on: ``scans`` checked and centred (at ``centres``)."""
-    scans, centres, features, counts, scores = _local_features(scans, centres, scores, voxel, config, store, skipped,
-                                                               timer, log, progress)
+    scans, centres, features, counts, scores = _local_features(
+        scans, centres, scores, voxel, config, store, skipped, timer, log, progress
+    )
     if recorder:
         recorder.log_scans([s.name for s in scans], Attribute(features, "points"))
     stages = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
@@ -239,16 +268,27 @@ def _register(scans: list[Scan], centres: np.ndarray, voxel: float, config: Conf
             stages.views = Viewpoints(features, voxel, centres)
             vouched = stages.views.vouch(graph, result)
         judged = len(stages.views.images) if vouched else 0
-        log(f"free space: the scans' frames {'are' if vouched else 'are not'} vouched for by the first "
-            f"synchronization's loop-checked registrations (single registrations of {judged} scans judged from now on)")
+        log(
+            f"free space: the scans' frames {'are' if vouched else 'are not'} vouched for by the first "
+            f"synchronization's loop-checked registrations (single registrations of {judged} scans judged from now on)"
+        )
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)
 
 
-def _local_features(scans: list[Scan], centres: np.ndarray, scores: np.ndarray | None, voxel: float, config: Config,
-                    store: Store, skipped: dict[str, str], timer: _Timer, log: Log,
-                    progress: Progress) -> tuple[list[Scan], np.ndarray, Stored, list[int], np.ndarray | None]:
+def _local_features(
+    scans: list[Scan],
+    centres: np.ndarray,
+    scores: np.ndarray | None,
+    voxel: float,
+    config: Config,
+    store: Store,
+    skipped: dict[str, str],
+    timer: _Timer,
+    log: Log,
+    progress: Progress,
+) -> tuple[list[Scan], np.ndarray, Stored, list[int], np.ndarray | None]:
     """The scans with features, their centres, their features in ``store``, their counts of descriptors and their
     rows of the given ``scores`` (or None); the others go to ``skipped``."""
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
@@ -256,8 +296,17 @@ def _local_features(scans: list[Scan], centres: np.ndarray, scores: np.ndarray |
     keys = [scan_key(s, voxel, config) for s in scans]
     shared = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        counts = store.map(FEATURES, scan_features, shared, scans, keys, config.workers, tick, config.ray,
-                           keep=lambda f: f if isinstance(f, str) else len(f.descriptors))
+        counts = store.map(
+            FEATURES,
+            scan_features,
+            shared,
+            scans,
+            keys,
+            config.workers,
+            tick,
+            config.ray,
+            keep=lambda f: f if isinstance(f, str) else len(f.descriptors),
+        )
     for s, count in zip(scans, counts):
         if isinstance(count, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
             skipped[s.name] = count
@@ -270,8 +319,7 @@ def _local_features(scans: list[Scan], centres: np.ndarray, scores: np.ndarray |
     return scans, centres, features, counts, None if scores is None else scores[np.ix_(usable, usable)]
 
 
-def _global_graph(stages: _Stages, counts: list[int],
-                  scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
+def _global_graph(stages: _Stages, counts: list[int], scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
     """The top-k pairs to register (bridged across parts with ``config.connect``), the (N, N) overlap scores
     (the caller's ``scores``, or from the global features) and what made them."""
     config, n = stages.config, len(stages.scans)
@@ -285,13 +333,16 @@ def _global_graph(stages: _Stages, counts: list[int],
         if config.connect:
             top_k = bridge_components(top_k, scores)
     seconds = stages.timer.seconds
-    stages.log(f"features: {seconds['features']:.2f} s; pose graph: {len(top_k)} of {n * (n - 1) // 2} pairs "
-               f"(top-{config.k}) in {seconds['global_graph']:.2f} s")
+    stages.log(
+        f"features: {seconds['features']:.2f} s; pose graph: {len(top_k)} of {n * (n - 1) // 2} pairs "
+        f"(top-{config.k}) in {seconds['global_graph']:.2f} s"
+    )
     return top_k, scores, feature_kind
 
 
-def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
-             result: SyncResult) -> tuple[PoseGraph, SyncResult, DensifyReport, np.ndarray]:
+def _densify(
+    stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult
+) -> tuple[PoseGraph, SyncResult, DensifyReport, np.ndarray]:
     """Steps 2-4 of the front end (refine, close loops, retry weak scans, register weak groups whole), then
     synchronize again, while they change the graph (at most ``config.rounds`` times); also the (N,) scans weak after
     the first synchronization, and those of the groups the group stage moved."""
@@ -300,16 +351,26 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
     densify = DensifyReport()
     # Retries go to scans beyond a bridge only: also retrying those beyond one scan took three of five simulated
     # rooms past the 40 % budget of global registrations (benchmarks/bench_pipeline.py).
-    first_weak = weak_scans(len(scans), graph.i, graph.j, result.weights > 0, result.component,
-                            unverified(graph, result, one_scan=False))
+    first_weak = weak_scans(
+        len(scans), graph.i, graph.j, result.weights > 0, result.component, unverified(graph, result, one_scan=False)
+    )
     pyramids = None
     for _ in range(config.rounds):
         changed = 0
         if (config.refine or config.loops or config.groups) and pyramids is None:
             grid_keys = [pyramid_key(key) for key in features.keys]
             with timer.stage("pyramids"), progress.stage("pyramids", len(scans)) as tick:
-                stages.store.map(PYRAMIDS, scan_pyramid, voxel, scans, grid_keys, config.workers, tick, config.ray,
-                                 keep=lambda p: None)
+                stages.store.map(
+                    PYRAMIDS,
+                    scan_pyramid,
+                    voxel,
+                    scans,
+                    grid_keys,
+                    config.workers,
+                    tick,
+                    config.ray,
+                    keep=lambda p: None,
+                )
             pyramids = stages.store.sequence(PYRAMIDS, grid_keys, _again(scan_pyramid, voxel, scans))
         if config.refine:
             with timer.stage("refine"):
@@ -319,27 +380,58 @@ def _densify(stages: _Stages, edges: EdgeSet, graph: PoseGraph,
                 changed += close_loops(features, pyramids, edges, result, voxel, config, densify, progress, cache)
         if config.retry:
             with timer.stage("retry"):
-                changed += retry_weak(features, stages.scores, edges, result, unverified(graph, result, one_scan=False),
-                                      voxel, config, densify, progress, cache)
+                changed += retry_weak(
+                    features,
+                    stages.scores,
+                    edges,
+                    result,
+                    unverified(graph, result, one_scan=False),
+                    voxel,
+                    config,
+                    densify,
+                    progress,
+                    cache,
+                )
         if config.groups:
             with timer.stage("groups"):
-                changed += register_weak_groups(features, pyramids, edges, graph, result, unverified(graph, result),
-                                                voxel, config, densify, progress, cache)
+                changed += register_weak_groups(
+                    features,
+                    pyramids,
+                    edges,
+                    graph,
+                    result,
+                    unverified(graph, result),
+                    voxel,
+                    config,
+                    densify,
+                    progress,
+                    cache,
+                )
         if not changed:
             break
         densify.rounds += 1
         graph = stages.pose_graph(edges)
-        stages.log(f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
-                   f"{densify.retry_registered} retry pairs registered, {densify.group_edges} group edges; "
-                   f"{graph.num_edges} edges")
+        stages.log(
+            f"round {densify.rounds}: {densify.refined} edges refined, {densify.loops_closed} loops closed, "
+            f"{densify.retry_registered} retry pairs registered, {densify.group_edges} group edges; "
+            f"{graph.num_edges} edges"
+        )
         result = stages.synchronize(graph, f"synchronization (round {densify.rounds})")
         graph, result = stages.overrule(edges, graph, result)
     first_weak[densify.moved_scans()] = True  # a group that one registration moved is as weak as a weak scan
     return graph, result, densify, first_weak
 
 
-def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncResult, densify: DensifyReport,
-                first_weak: np.ndarray, skipped: dict[str, str], feature_kind: str) -> RunResult:
+def _run_result(
+    stages: _Stages,
+    edges: EdgeSet,
+    graph: PoseGraph,
+    result: SyncResult,
+    densify: DensifyReport,
+    first_weak: np.ndarray,
+    skipped: dict[str, str],
+    feature_kind: str,
+) -> RunResult:
     """The last synchronization's poses anchored at the first scan of the largest part, the covariances, the parts
     and each scan's status (``verify``), back in the input frame."""
     log, names, n = stages.log, [s.name for s in stages.scans], len(stages.scans)
@@ -348,12 +440,25 @@ def _run_result(stages: _Stages, edges: EdgeSet, graph: PoseGraph, result: SyncR
     poses = inv_T(result.poses[main[0]])[None] @ result.poses  # the other parts have no reliable pose
     unregistered = [names[k] for k in range(n) if result.component[k] != 0]
     free_space = stages.config.free_space
-    out = RunResult(names=names, poses=poses, voxel=float(stages.voxel), scores=stages.scores, graph=graph,
-                    pairs=edges.pairs, edge_origin=edges.origin, edge_conflict=edges.conflict if free_space else None,
-                    edge_overruled=edges.overruled if free_space else None,
-                    densify=densify.as_dict(), sync=result, unregistered=unregistered,
-                    skipped=skipped, features=stages.features, timings=stages.timer.seconds,
-                    global_feature=feature_kind, cache=stages.cache.report() if stages.cache else None)
+    out = RunResult(
+        names=names,
+        poses=poses,
+        voxel=float(stages.voxel),
+        scores=stages.scores,
+        graph=graph,
+        pairs=edges.pairs,
+        edge_origin=edges.origin,
+        edge_conflict=edges.conflict if free_space else None,
+        edge_overruled=edges.overruled if free_space else None,
+        densify=densify.as_dict(),
+        sync=result,
+        unregistered=unregistered,
+        skipped=skipped,
+        features=stages.features,
+        timings=stages.timer.seconds,
+        global_feature=feature_kind,
+        cache=stages.cache.report() if stages.cache else None,
+    )
     with stages.timer.stage("covariances"):
         try:
             out.covariances = pose_covariances(out)
@@ -386,17 +491,33 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
         kept &= ~run.sync.held
     information, free = None, None
     if graph.information is not None:  # the covariances' information: free directions bounded by the overlap alone
-        information = np.stack([info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)])
+        information = np.stack(
+            [info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)]
+        )
         free = np.stack([np.zeros((6, 6)) if p.loose is None else p.loose for p in run.pairs])
     clash, alike = None, []
     if stages.views is not None:  # config.free_space
         with stages.timer.stage("free_space"):
             alike = look_alikes(stages.views, graph, run.sync)
     if stages.config.free_space:
+
         def clash(doubted: np.ndarray) -> np.ndarray:
             return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
-    return verify(run.names, graph, kept, run.poses, placed, Verification(max_sigma=stages.config.max_sigma),
-                  Attribute(stages.features, "points"), information, free, clash, guessed, alike)
+
+    return verify(
+        run.names,
+        graph,
+        kept,
+        run.poses,
+        placed,
+        Verification(max_sigma=stages.config.max_sigma),
+        Attribute(stages.features, "points"),
+        information,
+        free,
+        clash,
+        guessed,
+        alike,
+    )
 
 
 def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]:
@@ -404,8 +525,9 @@ def _again(fn: Callable, shared: object, tasks: list) -> Callable[[int], object]
     return lambda k: fn(shared, tasks[k])
 
 
-def run(scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log | None = None,
-        progress: Progress = QUIET) -> RunResult:
+def run(
+    scene_dir: str | Path, out_dir: str | Path, config: Config, log: Log | None = None, progress: Progress = QUIET
+) -> RunResult:
     """Load ``scene_dir``, register its scans and write every output into ``out_dir``, which is replaced as a
     whole when the run completes (``io.atomic.staged_folder``): stopped or failed, it leaves ``out_dir`` as it
     was. ``out_dir`` must be new, empty or an earlier run's results (``InputError`` otherwise). ``progress``

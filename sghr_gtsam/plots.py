@@ -24,15 +24,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .io.atomic import atomic_path
-from .palette import EDGE_COLOURS, FLAG_COLOURS, REJECTED, first_flags, label_colours, scan_colours
-from .result import DOUBTS
+from sghr_gtsam.io.atomic import atomic_path
+from sghr_gtsam.palette import EDGE_COLOURS, FLAG_COLOURS, REJECTED, first_flags, label_colours, scan_colours
+from sghr_gtsam.result import DOUBTS
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from .result import RunResult
-    from .types import SyncResult
+    from sghr_gtsam.result import RunResult
+    from sghr_gtsam.types import SyncResult
 
 RASTER_WIDTH = 400
 """The top view is drawn as an image this many pixels wide (``_Raster``): every point of the voxelised scans
@@ -115,13 +115,13 @@ class _Raster:
         return image
 
 
-def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Figure":
+def summary_figure(result: RunResult, status: list[str] | None = None) -> Figure:
     """The run at a glance (module doc). ``status``: each edge's ``registration.edges.EDGE_STATUS`` key (computed when
     not given)."""
     from matplotlib.collections import LineCollection
     from matplotlib.lines import Line2D
 
-    from .registration.edges import EDGE_STATUS, edge_status
+    from sghr_gtsam.registration.edges import EDGE_STATUS, edge_status
 
     if status is None:
         status = edge_status(result)
@@ -157,38 +157,75 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     top, hist = fig.subplots(1, 2, width_ratios=[1.6, 1])
     top.imshow(image, extent=extent, origin="lower", interpolation="nearest")
     g, weights = result.graph, result.sync.weights
-    by_status = {key: [e for e in range(g.num_edges) if status[e] == key] for key in EDGE_STATUS
-                 if key == "kept" or key in status}
+    by_status = {
+        key: [e for e in range(g.num_edges) if status[e] == key]
+        for key in EDGE_STATUS
+        if key == "kept" or key in status
+    }
     kept, rejected = by_status["kept"], by_status.get("rejected", [])
     w_max = max((weights[e] for e in kept), default=1.0)
     segments = np.stack([centres[g.i], centres[g.j]], axis=1)
     for key in DRAWN:
-        top.add_collection(LineCollection(segments[by_status.get(key, [])], colors=_hex(EDGE_COLOURS[key]),
-                                          linewidths=0.8, linestyles=(0, (3, 2)), alpha=0.8, label=key))
-    top.add_collection(LineCollection(segments[kept], colors=KEPT_COLOUR, alpha=0.85, label="kept",
-                                      linewidths=0.6 + 2.4 * weights[kept] / w_max))
+        top.add_collection(
+            LineCollection(
+                segments[by_status.get(key, [])],
+                colors=_hex(EDGE_COLOURS[key]),
+                linewidths=0.8,
+                linestyles=(0, (3, 2)),
+                alpha=0.8,
+                label=key,
+            )
+        )
+    top.add_collection(
+        LineCollection(
+            segments[kept], colors=KEPT_COLOUR, alpha=0.85, label="kept", linewidths=0.6 + 2.4 * weights[kept] / w_max
+        )
+    )
     doubts = {flag: result.flags[flag] for flag in DOUBTS if result.flags[flag]}
     marks = first_flags(result.names, doubts)  # a scan with several flags shows the first, in report order
     ring = {k: _hex(tuple(c)) for k, c in enumerate(label_colours(marks)) if marks[k]}
-    top.scatter(centres[placed, 0], centres[placed, 1], s=36, c=colours[placed], zorder=3,
-                edgecolors=[ring.get(k, "black") for k in placed], linewidths=[2.5 if k in ring else 0.8 for k in placed])
+    top.scatter(
+        centres[placed, 0],
+        centres[placed, 1],
+        s=36,
+        c=colours[placed],
+        zorder=3,
+        edgecolors=[ring.get(k, "black") for k in placed],
+        linewidths=[2.5 if k in ring else 0.8 for k in placed],
+    )
     if n <= 40:
         for k in placed:
             top.annotate(str(k), centres[k], xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=4)
     top.set_aspect("equal", adjustable="datalim")
     top.set_xticks([])
     top.set_yticks([])
-    title = _wrapped([f"{len(placed)}/{n} scans placed", *([f"{len(parts)} parts (coloured)"] if len(parts) > 1 else []),
-                      f"{len(result.unregistered)} unregistered",
-                      *(f"{len(scans)} {flag}" for flag, scans in doubts.items())])
+    title = _wrapped(
+        [
+            f"{len(placed)}/{n} scans placed",
+            *([f"{len(parts)} parts (coloured)"] if len(parts) > 1 else []),
+            f"{len(result.unregistered)} unregistered",
+            *(f"{len(scans)} {flag}" for flag, scans in doubts.items()),
+        ]
+    )
     top.set_title(title, fontsize=10)
     fig.subplots_adjust(top=0.93 - 0.04 * title.count("\n"))
     legend = [Line2D([], [], color=KEPT_COLOUR, lw=2, label=f"kept edge ({len(kept)}; width = weight)")]
-    legend += [Line2D([], [], color=_hex(EDGE_COLOURS[key]), lw=1, ls=(0, (3, 2)) if key in DRAWN else ":",
-                      label=f"{key} edge ({len(edges)}{'' if key in DRAWN else ', not drawn'})")
-               for key, edges in by_status.items() if key != "kept"]
-    legend += [Line2D([], [], marker="o", ls="", mfc="white", mec=_hex(FLAG_COLOURS[flag]), mew=2.5, label=flag)
-               for flag in doubts]
+    legend += [
+        Line2D(
+            [],
+            [],
+            color=_hex(EDGE_COLOURS[key]),
+            lw=1,
+            ls=(0, (3, 2)) if key in DRAWN else ":",
+            label=f"{key} edge ({len(edges)}{'' if key in DRAWN else ', not drawn'})",
+        )
+        for key, edges in by_status.items()
+        if key != "kept"
+    ]
+    legend += [
+        Line2D([], [], marker="o", ls="", mfc="white", mec=_hex(FLAG_COLOURS[flag]), mew=2.5, label=flag)
+        for flag in doubts
+    ]
     top.legend(handles=legend, loc="upper right", fontsize=8, framealpha=0.8)
 
     residual = result.sync.residual_deg
@@ -197,8 +234,9 @@ def summary_figure(result: "RunResult", status: list[str] | None = None) -> "Fig
     bins = np.geomspace(values.min() / 1.5, max(values.max() * 1.5, 1.0), 30)
     for edges, colour, name in groups:
         if edges:
-            hist.hist(np.maximum(residual[edges], 1e-3), bins=bins, color=colour, alpha=0.7,
-                      label=f"{name} ({len(edges)})")
+            hist.hist(
+                np.maximum(residual[edges], 1e-3), bins=bins, color=colour, alpha=0.7, label=f"{name} ({len(edges)})"
+            )
     hist.set_xscale("log")
     hist.set_xlabel("rotation residual at the final poses [deg]")
     hist.set_ylabel("edges")
@@ -219,14 +257,14 @@ def _wrapped(parts: list[str]) -> str:
     return "\n".join(lines)
 
 
-def write_summary(path: str | Path, result: "RunResult", status: list[str] | None = None) -> None:
+def write_summary(path: str | Path, result: RunResult, status: list[str] | None = None) -> None:
     """``summary_figure`` as a PNG at ``path``, written atomically."""
     fig = summary_figure(result, status)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
 
 
-def weight_history_figure(sync: "SyncResult", highlight: list[int] | None = None) -> "Figure":
+def weight_history_figure(sync: SyncResult, highlight: list[int] | None = None) -> Figure:
     """Each edge's weight (relative to the largest) over the IRLS iterations of ``sync.history``: history
     reweighting driving the inconsistent edges to zero. ``highlight``: edges drawn in red (e.g. known outliers)."""
     irls = [r for r in sync.history if r.stage == "irls"]

@@ -45,7 +45,7 @@ class TerminalProgress(Progress):
     A stage that takes more steps than announced (synchronization's polish after its ``total`` IRLS
     iterations) shows them in its label and is filled when it ends."""
 
-    def __init__(self, console: "Console") -> None:
+    def __init__(self, console: Console) -> None:
         from rich.progress import (
             BarColumn,
             MofNCompleteColumn,
@@ -56,9 +56,16 @@ class TerminalProgress(Progress):
         from rich.progress import Progress as RichProgress
 
         self.console = console
-        self._bars = RichProgress(TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),
-                                  TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
-                                  console=console, transient=False)
+        self._bars = RichProgress(
+            TextColumn("{task.description:<28}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            TextColumn("ETA"),
+            TimeRemainingColumn(),
+            console=console,
+            transient=False,
+        )
         self._bars.start()
 
     @contextmanager

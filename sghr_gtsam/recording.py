@@ -50,13 +50,13 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from .palette import EDGE_COLOURS, REJECTED, first_flags, label_colours, scan_colours
-from .registration.edges import EDGE_STATUS
-from .sync.irls import NEGLIGIBLE, kept_edges
-from .types import IterationRecord, PoseGraph, SyncResult
+from sghr_gtsam.palette import EDGE_COLOURS, REJECTED, first_flags, label_colours, scan_colours
+from sghr_gtsam.registration.edges import EDGE_STATUS
+from sghr_gtsam.sync.irls import NEGLIGIBLE, kept_edges
+from sghr_gtsam.types import IterationRecord, PoseGraph, SyncResult
 
 if TYPE_CHECKING:
-    from .verify import Part
+    from sghr_gtsam.verify import Part
 
 TIMELINE = "step"
 ELLIPSOID_GAIN = 10.0
@@ -82,13 +82,16 @@ def edge_radii(w: np.ndarray, kept: np.ndarray) -> np.ndarray:
     """Line radius (UI points) of each edge: kept edges from ``_EDGE_POINTS[0]`` at ``10^-_RADIUS_DECADES`` times the
     largest weight to ``_EDGE_POINTS[1]`` at the largest, on a log scale; rejected ones at the minimum."""
     rel = w / max(float(w.max(initial=0.0)), 1e-300)
-    t = np.clip(1.0 + np.log10(np.maximum(rel, 10.0 ** -_RADIUS_DECADES)) / _RADIUS_DECADES, 0.0, 1.0)
+    t = np.clip(1.0 + np.log10(np.maximum(rel, 10.0**-_RADIUS_DECADES)) / _RADIUS_DECADES, 0.0, 1.0)
     lo, hi = _EDGE_POINTS
     return np.where(kept, lo + (hi - lo) * t, lo).astype(np.float32)
 
 
-_VIEWS = {(axis, sign): getattr(rr.ViewCoordinates, f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if sign > 0 else 'DOWN'}")
-          for axis in range(3) for sign in (1, -1)}
+_VIEWS = {
+    (axis, sign): getattr(rr.ViewCoordinates, f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if sign > 0 else 'DOWN'}")
+    for axis in range(3)
+    for sign in (1, -1)
+}
 
 
 def _corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -125,13 +128,23 @@ def blueprint() -> rrb.Blueprint:
     )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(rrb.Spatial3DView(origin="/world", name="scans and edges"),
-                         rrb.StateTimelineView(origin="/stage", name="stages"), row_shares=[6, 1]),
-            rrb.Vertical(rrb.GraphView(origin="/pose_graph", name="pose graph"), series,
-                         rrb.TextLogView(origin="/log", name="log"), row_shares=[3, 3, 2]),
-            column_shares=[3, 2]),
-        rrb.BlueprintPanel(state="collapsed"), rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(timeline=TIMELINE, state="expanded"))
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="/world", name="scans and edges"),
+                rrb.StateTimelineView(origin="/stage", name="stages"),
+                row_shares=[6, 1],
+            ),
+            rrb.Vertical(
+                rrb.GraphView(origin="/pose_graph", name="pose graph"),
+                series,
+                rrb.TextLogView(origin="/log", name="log"),
+                row_shares=[3, 3, 2],
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(timeline=TIMELINE, state="expanded"),
+    )
 
 
 def _quaternion(R: np.ndarray) -> np.ndarray:
@@ -183,8 +196,7 @@ class Recorder:
     keeps it. ``name``: the run's (``pipeline.run``: the scene's folder and the results folder), with the start
     time the recording's name and id."""
 
-    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3,
-                 name: str = ""):
+    def __init__(self, path: str | Path, application_id: str = "sghr_gtsam", min_weight: float = 1e-3, name: str = ""):
         title = _run_name(name)
         # the id also tells apart two runs started in the same second
         self.rec = rr.RecordingStream(application_id, recording_id=f"{title} #{uuid.uuid4().hex[:6]}")
@@ -236,8 +248,9 @@ class Recorder:
             self._boxes.append((P.min(0), P.max(0)) if len(P) else (np.zeros(3), np.zeros(3)))
             Q = P - centres[-1]
             self._moments.append((len(P), centres[-1], Q.T @ Q / max(len(P), 1)))
-            self.rec.log(path, rr.Points3D(P.astype(np.float32), colors=colour, radii=rr.Radius.ui_points(1.5)),
-                         static=True)
+            self.rec.log(
+                path, rr.Points3D(P.astype(np.float32), colors=colour, radii=rr.Radius.ui_points(1.5)), static=True
+            )
         self._centres = np.array(centres).reshape(-1, 3)
         sizes = [np.linalg.norm(hi - lo) for lo, hi in self._boxes]
         axes = rr.TransformAxes3D(0.1 * float(np.median(sizes)) or 1.0)  # sized by all the scans: logged after them
@@ -247,9 +260,15 @@ class Recorder:
 
     def _log_nodes(self, marks: dict[str, str]) -> None:
         """The scans as graph nodes; a scan in ``marks`` gets its mark in the label and a larger node."""
-        self.rec.log("pose_graph", rr.GraphNodes(
-            self._names, labels=[f"{n} ({marks[n]})" if n in marks else n for n in self._names],
-            colors=self._colours, radii=[8.0 if n in marks else 5.0 for n in self._names]))
+        self.rec.log(
+            "pose_graph",
+            rr.GraphNodes(
+                self._names,
+                labels=[f"{n} ({marks[n]})" if n in marks else n for n in self._names],
+                colors=self._colours,
+                radii=[8.0 if n in marks else 5.0 for n in self._names],
+            ),
+        )
 
     def log_graph(self, graph: PoseGraph, scores: np.ndarray) -> None:
         """The pose graph of registered pairs before a synchronization (its edges only grow)."""
@@ -264,8 +283,9 @@ class Recorder:
 
     def _log_graph_edges(self, mask: np.ndarray) -> None:
         g = self._graph
-        self.rec.log("pose_graph", rr.GraphEdges([(self._names[a], self._names[b])
-                                                  for a, b in zip(g.i[mask], g.j[mask])]))
+        self.rec.log(
+            "pose_graph", rr.GraphEdges([(self._names[a], self._names[b]) for a, b in zip(g.i[mask], g.j[mask])])
+        )
 
     def on_iteration(self, record: IterationRecord) -> None:
         """One synchronization record (IRLS iteration, polish stage or LM iteration) on a step of its own."""
@@ -303,8 +323,9 @@ class Recorder:
         by_scan = np.stack([poses for _, poses in self._poses], axis=1)  # (N, steps, 3, 4)
         self._poses = []
         for path, P in zip(self._paths, by_scan):
-            self.rec.send_columns(path, indexes=[steps],
-                                  columns=rr.Transform3D.columns(translation=P[:, :, 3], mat3x3=P[:, :, :3]))
+            self.rec.send_columns(
+                path, indexes=[steps], columns=rr.Transform3D.columns(translation=P[:, :, 3], mat3x3=P[:, :, :3])
+            )
 
     def _log_edges(self, poses: np.ndarray, weights: np.ndarray, residual_deg: np.ndarray) -> None:
         g = self._graph
@@ -312,8 +333,9 @@ class Recorder:
         centres = np.einsum("nij,nj->ni", poses[:, :3, :3], self._centres) + poses[:, :3, 3]
         strips = np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32)
         colours = np.where(kept[:, None], np.array(KEPT, dtype=np.uint8), np.array(REJECTED, dtype=np.uint8))
-        self.rec.log("world/edges", rr.LineStrips3D(
-            strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept))))
+        self.rec.log(
+            "world/edges", rr.LineStrips3D(strips, colors=colours, radii=rr.Radius.ui_points(edge_radii(weights, kept)))
+        )
         self.rec.log("metrics/kept_edges", rr.Scalars(float(kept.sum())))
         self.rec.log("residuals", rr.Scalars(np.asarray(residual_deg, dtype=float)))
         rel = weights / max(float(weights.max(initial=0.0)), 1e-300)
@@ -341,10 +363,17 @@ class Recorder:
                 continue
             lo, hi = self._boxes[k]
             labels = by_scan[name]
-            self.rec.log(f"{self._paths[k]}/flag", rr.Boxes3D(
-                centers=[(lo + hi) / 2], half_sizes=[np.maximum((hi - lo) / 2, 1e-6)],
-                colors=[colours[k]], labels=[f"{name}: {', '.join(labels)}"],
-                show_labels=True, radii=rr.Radius.ui_points(2.0)))
+            self.rec.log(
+                f"{self._paths[k]}/flag",
+                rr.Boxes3D(
+                    centers=[(lo + hi) / 2],
+                    half_sizes=[np.maximum((hi - lo) / 2, 1e-6)],
+                    colors=[colours[k]],
+                    labels=[f"{name}: {', '.join(labels)}"],
+                    show_labels=True,
+                    radii=rr.Radius.ui_points(2.0),
+                ),
+            )
         self._marks = {name: ", ".join(labels) for name, labels in by_scan.items()}
         self._log_nodes(self._marks)
 
@@ -358,16 +387,26 @@ class Recorder:
             corners = np.concatenate([_corners(*self._boxes[k]) @ poses[k][:3, :3].T + poses[k][:3, 3] for k in ks])
             lo, hi = corners.min(axis=0), corners.max(axis=0)
             said = f"part {p.id}: {len(ks)} scan(s)" + (f", apart: {p.join.why}" if p.join else "")
-            self.rec.log(f"world/parts/{p.id}", rr.Boxes3D(centers=[(lo + hi) / 2], half_sizes=[(hi - lo) / 2 + 1e-6],
-                                                           colors=[colours[p.id]], labels=[said],
-                                                           radii=rr.Radius.ui_points(1.0)))
+            self.rec.log(
+                f"world/parts/{p.id}",
+                rr.Boxes3D(
+                    centers=[(lo + hi) / 2],
+                    half_sizes=[(hi - lo) / 2 + 1e-6],
+                    colors=[colours[p.id]],
+                    labels=[said],
+                    radii=rr.Radius.ui_points(1.0),
+                ),
+            )
         self._colours = [colours[part_of[n]] if n in part_of else FLAG_OTHER for n in self._names]
         self._log_nodes(self._marks)
 
     def _log_view(self, poses: np.ndarray, unplaced: set[str]) -> None:
         """The world's ``ViewCoordinates``: ``up_axis`` of the placed scans' points under ``poses``."""
-        placed = [k for k, name in enumerate(self._names) if name not in unplaced and self._moments[k][0]
-                  and np.isfinite(poses[k]).all()]
+        placed = [
+            k
+            for k, name in enumerate(self._names)
+            if name not in unplaced and self._moments[k][0] and np.isfinite(poses[k]).all()
+        ]
         if not placed:
             return
         count = np.array([self._moments[k][0] for k in placed], dtype=float)
@@ -387,20 +426,26 @@ class Recorder:
             return
         names = list(EDGE_STATUS)
         colours = {"kept": KEPT, **EDGE_COLOURS}
-        self.rec.log("world/edges", rr.AnnotationContext([(k, s, colours[s]) for k, s in enumerate(names)]),
-                     static=True)
+        self.rec.log(
+            "world/edges", rr.AnnotationContext([(k, s, colours[s]) for k, s in enumerate(names)]), static=True
+        )
         centres = np.einsum("nij,nj->ni", poses[:, :3, :3], self._centres) + poses[:, :3, 3]
         kept = np.array([s == "kept" for s in status], dtype=bool)
         weights = np.where(kept, g.weight, 0.0)
-        self.rec.log("world/edges", rr.LineStrips3D(
-            np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32),
-            colors=np.array([colours[s] for s in status], dtype=np.uint8).reshape(-1, 3),
-            class_ids=[names.index(s) for s in status], radii=rr.Radius.ui_points(edge_radii(weights, kept))))
+        self.rec.log(
+            "world/edges",
+            rr.LineStrips3D(
+                np.stack([centres[g.i], centres[g.j]], axis=1).astype(np.float32),
+                colors=np.array([colours[s] for s in status], dtype=np.uint8).reshape(-1, 3),
+                class_ids=[names.index(s) for s in status],
+                radii=rr.Radius.ui_points(edge_radii(weights, kept)),
+            ),
+        )
 
     def log_covariances(self, poses: np.ndarray, covariances: np.ndarray) -> None:
         """Per scan with a finite covariance (gtsam order, at the pose): its position ellipsoid in the world and
         its σ scalars (module doc), at the current step."""
-        from .gtsam_api import sigmas
+        from sghr_gtsam.gtsam_api import sigmas
 
         rot, trans = sigmas(covariances)
         for name, T, C, r, t in zip(self._names, poses, covariances, rot, trans):
@@ -411,9 +456,17 @@ class Recorder:
             values, vectors = np.linalg.eigh(T[:3, :3] @ C[3:, 3:] @ T[:3, :3].T)
             vectors = vectors * np.sign(np.linalg.det(vectors))
             half = 3.0 * ELLIPSOID_GAIN * np.sqrt(np.maximum(values, 0.0))
-            self.rec.log(f"{ELLIPSOIDS}/{path}", rr.Ellipsoids3D(
-                centers=[T[:3, 3]], half_sizes=[half], labels=[f"{name}: 3σ × {ELLIPSOID_GAIN:g}"], show_labels=False,
-                quaternions=[rr.Quaternion(xyzw=_quaternion(vectors))], fill_mode="majorwireframe"))
+            self.rec.log(
+                f"{ELLIPSOIDS}/{path}",
+                rr.Ellipsoids3D(
+                    centers=[T[:3, 3]],
+                    half_sizes=[half],
+                    labels=[f"{name}: 3σ × {ELLIPSOID_GAIN:g}"],
+                    show_labels=False,
+                    quaternions=[rr.Quaternion(xyzw=_quaternion(vectors))],
+                    fill_mode="majorwireframe",
+                ),
+            )
             self.rec.log(f"uncertainty/{path}/sigma_rotation_deg", rr.Scalars(float(r)))
             self.rec.log(f"uncertainty/{path}/sigma_translation", rr.Scalars(float(t)))
 

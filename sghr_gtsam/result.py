@@ -8,11 +8,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .features.local import ScanFeatures
-from .registration.pairwise import PairResult
-from .se3 import transform_points
-from .types import PoseGraph, SyncResult
-from .verify import REASONS, Verdict
+from sghr_gtsam.features.local import ScanFeatures
+from sghr_gtsam.registration.pairwise import PairResult
+from sghr_gtsam.se3 import transform_points
+from sghr_gtsam.types import PoseGraph, SyncResult
+from sghr_gtsam.verify import REASONS, Verdict
 
 FLAGS = {"unplaced": "no reliable registration joins it to the largest part", **REASONS}
 """What the run says of a scan it does not verify: unplaced, or doubtful for one of ``verify.REASONS``."""
@@ -69,8 +69,10 @@ class RunResult:
     def flags(self) -> dict[str, list[str]]:
         """The scans of each of ``FLAGS``, in its order: the unregistered, then the doubtful by reason."""
         doubts = {} if self.verdict is None else self.verdict.doubts
-        return {"unplaced": list(self.unregistered),
-                **{reason: [name for name in self.names if doubts.get(name) == reason] for reason in DOUBTS}}
+        return {
+            "unplaced": list(self.unregistered),
+            **{reason: [name for name in self.names if doubts.get(name) == reason] for reason in DOUBTS},
+        }
 
     @property
     def registered(self) -> list[int]:

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import Config
-from .features.local import MAX_CELLS, voxel_from_spans
-from .io.features import read_features
-from .io.poses import shown_name, unwritable_name
-from .io.scans import COORDINATE_LIMIT, check_memory, finite_points, left_out, list_scans, load_scan
-from .types import InputError, Scan, ScanStats
+from sghr_gtsam.config import Config
+from sghr_gtsam.features.local import MAX_CELLS, voxel_from_spans
+from sghr_gtsam.io.features import read_features
+from sghr_gtsam.io.poses import shown_name, unwritable_name
+from sghr_gtsam.io.scans import COORDINATE_LIMIT, check_memory, finite_points, left_out, list_scans, load_scan
+from sghr_gtsam.types import InputError, Scan, ScanStats
 
 Log = Callable[[str], None]
 
@@ -88,9 +88,11 @@ def _float32_rounding(points: np.ndarray, extent: float) -> str | None:
     step = float(np.spacing(np.float32(size)))
     if step * FLOAT32_RATIO <= extent:
         return None
-    return (f"its coordinates are float32 values up to {size:.3g}, where float32 rounds to steps of {step:.3g}, "
-            f"1/{extent / step:.3g} of its extent {extent:.3g}: the precision was lost where it was written "
-            f"(store such coordinates as float64, or with the offset taken out)")
+    return (
+        f"its coordinates are float32 values up to {size:.3g}, where float32 rounds to steps of {step:.3g}, "
+        f"1/{extent / step:.3g} of its extent {extent:.3g}: the precision was lost where it was written "
+        f"(store such coordinates as float64, or with the offset taken out)"
+    )
 
 
 def too_few(scans: list[Scan], skipped: dict[str, str], where: str = "") -> InputError:
@@ -116,8 +118,14 @@ def check_given(scans: list[Scan], scores: np.ndarray | None) -> np.ndarray | No
     return None if scores is None else given_scores(scores, len(scans))
 
 
-def usable_scans(scans: list[Scan], stats: list[ScanStats], scores: np.ndarray | None, skipped: dict[str, str],
-                 log: Log, min_points: int) -> tuple[list[Scan], list[ScanStats], np.ndarray | None]:
+def usable_scans(
+    scans: list[Scan],
+    stats: list[ScanStats],
+    scores: np.ndarray | None,
+    skipped: dict[str, str],
+    log: Log,
+    min_points: int,
+) -> tuple[list[Scan], list[ScanStats], np.ndarray | None]:
     """The scans ``same_units`` keeps, their ``stats`` and the rows of ``scores`` (given for every scan) that stay;
     the others are named in ``skipped``. ``InputError`` (``too_few``) when fewer than two are left."""
     keep = same_units(scans, stats, skipped, log, min_points)
@@ -132,8 +140,10 @@ def scene_voxel(voxel: float | None, stats: list[ScanStats]) -> float:
     a stray point had stretched it."""
     voxel = voxel if voxel else voxel_from_spans([st.span for st in stats])
     if (cells := float(np.median([st.span for st in stats])) / voxel) >= np.sqrt(3) * MAX_CELLS:
-        raise InputError(f"voxel {voxel:.3g} is too small: the median scan's diagonal spans {cells:.3g} voxels of it "
-                         f"(at most 2^31 along an axis)")
+        raise InputError(
+            f"voxel {voxel:.3g} is too small: the median scan's diagonal spans {cells:.3g} voxels of it "
+            f"(at most 2^31 along an axis)"
+        )
     return voxel
 
 
@@ -152,8 +162,10 @@ def check_names(names: list) -> None:
     seen: set[str] = set()
     for name in names:
         if why := unwritable_name(name):
-            raise InputError(f"scan name {name!r} {why} (pose files hold one name a line, read back stripped, '#' "
-                             f"starting a comment)")
+            raise InputError(
+                f"scan name {name!r} {why} (pose files hold one name a line, read back stripped, '#' "
+                f"starting a comment)"
+            )
         if name in seen:
             raise InputError(f"two scans are named {name!r}")
         seen.add(name)
@@ -175,8 +187,9 @@ STRAY_RATIO = 1e6
 away (one point at 1e9 m in a 10 m room); it is skipped, since it would also set the scene's voxel size."""
 
 
-def same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str], log: Log,
-                min_points: int) -> list[int]:
+def same_units(
+    scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str], log: Log, min_points: int
+) -> list[int]:
     """The indices of the scans with at least ``min_points`` finite points whose points do not all coincide, hold no
     stray point far away and whose extent is within ``UNIT_RATIO`` of the median scan's (from their ``stats``); the
     others are named in ``skipped``."""
@@ -187,8 +200,9 @@ def same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str
     usable = ~flat & ~stray & np.array([why is None for why in sparse])
     median = float(np.median(extents[usable])) if usable.any() else 0.0
     keep = []
-    for k, (s, extent, span, is_flat, is_stray, too_sparse) in enumerate(zip(scans, extents, spans, flat, stray,
-                                                                             sparse)):
+    for k, (s, extent, span, is_flat, is_stray, too_sparse) in enumerate(
+        zip(scans, extents, spans, flat, stray, sparse)
+    ):
         ratio = extent / median if median > 0 else 1.0
         if too_sparse:
             skipped[s.name] = too_sparse
@@ -197,8 +211,10 @@ def same_units(scans: list[Scan], stats: list[ScanStats], skipped: dict[str, str
         elif is_stray:
             skipped[s.name] = f"its points span {span:.3g} but 98 % of them {extent:.3g}: a stray point far away?"
         elif not 1 / UNIT_RATIO <= ratio <= UNIT_RATIO:
-            skipped[s.name] = (f"its extent {extent:.3g} is {ratio:.3g}x the median scan's {median:.3g}: another unit "
-                               f"or another scene?")
+            skipped[s.name] = (
+                f"its extent {extent:.3g} is {ratio:.3g}x the median scan's {median:.3g}: another unit "
+                f"or another scene?"
+            )
         else:
             keep.append(k)
             continue
@@ -227,13 +243,17 @@ def voxel_doubt(voxel: float, scans: list[Scan], given: bool) -> str:
         if 1 / VOXEL_DOUBT <= ratio <= VOXEL_DOUBT:
             return ""
         times = f"{ratio:.3g}x" if np.isfinite(ratio) else "beyond any multiple of"  # 1e308 / 0.07 overflows
-        return (f" is the voxel {voxel:.3g} right? it is {times} the default {default:.3g}, 1/100 of the median "
-                f"scan's extent")
+        return (
+            f" is the voxel {voxel:.3g} right? it is {times} the default {default:.3g}, 1/100 of the median "
+            f"scan's extent"
+        )
     ratios = spans / (100 * voxel)
     far = [f"{s.name} ({ratio:.2g}x)" for s, ratio in zip(scans, ratios) if not 1 / SPREAD <= ratio <= SPREAD]
     if not far:
         return ""
     named = ", ".join(far[:3]) + (f" and {len(far) - 3} more" if len(far) > 3 else "")
-    return (f" is the voxel {voxel:.3g} right? it is 1/100 of the median scan's extent ({100 * voxel:.3g}), and "
-            f"{named} differ{'s' if len(far) == 1 else ''} from it by more than {SPREAD:g}x: scans of noise or of "
-            f"another scene may have set the median (leave them out, or set --voxel)")
+    return (
+        f" is the voxel {voxel:.3g} right? it is 1/100 of the median scan's extent ({100 * voxel:.3g}), and "
+        f"{named} differ{'s' if len(far) == 1 else ''} from it by more than {SPREAD:g}x: scans of noise or of "
+        f"another scene may have set the median (leave them out, or set --voxel)"
+    )

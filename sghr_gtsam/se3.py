@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-
 # Entry k = 3·row + col of a 3×3 matrix X has the cofactor X[_A]·X[_B] − X[_C]·X[_D].
 _A = np.array([4, 5, 3, 7, 8, 6, 1, 2, 0])
 _B = np.array([8, 6, 7, 2, 0, 1, 5, 3, 4])

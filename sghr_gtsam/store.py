@@ -30,8 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from .cache import MISS, Cache, Kind, cached_map, entry_path, read_entry
-from .types import InputError
+from sghr_gtsam.cache import MISS, Cache, Kind, cached_map, entry_path, read_entry
+from sghr_gtsam.types import InputError
 
 LRU_BYTES = 512 * 2**20
 """What each process keeps of the items it read (``ScanFeatures``, ``Pyramid``, with the search structures its tasks
@@ -110,8 +110,10 @@ def _read_elsewhere(folder: Path, kind: Kind, key: str) -> Any:
     if item is not MISS:
         return item
     if not folder.is_dir():
-        raise InputError(f"{folder} does not exist on {socket.gethostname()}: on a Ray cluster of several machines "
-                         f"the output folder must be on a filesystem every node mounts at the same path")
+        raise InputError(
+            f"{folder} does not exist on {socket.gethostname()}: on a Ray cluster of several machines "
+            f"the output folder must be on a filesystem every node mounts at the same path"
+        )
     raise InputError(f"{path} is missing or damaged: was it changed while the run was using it?")
 
 
@@ -143,8 +145,18 @@ class Store:
         if self._removal is not None:
             self._removal()
 
-    def map(self, kind: Kind, fn: Callable, shared: Any, tasks: Sequence, keys: Sequence[str], workers: int | None,
-            on_result: Callable[[int, Any], None] | None, ray: str | None, keep: Callable[[Any], Any]) -> list:
+    def map(
+        self,
+        kind: Kind,
+        fn: Callable,
+        shared: Any,
+        tasks: Sequence,
+        keys: Sequence[str],
+        workers: int | None,
+        on_result: Callable[[int, Any], None] | None,
+        ray: str | None,
+        keep: Callable[[Any], Any],
+    ) -> list:
         """A per-scan stage (``cache.Cache.map``): each task's result read from the store or computed and written
         as it arrives; the list holds ``keep(result)``."""
         return self.disk.map(kind, fn, shared, tasks, keys, workers, on_result, ray, keep)
@@ -175,14 +187,24 @@ def pair_order(ij: np.ndarray) -> np.ndarray:
     return np.lexsort((ij.max(axis=1), ij.min(axis=1)))
 
 
-def pair_map(cache: Cache | None, kind: Kind, fn: Callable, shared: Any, ij: np.ndarray, tasks: Sequence,
-             keys: Sequence[str | None], workers: int | None, on_result: Callable[[int, Any], None] | None,
-             ray: str | None) -> list:
+def pair_map(
+    cache: Cache | None,
+    kind: Kind,
+    fn: Callable,
+    shared: Any,
+    ij: np.ndarray,
+    tasks: Sequence,
+    keys: Sequence[str | None],
+    workers: int | None,
+    on_result: Callable[[int, Any], None] | None,
+    ray: str | None,
+) -> list:
     """``cache.cached_map`` of one task a pair (row of ``ij``), run in ``pair_order``; results in the tasks' order
     (``on_result`` is told of them in the order they ran)."""
     order = pair_order(ij)
-    ran = cached_map(cache, kind, fn, shared, [tasks[o] for o in order], [keys[o] for o in order], workers,
-                     on_result, ray)
+    ran = cached_map(
+        cache, kind, fn, shared, [tasks[o] for o in order], [keys[o] for o in order], workers, on_result, ray
+    )
     results: list = [None] * len(tasks)
     for o, result in zip(order, ran):
         results[o] = result

@@ -43,9 +43,9 @@ import io
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -85,8 +85,13 @@ def write_cache_scene(path: str | Path, descriptors: list[np.ndarray], overlap: 
         raise ValueError(f"overlap is {overlap.shape} for {len(descriptors)} scans")
     offsets = np.cumsum([0] + [len(d) for d in descriptors])
     buffer = io.BytesIO()
-    np.savez(buffer, desc=np.concatenate(descriptors).astype(np.float16), offsets=offsets, overlap=overlap,
-             **{k: np.asarray(v) for k, v in extra.items()})
+    np.savez(
+        buffer,
+        desc=np.concatenate(descriptors).astype(np.float16),
+        offsets=offsets,
+        overlap=overlap,
+        **{k: np.asarray(v) for k, v in extra.items()},
+    )
     with atomic_write(path, "wb") as f:
         f.write(buffer.getvalue())
 
@@ -104,8 +109,9 @@ def load_cache(folder: str | Path, limit: int | None = None) -> list[CachedScene
     folder = Path(folder)
     paths = sorted(folder.glob("scene_*.npz")) if folder.is_dir() else []
     if not paths:
-        raise InputError(f"no cached scenes (scene_*.npz) in {folder}: make them with "
-                         f"'python -m data_tools.simulate {folder}'")
+        raise InputError(
+            f"no cached scenes (scene_*.npz) in {folder}: make them with 'python -m data_tools.simulate {folder}'"
+        )
     return [_read_cached(path) for path in paths[:limit]]
 
 
@@ -123,10 +129,21 @@ def _read_cached(path: Path) -> CachedScene:
     except Exception as e:  # noqa: BLE001 - a corrupt or truncated archive fails in numpy or zipfile
         raise InputError(f"cannot read cached scene {path}: {' '.join(str(e).split()) or type(e).__name__}") from None
     n = len(off) - 1
-    if (desc.ndim != 2 or off.ndim != 1 or n < 2 or off[0] != 0 or off[-1] != len(desc) or np.any(np.diff(off) < 1)
-            or overlap.shape != (n, n) or not np.isfinite(desc).all() or not np.isfinite(overlap).all()):
-        raise InputError(f"cached scene {path} is inconsistent: descriptors {desc.shape}, offsets {off.shape}, "
-                         f"overlap {overlap.shape} (expected at least 2 scans of at least one descriptor)")
+    if (
+        desc.ndim != 2
+        or off.ndim != 1
+        or n < 2
+        or off[0] != 0
+        or off[-1] != len(desc)
+        or np.any(np.diff(off) < 1)
+        or overlap.shape != (n, n)
+        or not np.isfinite(desc).all()
+        or not np.isfinite(overlap).all()
+    ):
+        raise InputError(
+            f"cached scene {path} is inconsistent: descriptors {desc.shape}, offsets {off.shape}, "
+            f"overlap {overlap.shape} (expected at least 2 scans of at least one descriptor)"
+        )
     return CachedScene(path.stem, [desc[a:b] for a, b in zip(off[:-1], off[1:])], overlap, kind)
 
 
@@ -158,7 +175,7 @@ class NetVLAD(nn.Module):
         return nnf.normalize(vlad.flatten(1), p=2, dim=1)
 
     @classmethod
-    def from_head(cls, head: VladHead) -> "NetVLAD":
+    def from_head(cls, head: VladHead) -> NetVLAD:
         model = cls(*head.centroids.shape)
         with torch.no_grad():
             model.centroids.copy_(torch.as_tensor(head.centroids))
@@ -168,11 +185,13 @@ class NetVLAD(nn.Module):
 
     def head(self) -> VladHead:
         """The parameters as the pipeline's numpy ``VladHead``."""
+
         def array(t: torch.Tensor) -> np.ndarray:
             return t.detach().double().numpy().copy()
 
-        return VladHead(array(self.centroids), array(self.conv.weight).reshape(len(self.centroids), -1),
-                        array(self.conv.bias))
+        return VladHead(
+            array(self.centroids), array(self.conv.weight).reshape(len(self.centroids), -1), array(self.conv.bias)
+        )
 
 
 MAX_CLUSTERS = 1024
@@ -186,8 +205,9 @@ def init_head(scenes: list[CachedScene], clusters: int = 64, seed: int = 0) -> N
     for s in scenes:
         for d in s.descriptors:
             sample.append(d[rng.choice(len(d), min(len(d), 200), replace=False)])
-    return NetVLAD.from_head(VladHead.from_codebook(kmeans_codebook(sample, clusters=clusters, samples=50_000,
-                                                                      seed=seed)))
+    return NetVLAD.from_head(
+        VladHead.from_codebook(kmeans_codebook(sample, clusters=clusters, samples=50_000, seed=seed))
+    )
 
 
 def pair_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor) -> torch.Tensor:
@@ -215,8 +235,9 @@ def listwise_loss(cosines: torch.Tensor, overlap: torch.Tensor, log_tau: torch.T
     return (p * (torch.log(p.clamp_min(1e-30)) - logq)).sum(1).mean()
 
 
-def pairwise_loss(cosines: torch.Tensor, overlap: torch.Tensor, log_tau: torch.Tensor | float,
-                  margin: float = MARGIN) -> torch.Tensor:
+def pairwise_loss(
+    cosines: torch.Tensor, overlap: torch.Tensor, log_tau: torch.Tensor | float, margin: float = MARGIN
+) -> torch.Tensor:
     """Pairwise logistic loss: mean of ``softplus(−(C_ij − C_il)/τ)`` over the triples (i, j, l), j, l ≠ i,
     with ``o_ij − o_il > margin``; ``cosines`` and ``overlap`` (α, α), ``τ = exp(log_tau)``."""
     n = len(cosines)
@@ -230,8 +251,14 @@ def pairwise_loss(cosines: torch.Tensor, overlap: torch.Tensor, log_tau: torch.T
     return torch.nn.functional.softplus(-diff / tau).mean()
 
 
-def step_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor, loss: str = "l1",
-              log_tau: torch.Tensor | float = float(np.log(TAU)), margin: float = MARGIN) -> torch.Tensor:
+def step_loss(
+    model: NetVLAD,
+    x: torch.Tensor,
+    overlap: torch.Tensor,
+    loss: str = "l1",
+    log_tau: torch.Tensor | float = float(np.log(TAU)),
+    margin: float = MARGIN,
+) -> torch.Tensor:
     """The training loss ``loss`` (one of ``LOSSES``) of one step: ``x`` (α, D, β), ``overlap`` (α, α)."""
     if loss == "l1":
         return pair_loss(model, x, overlap)
@@ -243,8 +270,9 @@ def step_loss(model: NetVLAD, x: torch.Tensor, overlap: torch.Tensor, loss: str 
     raise InputError(f"unknown loss {loss!r} ({', '.join(LOSSES)})")
 
 
-def sample_step(scene: CachedScene, rng: np.random.Generator, alpha: tuple[int, int] = ALPHA,
-                beta: tuple[int, int] = BETA) -> tuple[torch.Tensor, torch.Tensor]:
+def sample_step(
+    scene: CachedScene, rng: np.random.Generator, alpha: tuple[int, int] = ALPHA, beta: tuple[int, int] = BETA
+) -> tuple[torch.Tensor, torch.Tensor]:
     """α scans of ``scene`` (all if it has fewer), β descriptors each (drawn with replacement only from a
     scan with fewer): (α, D, β) descriptors and the (α, α) GT overlaps."""
     n = len(scene.descriptors)
@@ -267,7 +295,10 @@ def _score(scenes: list[CachedScene], features: Callable[[list[np.ndarray]], np.
         iu = np.triu_indices(len(S), 1)
         l1.append(float(np.abs(S[iu] - s.overlap[iu]).mean()))
         rho.append(float(spearmanr(S[iu], s.overlap[iu]).statistic))
-    return {"l1": float(np.mean(l1)) if l1 else float("nan"), "spearman": float(np.nanmean(rho)) if rho else float("nan")}
+    return {
+        "l1": float(np.mean(l1)) if l1 else float("nan"),
+        "spearman": float(np.nanmean(rho)) if rho else float("nan"),
+    }
 
 
 def evaluate(model: NetVLAD | VladHead, scenes: list[CachedScene], seed: int = 0) -> dict[str, float]:
@@ -351,17 +382,28 @@ def train(
     if not (math.isfinite(lr) and lr > 0):  # torch's Adam refused a negative one mid-start, NaN it took
         raise InputError(f"lr must be positive and finite, got {lr}")
     if not 1 <= clusters <= MAX_CLUSTERS:
-        raise InputError(f"clusters must be from 1 to {MAX_CLUSTERS:,} (NetVLAD's usual 64; each adds a block of the "
-                         f"global feature and of every batch's memory), got {clusters:,}")
+        raise InputError(
+            f"clusters must be from 1 to {MAX_CLUSTERS:,} (NetVLAD's usual 64; each adds a block of the "
+            f"global feature and of every batch's memory), got {clusters:,}"
+        )
     started = time.perf_counter()
     torch.manual_seed(seed)
     scenes = load_cache(data_dir, limit)
     train_set, val_set = split(scenes)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    settings = {"data_dir": str(Path(data_dir).resolve()), "scenes": len(scenes), "seed": seed, "clusters": clusters,
-                "lr": lr, "decay_every": decay_every, "decay": decay, "alpha": list(alpha), "beta": list(beta),
-                "loss": loss}
+    settings = {
+        "data_dir": str(Path(data_dir).resolve()),
+        "scenes": len(scenes),
+        "seed": seed,
+        "clusters": clusters,
+        "lr": lr,
+        "decay_every": decay_every,
+        "decay": decay,
+        "alpha": list(alpha),
+        "beta": list(beta),
+        "loss": loss,
+    }
     if loss != "l1":
         settings["tau"] = tau
         if loss == "pairwise":
@@ -376,7 +418,7 @@ def train(
         if mismatch:
             raise InputError(f"cannot resume {last}: settings differ {mismatch}")
         model = NetVLAD(*state["network_state_dict"][PREFIX + "centroids"].shape)
-        model.load_state_dict({k[len(PREFIX):]: v for k, v in state["network_state_dict"].items()})
+        model.load_state_dict({k[len(PREFIX) :]: v for k, v in state["network_state_dict"].items()})
         history, start = state["history"], state["epoch"] + 1
         best = {"val_spearman": float("-inf"), "train_loss": float("inf"), **state["best"]}
         log_tau = torch.nn.Parameter(torch.tensor(float(state.get("log_tau", np.log(tau))), dtype=torch.float32))
@@ -397,11 +439,14 @@ def train(
     reference = evaluate_codebook(val_set, seed) if val_set else {"l1": float("nan"), "spearman": float("nan")}
     if start == 0:
         v = evaluate(model, val_set, seed) if val_set else {"l1": float("nan"), "spearman": float("nan")}
-        log(f"{len(train_set)} training + {len(val_set)} validation scenes, {loss} loss; initial (k-means "
+        log(
+            f"{len(train_set)} training + {len(val_set)} validation scenes, {loss} loss; initial (k-means "
             f"codebook of the training scenes) validation L1 {v['l1']:.4f}, Spearman {v['spearman']:.3f}; the "
-            f"pipeline's per-scene codebook: Spearman {reference['spearman']:.3f}")
-        history.append({"epoch": -1, "train_loss": float("nan"), "val_l1": v["l1"], "val_spearman": v["spearman"],
-                        "lr": lr})
+            f"pipeline's per-scene codebook: Spearman {reference['spearman']:.3f}"
+        )
+        history.append(
+            {"epoch": -1, "train_loss": float("nan"), "val_l1": v["l1"], "val_spearman": v["spearman"], "lr": lr}
+        )
 
     bar = tqdm(range(start, epochs), total=epochs, initial=start, desc="train", unit="epoch", disable=not progress)
     for epoch in bar:
@@ -423,11 +468,24 @@ def train(
         else:
             v = {"l1": float(np.mean(losses)) if loss == "l1" else float("nan"), "spearman": float("nan")}
         train_loss = float(np.mean(losses))
-        history.append({"epoch": epoch, "train_loss": train_loss, "val_l1": v["l1"], "val_spearman": v["spearman"],
-                        "lr": optimizer.param_groups[0]["lr"]}
-                       | ({"tau": float(torch.exp(log_tau.detach()))} if loss != "l1" else {}))
-        meta = {**settings, "epoch": epoch, "train_loss": train_loss, "val_l1": v["l1"],
-                "val_spearman": v["spearman"], "descriptor": "fpfh"}
+        history.append(
+            {
+                "epoch": epoch,
+                "train_loss": train_loss,
+                "val_l1": v["l1"],
+                "val_spearman": v["spearman"],
+                "lr": optimizer.param_groups[0]["lr"],
+            }
+            | ({"tau": float(torch.exp(log_tau.detach()))} if loss != "l1" else {})
+        )
+        meta = {
+            **settings,
+            "epoch": epoch,
+            "train_loss": train_loss,
+            "val_l1": v["l1"],
+            "val_spearman": v["spearman"],
+            "descriptor": "fpfh",
+        }
         if not val_set and by_spearman:
             better = train_loss < best["train_loss"]
         elif by_spearman:
@@ -437,9 +495,19 @@ def train(
         if better:
             best = {"val_l1": v["l1"], "val_spearman": v["spearman"], "train_loss": train_loss, "epoch": epoch}
             save_head(model, best_path, meta)
-        _save(last, {"network_state_dict": head_state(model), "optimizer": optimizer.state_dict(),
-                     "scheduler": scheduler.state_dict(), "epoch": epoch, "history": history, "best": best,
-                     "settings": settings, "log_tau": float(log_tau.detach())})
+        _save(
+            last,
+            {
+                "network_state_dict": head_state(model),
+                "optimizer": optimizer.state_dict(),
+                "scheduler": scheduler.state_dict(),
+                "epoch": epoch,
+                "history": history,
+                "best": best,
+                "settings": settings,
+                "log_tau": float(log_tau.detach()),
+            },
+        )
         if np.isfinite(v["spearman"]):
             bar.set_postfix(train=f"{train_loss:.4f}", val=f"{v['l1']:.4f}", rho=f"{v['spearman']:.3f}")
         else:
@@ -453,16 +521,26 @@ def train(
             torch.save(best_state, buffer)
             f.write(buffer.getvalue())
     with atomic_write(out / "history.json") as f:
-        json.dump({"settings": settings, "best": best, "history": history,
-                   "per_scene_codebook": reference}, f, indent=1)
-    summary = {"epochs": epochs, "loss": loss, "final_train_loss": history[-1]["train_loss"],
-               "final_val_l1": history[-1]["val_l1"], "final_val_spearman": history[-1]["val_spearman"],
-               "best": best, "per_scene_codebook": reference, "head": str(head_path),
-               "seconds": time.perf_counter() - started}
-    log(f"done: epoch {epochs}, training {loss} loss {summary['final_train_loss']:.4f}, validation L1 "
+        json.dump(
+            {"settings": settings, "best": best, "history": history, "per_scene_codebook": reference}, f, indent=1
+        )
+    summary = {
+        "epochs": epochs,
+        "loss": loss,
+        "final_train_loss": history[-1]["train_loss"],
+        "final_val_l1": history[-1]["val_l1"],
+        "final_val_spearman": history[-1]["val_spearman"],
+        "best": best,
+        "per_scene_codebook": reference,
+        "head": str(head_path),
+        "seconds": time.perf_counter() - started,
+    }
+    log(
+        f"done: epoch {epochs}, training {loss} loss {summary['final_train_loss']:.4f}, validation L1 "
         f"{summary['final_val_l1']:.4f}, Spearman {summary['final_val_spearman']:.3f}; kept epoch {best['epoch']} "
         f"(validation L1 {best['val_l1']:.4f}, Spearman {best['val_spearman']:.3f}; the per-scene codebook: "
-        f"{reference['spearman']:.3f}) -> {head_path}")
+        f"{reference['spearman']:.3f}) -> {head_path}"
+    )
     return summary
 
 
@@ -474,15 +552,28 @@ def train_command(
     resume: bool = typer.Option(False, help="Continue from OUT/last.pth up to EPOCHS."),
     clusters: int = typer.Option(64, help="NetVLAD clusters."),
     lr: float = typer.Option(1e-3, help="Adam learning rate (x0.7 every 50 epochs)."),
-    loss: str = typer.Option("l1", help="l1 (the paper's: L1 between scores and GT overlaps; best.pth by "
-                             "validation L1), listwise (softmax KL, per scan) or pairwise (logistic, per scan); the "
-                             "last two keep the head with the best validation Spearman."),
+    loss: str = typer.Option(
+        "l1",
+        help="l1 (the paper's: L1 between scores and GT overlaps; best.pth by "
+        "validation L1), listwise (softmax KL, per scan) or pairwise (logistic, per scan); the "
+        "last two keep the head with the best validation Spearman.",
+    ),
     tau: float = typer.Option(TAU, help="Initial temperature of the listwise / pairwise loss (learned)."),
 ) -> None:
     """Train the NetVLAD overlap head on FPFH descriptors of simulated scenes (SGHR's recipe)."""
     try:
-        train(data_dir, out, epochs=epochs, seed=seed, resume=resume, clusters=clusters, lr=lr, loss=loss, tau=tau,
-              log=typer.echo)
+        train(
+            data_dir,
+            out,
+            epochs=epochs,
+            seed=seed,
+            resume=resume,
+            clusters=clusters,
+            lr=lr,
+            loss=loss,
+            tau=tau,
+            log=typer.echo,
+        )
     except InputError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(2) from None

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InputError  # noqa: F401 - re-exported: the stages import it with the types
+from sghr_gtsam.errors import InputError  # noqa: F401 - re-exported: the stages import it with the types
 
 
 @dataclass
@@ -51,7 +51,7 @@ class ScanStats:
     digest: str
 
     @classmethod
-    def of(cls, points: np.ndarray) -> "ScanStats":
+    def of(cls, points: np.ndarray) -> ScanStats:
         """The statistics of finite (P, 3) float64 ``points``; column by column, so that the percentiles' working
         copy is a third of the points."""
         low, high, median = np.zeros(3), np.zeros(3), np.zeros(3)
@@ -83,7 +83,7 @@ class Scan:
     def input_points(self) -> np.ndarray:
         """The scan's finite points in its input frame, (P, 3) float64, read from its file if it has one
         (``InputError`` when it cannot be read or would not fit in memory: ``io.scans.check_memory``)."""
-        from .io.scans import check_memory, finite_points, load_scan  # io builds on this module
+        from sghr_gtsam.io.scans import check_memory, finite_points, load_scan  # io builds on this module
 
         if isinstance(self.source, (str, os.PathLike)):
             check_memory(self.source)

@@ -29,7 +29,8 @@ standard one:
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
 that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
 from the passing registrations' measured information scaled by the a posteriori variance factor ``σ̂₀²`` (the median
-``χ²`` over the median of ``χ²₆``: robust, never below 1), plus the bounds as they are. Its spread is set by those bounds, not by measurements, when
+``χ²`` over the median of ``χ²₆``: robust, never below 1), plus the bounds as they are. Its spread is set by those
+bounds, not by measurements, when
 it shrinks by more than ``STIFFEN^¼`` (the geometric middle of no change and ``√STIFFEN``) with every bound
 ``STIFFEN`` times stiffer; such a scan is reported loose with the direction and σ, and doubted only where σ
 exceeds ``Verification.max_sigma``.
@@ -41,18 +42,18 @@ placed where its best join puts it, and marked so (``Part.join``).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from itertools import chain
 from dataclasses import asdict, dataclass, field, replace
+from itertools import chain
 
 import gtsam
 import networkx as nx
 import numpy as np
 from scipy.special import chdtri
 
-from .sync.consensus import consistent_edges, translation_tolerance
-from .sync.disputes import agreeing_edges, linkage_groups
-from .sync.rotation import connected_components
-from .types import PoseGraph
+from sghr_gtsam.sync.consensus import consistent_edges, translation_tolerance
+from sghr_gtsam.sync.disputes import agreeing_edges, linkage_groups
+from sghr_gtsam.sync.rotation import connected_components
+from sghr_gtsam.types import PoseGraph
 
 STIFFEN = 100.0
 """How much stiffer the free directions' bounds are made to tell a spread they set from a measured one: one they
@@ -60,11 +61,13 @@ set shrinks by √STIFFEN = 10, one the measurements set does not move."""
 MIN_AGREEING = 2
 """Dropped registrations that must agree on another placement before it competes: as many as verify a placement."""
 _CHI2_6_MEDIAN = float(chdtri(6, 0.5))  # scipy.special: scipy.stats costs a second to import
-REASONS = {"single registration": "held by one registration, or through one scan, that no loop checks",
-           "loop error": "its registrations do not close their loops within their noise",
-           "competing placement": "dropped registrations agree on another placement of it and outweigh its own",
-           "free space": "placed where other scans saw empty space, or seeing empty space where they are",
-           "loose": "its registrations leave a direction free beyond the tolerance (see report.json loose)"}
+REASONS = {
+    "single registration": "held by one registration, or through one scan, that no loop checks",
+    "loop error": "its registrations do not close their loops within their noise",
+    "competing placement": "dropped registrations agree on another placement of it and outweigh its own",
+    "free space": "placed where other scans saw empty space, or seeing empty space where they are",
+    "loose": "its registrations leave a direction free beyond the tolerance (see report.json loose)",
+}
 """Why a placed scan is doubtful: one of these, the first that applies in this order."""
 STATUSES = ("verified", "doubtful", "unplaced")
 
@@ -121,20 +124,38 @@ class Verdict:
         return [name for name in (self.parts[0].scans if self.parts else []) if self.status[name] == "verified"]
 
     def as_dict(self) -> dict:
-        return {"parts": [{"id": p.id, "scans": p.scans, "frame": p.frame,
-                           "join": None if p.join is None else asdict(p.join)} for p in self.parts],
-                "status": self.status, "doubts": self.doubts, "loose": self.loose,
-                "robust_variance_factor": None if not np.isfinite(self.variance_factor) else self.variance_factor}
+        return {
+            "parts": [
+                {"id": p.id, "scans": p.scans, "frame": p.frame, "join": None if p.join is None else asdict(p.join)}
+                for p in self.parts
+            ],
+            "status": self.status,
+            "doubts": self.doubts,
+            "loose": self.loose,
+            "robust_variance_factor": None if not np.isfinite(self.variance_factor) else self.variance_factor,
+        }
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Verdict":
+    def from_dict(cls, data: dict) -> Verdict:
         """The verdict ``as_dict`` wrote (report.json's fields)."""
-        parts = [Part(int(p["id"]), list(p["scans"]), None if p["join"] is None else
-                      Join(int(p["join"]["to"]), [tuple(e) for e in p["join"]["edges"]], str(p["join"]["why"])))
-                 for p in data["parts"]]
+        parts = [
+            Part(
+                int(p["id"]),
+                list(p["scans"]),
+                None
+                if p["join"] is None
+                else Join(int(p["join"]["to"]), [tuple(e) for e in p["join"]["edges"]], str(p["join"]["why"])),
+            )
+            for p in data["parts"]
+        ]
         factor = data.get("robust_variance_factor")
-        return cls(parts, dict(data["status"]), dict(data["doubts"]), dict(data.get("loose") or {}),
-                   float("nan") if factor is None else float(factor))
+        return cls(
+            parts,
+            dict(data["status"]),
+            dict(data["doubts"]),
+            dict(data.get("loose") or {}),
+            float("nan") if factor is None else float(factor),
+        )
 
     def summary(self, max_lines: int = 12) -> list[str]:
         """One line per part of two or more scans, then the single scans in one line: at most ``max_lines`` + 2."""
@@ -142,8 +163,11 @@ class Verdict:
         many = [p for p in self.parts if len(p.scans) > 1]
         for p in many[:max_lines]:
             doubtful = [s for s in p.scans if self.status[s] == "doubtful"]
-            where = "the world" if p.join is None and p.id == 0 else (
-                f"joined to part {p.join.to} by a join that failed: {p.join.why}" if p.join else "not joined")
+            where = (
+                "the world"
+                if p.join is None and p.id == 0
+                else (f"joined to part {p.join.to} by a join that failed: {p.join.why}" if p.join else "not joined")
+            )
             said = f"part {p.id}: {len(p.scans)} scans, {len(p.scans) - len(doubtful)} verified; {where}"
             if doubtful:
                 said += "; doubtful: " + _listed(doubtful, self.doubts)
@@ -198,8 +222,7 @@ def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, plac
     part of its own."""
     G = nx.Graph()
     G.add_edges_from(zip(i[verified].tolist(), j[verified].tolist()))
-    components = sorted((sorted(c) for c in nx.biconnected_components(G) if len(c) >= 3),
-                        key=lambda c: (-len(c), c[0]))
+    components = sorted((sorted(c) for c in nx.biconnected_components(G) if len(c) >= 3), key=lambda c: (-len(c), c[0]))
     label = np.full(n, -1)
     for x, c in enumerate(components):
         free = [k for k in c if label[k] < 0]
@@ -213,8 +236,18 @@ def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, plac
     return np.where(label >= 0, rank[np.maximum(label, 0)], -1)
 
 
-def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.ndarray, passed: np.ndarray,
-          disputed: np.ndarray, alike: np.ndarray, weight: np.ndarray, names: Sequence[str]) -> Join | None:
+def _join(
+    part: int,
+    label: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    kept: np.ndarray,
+    passed: np.ndarray,
+    disputed: np.ndarray,
+    alike: np.ndarray,
+    weight: np.ndarray,
+    names: Sequence[str],
+) -> Join | None:
     """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none)."""
     a, b = label[i], label[j]
     out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
@@ -235,17 +268,28 @@ def _join(part: int, label: np.ndarray, i: np.ndarray, j: np.ndarray, kept: np.n
     else:
         inside = np.where(a[good] == part, i[good], j[good])
         outside = np.where(a[good] == part, j[good], i[good])
-        why = "every registration goes through one scan (an articulation point)" if (
-            len(set(inside.tolist())) == 1 or len(set(outside.tolist())) == 1) else \
-            "registrations that close no loop with the part"
+        why = (
+            "every registration goes through one scan (an articulation point)"
+            if (len(set(inside.tolist())) == 1 or len(set(outside.tolist())) == 1)
+            else "registrations that close no loop with the part"
+        )
     return Join(to=to, edges=[(names[i[x]], names[j[x]]) for x in e], why=why)
 
 
-def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.ndarray, placed: np.ndarray,
-           params: Verification, points: Sequence[np.ndarray] | None = None,
-           information: np.ndarray | None = None, free: np.ndarray | None = None,
-           clash: Callable[[np.ndarray], np.ndarray] | None = None, dependent: np.ndarray | None = None,
-           look_alike: Sequence[np.ndarray] = ()) -> Verdict:
+def verify(
+    names: Sequence[str],
+    graph: PoseGraph,
+    kept: np.ndarray,
+    poses: np.ndarray,
+    placed: np.ndarray,
+    params: Verification,
+    points: Sequence[np.ndarray] | None = None,
+    information: np.ndarray | None = None,
+    free: np.ndarray | None = None,
+    clash: Callable[[np.ndarray], np.ndarray] | None = None,
+    dependent: np.ndarray | None = None,
+    look_alike: Sequence[np.ndarray] = (),
+) -> Verdict:
     """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
     ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
     k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
@@ -279,8 +323,11 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     for ends in (graph.i, graph.j):
         np.logical_or.at(failing, ends[kept & ~passed], True)
     contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
-    max_sigma = translation_tolerance(replace(graph, weight=kept.astype(float))) if params.max_sigma is None \
+    max_sigma = (
+        translation_tolerance(replace(graph, weight=kept.astype(float)))
+        if params.max_sigma is None
         else params.max_sigma
+    )
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
     if points is not None and information is not None and free is not None:
@@ -294,8 +341,9 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
             members = held == x
             if members.sum() >= 2 and (has_free & within & members[graph.i] & members[graph.j]).any():
                 _part_spreads(members, graph, within, measured + free, poses, points, spreads, axes)
-                _part_spreads(members, graph, within, measured + STIFFEN * free, poses, points, stiff,
-                              np.full((n, 3), np.nan))
+                _part_spreads(
+                    members, graph, within, measured + STIFFEN * free, poses, points, stiff, np.full((n, 3), np.nan)
+                )
     bound = placed & (np.nan_to_num(spreads, nan=0.0) > STIFFEN**0.25 * np.nan_to_num(stiff, nan=np.inf))
     loose = bound & (spreads > max_sigma)
     status, doubts, loose_said = {}, {}, {}
@@ -303,8 +351,15 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
         if not placed[k]:
             status[name] = "unplaced"
             continue
-        reason = _alone_reason(k, graph, kept, passed, disputed) if alone[k] else \
-            "free space" if contradicted[k] else "loose" if loose[k] else None
+        reason = (
+            _alone_reason(k, graph, kept, passed, disputed)
+            if alone[k]
+            else "free space"
+            if contradicted[k]
+            else "loose"
+            if loose[k]
+            else None
+        )
         status[name] = "verified" if reason is None else "doubtful"
         if reason:
             doubts[name] = reason
@@ -313,12 +368,20 @@ def verify(names: Sequence[str], graph: PoseGraph, kept: np.ndarray, poses: np.n
     return Verdict(parts=parts, status=status, doubts=doubts, loose=loose_said, variance_factor=factor)
 
 
-def _part_spreads(members: np.ndarray, graph: PoseGraph, passed: np.ndarray, information: np.ndarray,
-                  poses: np.ndarray, points: Sequence[np.ndarray], spreads: np.ndarray, axes: np.ndarray) -> None:
+def _part_spreads(
+    members: np.ndarray,
+    graph: PoseGraph,
+    passed: np.ndarray,
+    information: np.ndarray,
+    poses: np.ndarray,
+    points: Sequence[np.ndarray],
+    spreads: np.ndarray,
+    axes: np.ndarray,
+) -> None:
     """Fill ``spreads`` and ``axes`` (``registration.information.loosest``) of the ``members`` scans from the
     marginal covariances of their passing registrations, relative to their first scan (a stiff prior)."""
-    from .factor_graph import anchor_prior
-    from .registration.information import loosest
+    from sghr_gtsam.factor_graph import anchor_prior
+    from sghr_gtsam.registration.information import loosest
 
     edges = np.flatnonzero(passed & members[graph.i] & members[graph.j])
     factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -326,10 +389,19 @@ def _part_spreads(members: np.ndarray, graph: PoseGraph, passed: np.ndarray, inf
     for k in nodes:
         values.insert(int(k), gtsam.Pose3(poses[k]))
     for e in edges:
-        factors.add(gtsam.BetweenFactorPose3(int(graph.i[e]), int(graph.j[e]), gtsam.Pose3(graph.T[e]),
-                                             gtsam.noiseModel.Gaussian.Information(information[e])))
-    factors.add(gtsam.PriorFactorPose3(int(nodes[0]), gtsam.Pose3(poses[nodes[0]]),
-                                       anchor_prior(float(np.abs(information[edges]).max()))))
+        factors.add(
+            gtsam.BetweenFactorPose3(
+                int(graph.i[e]),
+                int(graph.j[e]),
+                gtsam.Pose3(graph.T[e]),
+                gtsam.noiseModel.Gaussian.Information(information[e]),
+            )
+        )
+    factors.add(
+        gtsam.PriorFactorPose3(
+            int(nodes[0]), gtsam.Pose3(poses[nodes[0]]), anchor_prior(float(np.abs(information[edges]).max()))
+        )
+    )
     try:
         marginals = gtsam.Marginals(factors, values)
     except RuntimeError:  # indeterminate: some direction nothing fixes
@@ -382,5 +454,15 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
     return out
 
 
-__all__ = ["Verification", "Verdict", "Part", "Join", "REASONS", "STATUSES", "verify", "edge_chi2",
-           "robust_variance_factor", "rigid_parts"]
+__all__ = [
+    "Verification",
+    "Verdict",
+    "Part",
+    "Join",
+    "REASONS",
+    "STATUSES",
+    "verify",
+    "edge_chi2",
+    "robust_variance_factor",
+    "rigid_parts",
+]

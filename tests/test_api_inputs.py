@@ -91,14 +91,17 @@ def test_run_like_rejected_graph_round_trips(n, data):
 # --- 2. writers refuse what their readers reject, before writing ----------------------------------------------------
 
 
-@pytest.mark.parametrize("case, ids, i, j, match", [
-    ("duplicate ids", [3, 3], [0], [1], "duplicate vertex ids"),
-    ("string id", ["a", 1], [0], [1], "ids must be integers"),
-    ("float id", [0.0, 1], [0], [1], "ids must be integers"),
-    ("edge index out of range", [0, 1], [0], [2], "not two different nodes"),
-    ("negative edge index", [0, 1], [-1], [1], "not two different nodes"),
-    ("self-loop", [0, 1], [1], [1], "not two different nodes"),
-])
+@pytest.mark.parametrize(
+    "case, ids, i, j, match",
+    [
+        ("duplicate ids", [3, 3], [0], [1], "duplicate vertex ids"),
+        ("string id", ["a", 1], [0], [1], "ids must be integers"),
+        ("float id", [0.0, 1], [0], [1], "ids must be integers"),
+        ("edge index out of range", [0, 1], [0], [2], "not two different nodes"),
+        ("negative edge index", [0, 1], [-1], [1], "not two different nodes"),
+        ("self-loop", [0, 1], [1], [1], "not two different nodes"),
+    ],
+)
 def test_write_g2o_refuses_what_read_g2o_rejects(tmp_path, case, ids, i, j, match):
     graph = PoseGraph(2, np.array(i), np.array(j), np.eye(4)[None], np.ones(1))
     _refused(match, write_g2o, tmp_path / "g.g2o", ids, np.stack([np.eye(4)] * 2), graph)
@@ -110,10 +113,12 @@ def test_write_g2o_refuses_bad_values(tmp_path):
     poses = np.stack([np.eye(4)] * 2)
     sheared = np.eye(4)
     sheared[0, 1] = 0.5
-    for bad, match in ((replace(graph, T=2 * np.eye(4)[None]), "edge 0 is not a rigid transform"),
-                       (replace(graph, T=sheared[None]), "edge 0 is not a rigid transform"),
-                       (replace(graph, information=-np.eye(6)[None]), "not positive semi-definite"),
-                       (replace(graph, information=np.triu(np.ones((6, 6)))[None]), "not symmetric")):
+    for bad, match in (
+        (replace(graph, T=2 * np.eye(4)[None]), "edge 0 is not a rigid transform"),
+        (replace(graph, T=sheared[None]), "edge 0 is not a rigid transform"),
+        (replace(graph, information=-np.eye(6)[None]), "not positive semi-definite"),
+        (replace(graph, information=np.triu(np.ones((6, 6)))[None]), "not symmetric"),
+    ):
         _refused(match, write_g2o, tmp_path / "g.g2o", [0, 1], poses, bad)
     nan = np.stack([np.eye(4), np.full((4, 4), np.nan)])
     _refused("pose 1 is not finite", write_g2o, tmp_path / "g.g2o", [0, 1], nan, graph)
@@ -121,8 +126,11 @@ def test_write_g2o_refuses_bad_values(tmp_path):
 
 
 def test_empty_pose_files_are_refused_by_writer_and_reader_alike(tmp_path):
-    for write, args in ((write_poses, ([], np.zeros((0, 4, 4)))), (write_kitti, (np.zeros((0, 4, 4)),)),
-                        (write_tum, (np.zeros((0, 4, 4)), []))):
+    for write, args in (
+        (write_poses, ([], np.zeros((0, 4, 4)))),
+        (write_kitti, (np.zeros((0, 4, 4)),)),
+        (write_tum, (np.zeros((0, 4, 4)), [])),
+    ):
         _refused("non-empty", write, tmp_path / "p.txt", *args)
     assert list(tmp_path.iterdir()) == []
     (tmp_path / "p.txt").write_text("")
@@ -141,8 +149,11 @@ def test_write_tum_refuses_poses_it_cannot_write_as_a_quaternion(tmp_path):
     scaled[2, :3, :3] *= 2.0  # read back as a rotation it would differ by up to 1
     mirrored = poses.copy()
     mirrored[0, :3, 0] *= -1.0
-    for bad, match in ((nan, "TUM pose 1 is not finite"), (scaled, "TUM pose 2 is not a rigid"),
-                       (mirrored, "TUM pose 0 is not a rigid")):
+    for bad, match in (
+        (nan, "TUM pose 1 is not finite"),
+        (scaled, "TUM pose 2 is not a rigid"),
+        (mirrored, "TUM pose 0 is not a rigid"),
+    ):
         _refused(match, write_tum, tmp_path / "t.txt", bad, [0, 1, 2])
     _refused("finite increasing timestamps", write_tum, tmp_path / "t.txt", poses, [0, np.nan, 2])
     _refused("finite increasing timestamps", write_tum, tmp_path / "t.txt", poses, [0, 1, np.inf])
@@ -190,8 +201,9 @@ def test_alignments_refuse_nan():
 def test_registration_recall_names_a_missing_info_entry():
     poses = _rigid(4, 5)
     log = {(0, 2): inv_T(poses[0]) @ poses[2], (1, 3): inv_T(poses[1]) @ poses[3]}
-    _refused(r"no entry for the gt.log pair \(1, 3\)", registration_recall, [0, 1, 2, 3], poses, log,
-             {(0, 2): np.eye(6)})
+    _refused(
+        r"no entry for the gt.log pair \(1, 3\)", registration_recall, [0, 1, 2, 3], poses, log, {(0, 2): np.eye(6)}
+    )
     assert registration_recall([0, 1, 2, 3], poses, log, {p: np.eye(6) for p in log}).recall == 1.0
 
 

@@ -3,7 +3,8 @@ outliers. Synthetic graphs only: no data needed."""
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.evaluate import scan_errors
@@ -12,8 +13,9 @@ from sghr_gtsam.sync.baselines import BASELINES, eigse3, gnc_tls, l1_irls, oracl
 from sghr_gtsam.types import PoseGraph
 
 
-def _graph(seed: int, n: int = 15, chords: int = 30, rot_sigma_deg: float = 0.0, trans_sigma: float = 0.0,
-           outliers: int = 0) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def _graph(
+    seed: int, n: int = 15, chords: int = 30, rot_sigma_deg: float = 0.0, trans_sigma: float = 0.0, outliers: int = 0
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """Poses spread over a few metres; a ring (so the graph is connected) plus random chords; weights 1-100.
     Returns the graph, the true poses and the outlier mask."""
     rng = np.random.default_rng(seed)
@@ -22,8 +24,10 @@ def _graph(seed: int, n: int = 15, chords: int = 30, rot_sigma_deg: float = 0.0,
     extra = rng.integers(0, n, (chords, 2))
     pairs = np.unique(np.sort(np.vstack([ring, extra[extra[:, 0] != extra[:, 1]]]), axis=1), axis=0)
     i, j = pairs.T
-    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_sigma_deg), (len(i), 3))).as_matrix(),
-                   rng.normal(0.0, trans_sigma, (len(i), 3)))
+    noise = make_T(
+        Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_sigma_deg), (len(i), 3))).as_matrix(),
+        rng.normal(0.0, trans_sigma, (len(i), 3)),
+    )
     T = inv_T(poses[i]) @ poses[j] @ noise
     bad = np.zeros(len(i), dtype=bool)
     # Outliers only on chords, so the inlier edges keep the ring and stay connected.

@@ -20,8 +20,9 @@ def _agree(a: np.ndarray, b: np.ndarray, tolerance=(5.0, 0.2)) -> bool:
 def test_families_partition_the_moves_into_groups_that_agree(seed, n):
     rng = np.random.default_rng(seed)
     # A few placements, each proposed by some moves with small errors: the clusters a border's registrations form.
-    centres = [make_T(Rotation.random(random_state=rng.integers(1 << 31)).as_matrix(), rng.uniform(-3, 3, 3))
-               for _ in range(3)]
+    centres = [
+        make_T(Rotation.random(random_state=rng.integers(1 << 31)).as_matrix(), rng.uniform(-3, 3, 3)) for _ in range(3)
+    ]
     noise = [make_T(Rotation.from_rotvec(rng.normal(0, 0.03, 3)).as_matrix(), rng.normal(0, 0.05, 3)) for _ in range(n)]
     moves = np.stack([centres[rng.integers(3)] @ e for e in noise])
     weights = rng.uniform(1, 50, n)
@@ -31,7 +32,7 @@ def test_families_partition_the_moves_into_groups_that_agree(seed, n):
         assert all(_agree(moves[a], moves[b]) for a in f for b in f)
     # Greedy and maximal: a move left to a later family disagrees with some member of every earlier one.
     for x, f in enumerate(found):
-        for later in found[x + 1:]:
+        for later in found[x + 1 :]:
             assert all(any(not _agree(moves[k], moves[m]) for m in f) for k in later)
     assert found[0][0] == int(np.argmax(weights))  # the heaviest move seeds the first family
 

@@ -2,7 +2,8 @@
 
 import networkx as nx
 import numpy as np
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from sghr_gtsam.sync.bridges import blocks, bridge_edges
 

@@ -20,10 +20,10 @@ def gt():
 
 
 def test_overlap_is_a_symmetric_fraction(gt):
-    O = gt.overlap
-    assert O.shape == (N, N) and np.array_equal(O, O.T)
-    assert O.min() >= 0.0 and O.max() <= 1.0 and not np.diag(O).any()
-    consecutive = O[np.arange(N - 1), np.arange(1, N)]
+    overlap = gt.overlap
+    assert overlap.shape == (N, N) and np.array_equal(overlap, overlap.T)
+    assert overlap.min() >= 0.0 and overlap.max() <= 1.0 and not np.diag(overlap).any()
+    consecutive = overlap[np.arange(N - 1), np.arange(1, N)]
     assert np.median(consecutive) > 0.4  # a hand-held walk: neighbours in time see much the same
 
 

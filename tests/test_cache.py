@@ -36,22 +36,37 @@ def test_keys_change_with_every_parameter_and_the_content():
     scan, config = Scan("a", P), Config()
     base = scan_key(scan, 0.05, config)
     assert base == scan_key(Scan("renamed", P.copy()), 0.05, config)  # content, not name or identity
-    changed = [scan_key(Scan("a", P + 1e-12), 0.05, config), scan_key(scan, 0.051, config),
-               scan_key(replace(scan, centre=np.array([0.0, 0.0, 1.0])), 0.05, config),
-               scan_key(replace(scan, keypoints=Keypoints(P[:10], rng.random((10, 4)))), 0.05, config)]
-    changed += [scan_key(scan, 0.05, replace(config, **{name: value}))
-                for name, value in (("normal_radius", 2.5), ("fpfh_radius", 4.0), ("descriptor", "learned"))]
+    changed = [
+        scan_key(Scan("a", P + 1e-12), 0.05, config),
+        scan_key(scan, 0.051, config),
+        scan_key(replace(scan, centre=np.array([0.0, 0.0, 1.0])), 0.05, config),
+        scan_key(replace(scan, keypoints=Keypoints(P[:10], rng.random((10, 4)))), 0.05, config),
+    ]
+    changed += [
+        scan_key(scan, 0.05, replace(config, **{name: value}))
+        for name, value in (("normal_radius", 2.5), ("fpfh_radius", 4.0), ("descriptor", "learned"))
+    ]
     assert len({base, *changed}) == len(changed) + 1
     pair = pair_key(base, changed[0], config)
-    others = [pair_key(changed[0], base, config)] + [pair_key(base, changed[0], replace(config, **{name: value}))
-                                                     for name, value in (("matcher", "kiss"), ("icp_distance", 2.0),
-                                                                         ("seed", 1))]
+    others = [pair_key(changed[0], base, config)] + [
+        pair_key(base, changed[0], replace(config, **{name: value}))
+        for name, value in (("matcher", "kiss"), ("icp_distance", 2.0), ("seed", 1))
+    ]
     assert len({pair, *others}) == len(others) + 1
     guess = np.eye(4)
     moved = guess.copy()
     moved[0, 3] = 1e-15
-    assert len({refined_key(base, changed[0], guess, 1.5, 15), refined_key(base, changed[0], moved, 1.5, 15),
-                refined_key(base, changed[0], guess, 2.0, 15), refined_key(base, changed[0], guess, 1.5, 16)}) == 4
+    assert (
+        len(
+            {
+                refined_key(base, changed[0], guess, 1.5, 15),
+                refined_key(base, changed[0], moved, 1.5, 15),
+                refined_key(base, changed[0], guess, 2.0, 15),
+                refined_key(base, changed[0], guess, 1.5, 16),
+            }
+        )
+        == 4
+    )
     assert pair_key("", base, config) is None and refined_key(base, "", guess, 1.5, 15) is None  # unknown: not cached
 
 
@@ -66,8 +81,16 @@ def test_cache_reuses_what_matches_recomputes_what_changed_or_is_damaged(room, t
     quiet = {"log": lambda m: None}
     first = register(room, config, cache=Cache(tmp_path), **quiet)
     pairs = first.cache["pairs"]["computed"]
-    assert _counts(first) == {"features": (0, 4), "pyramids": (0, 4), "pairs": (0, pairs),
-                              "refined": (0, first.cache["refined"]["computed"])} and pairs >= 6
+    assert (
+        _counts(first)
+        == {
+            "features": (0, 4),
+            "pyramids": (0, 4),
+            "pairs": (0, pairs),
+            "refined": (0, first.cache["refined"]["computed"]),
+        }
+        and pairs >= 6
+    )
     again = register(room, config, cache=Cache(tmp_path), **quiet)
     assert all(computed == 0 for _, computed in _counts(again).values()), again.cache
     np.testing.assert_array_equal(again.poses, first.poses)
@@ -153,8 +176,19 @@ def test_temporaries_of_a_killed_write_are_removed(tmp_path):
 
 
 def _cli(scene: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out), "--workers", "2", "--no-record",
-            "--quiet"]
+    return [
+        sys.executable,
+        "-m",
+        "sghr_gtsam",
+        "run",
+        str(scene),
+        "--out",
+        str(out),
+        "--workers",
+        "2",
+        "--no-record",
+        "--quiet",
+    ]
 
 
 def _entries(folder: Path) -> int:
@@ -176,8 +210,9 @@ def test_run_killed_during_pairwise_registration_resumes_to_the_same_poses(tmp_p
 
     out = tmp_path / "out"
     pairs = out / CACHE / "pairs"
-    proc = subprocess.Popen(_cli(scene, out), env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        _cli(scene, out), env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True
+    )
     try:
         while proc.poll() is None and _entries(pairs) < 3:
             time.sleep(0.01)

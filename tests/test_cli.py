@@ -60,8 +60,9 @@ def test_bad_scans_are_skipped_and_reported(tmp_path):
 
 
 def test_module_entry_point_prints_no_traceback(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(tmp_path / "none")],
-                          capture_output=True, text=True)
+    proc = subprocess.run(
+        [sys.executable, "-m", "sghr_gtsam", "run", str(tmp_path / "none")], capture_output=True, text=True
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip().startswith("error:") and "Traceback" not in proc.stderr
 
@@ -96,9 +97,15 @@ def test_bad_options_and_config_files_are_one_line_errors(tmp_path):
     bad_json.write_text("{not json")
     unknown = tmp_path / "unknown.json"
     unknown.write_text('{"k": 4, "colour": "red"}')
-    for args in (["--polish", "sometimes"], ["--method", "magic"], ["--k", "0"], ["--max-sigma", "-1"],
-                 ["--config", bad_json],
-                 ["--config", unknown], ["--config", tmp_path / "missing.json"]):
+    for args in (
+        ["--polish", "sometimes"],
+        ["--method", "magic"],
+        ["--k", "0"],
+        ["--max-sigma", "-1"],
+        ["--config", bad_json],
+        ["--config", unknown],
+        ["--config", tmp_path / "missing.json"],
+    ):
         r = _run("run", scene, "--out", tmp_path / "out", *args)
         assert r.exit_code == 2, args
         assert r.output.strip().startswith("error:") and len(r.output.strip().splitlines()) == 1, args
@@ -129,8 +136,14 @@ def test_sync_command_runs_every_method_and_baseline(tmp_path):
     n = 12
     truth = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-3, 3, (n, 3)))
     i, j = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if b - a <= 3]).T
-    graph = PoseGraph(n=n, i=i, j=j, T=inv_T(truth[i]) @ truth[j], weight=np.ones(len(i)),
-                      information=np.tile(np.diag([400.0] * 3 + [100.0] * 3), (len(i), 1, 1)))
+    graph = PoseGraph(
+        n=n,
+        i=i,
+        j=j,
+        T=inv_T(truth[i]) @ truth[j],
+        weight=np.ones(len(i)),
+        information=np.tile(np.diag([400.0] * 3 + [100.0] * 3), (len(i), 1, 1)),
+    )
     ids = list(range(100, 100 + n))
     write_g2o(tmp_path / "in.g2o", ids, np.tile(np.eye(4), (n, 1, 1)), graph)
     for method in _METHOD_NAMES + _BASELINE_NAMES:
@@ -145,9 +158,14 @@ def test_sync_command_runs_every_method_and_baseline(tmp_path):
 
     # Without the edges that close loops the graph is a chain: every pose but the first rests on one edge.
     chain = j - i == 1
-    write_g2o(tmp_path / "chain.g2o", ids, np.tile(np.eye(4), (n, 1, 1)),
-              PoseGraph(n=n, i=i[chain], j=j[chain], T=graph.T[chain], weight=np.ones(n - 1),
-                        information=graph.information[chain]))
+    write_g2o(
+        tmp_path / "chain.g2o",
+        ids,
+        np.tile(np.eye(4), (n, 1, 1)),
+        PoseGraph(
+            n=n, i=i[chain], j=j[chain], T=graph.T[chain], weight=np.ones(n - 1), information=graph.information[chain]
+        ),
+    )
     r = _run("sync", tmp_path / "chain.g2o", "--out", tmp_path / "chain_out.g2o")
     assert r.exit_code == 0 and f"{n - 1} pose(s) of the largest part unverified" in r.output, r.output
 
@@ -170,8 +188,24 @@ def test_a_console_that_cannot_print_unicode_gets_question_marks(tmp_path):
     scene = tmp_path / "scene"
     write_scene(make_scene(kind="room", n_scans=3, seed=1), scene)
     env = {**os.environ, "PYTHONIOENCODING": "latin-1"}
-    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
-                           "--workers", "1", "--no-record"], capture_output=True, text=True, env=env, errors="replace")
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sghr_gtsam",
+            "run",
+            str(scene),
+            "--out",
+            str(tmp_path / "out"),
+            "--workers",
+            "1",
+            "--no-record",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        errors="replace",
+    )
     assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr
     assert "worst residual" in done.stdout
 
@@ -196,8 +230,9 @@ def test_a_stop_after_the_results_are_in_says_so(tmp_path, capsys):
     with pytest.raises(typer.Exit) as stop:
         with _guarded(out, started):
             raise _Stopped(signal.SIGTERM)
-    assert capsys.readouterr().err.strip() == (f"error: stopped by SIGTERM after the results were written: {out} "
-                                               f"is complete")
+    assert capsys.readouterr().err.strip() == (
+        f"error: stopped by SIGTERM after the results were written: {out} is complete"
+    )
 
 
 def test_a_full_disk_is_named_not_unexpected(tmp_path, capsys):
@@ -238,8 +273,12 @@ def test_a_recording_that_cannot_be_written_raises_its_oserror(tmp_path, path, l
     ``flush`` for ever; the recording is written through a pipe now, and ``close`` raises the write's OSError."""
     if not os.path.exists(path) and path.startswith("/dev"):
         pytest.skip(f"no {path}")
-    done = subprocess.run([sys.executable, "-c", _RECORD_SCRIPT, str(tmp_path / path), str(limit)],
-                          capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", _RECORD_SCRIPT, str(tmp_path / path), str(limit)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.stdout.split() == ["OSError", code] and done.stderr == "", (done.stdout, done.stderr[-2000:])
 
 

@@ -6,16 +6,22 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from test_sync import gauge_free, max_errors
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.sync import synchronize
-from sghr_gtsam.sync.consensus import (MARGIN, MAX_DEG, consensus_placement, consistent_edges, placement_support,
-                                       translation_tolerance)
+from sghr_gtsam.sync.consensus import (
+    MARGIN,
+    MAX_DEG,
+    consensus_placement,
+    consistent_edges,
+    placement_support,
+    translation_tolerance,
+)
 from sghr_gtsam.types import PoseGraph
-
-from test_sync import gauge_free, max_errors
 
 FAST = settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -71,8 +77,10 @@ def ring_with_wrong_groups(seed: int, group: int, every: int, n: int = 30) -> tu
     rng = np.random.default_rng(seed)
     truth = make_T(Rotation.random(n, random_state=rng).as_matrix(), rng.uniform(-3.0, 3.0, (n, 3)))
     i, j = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if min(b - a, n - b + a) <= 4]).T
-    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(1.0), (len(i), 3))).as_matrix(),
-                   rng.normal(0.0, 0.02, (len(i), 3)))
+    noise = make_T(
+        Rotation.from_rotvec(rng.normal(0.0, np.radians(1.0), (len(i), 3))).as_matrix(),
+        rng.normal(0.0, 0.02, (len(i), 3)),
+    )
     src, dst = truth[i].copy(), truth[j].copy()
     turn = make_T(Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_matrix(), np.zeros(3))
     for scan in range(0, n, every):
@@ -110,8 +118,7 @@ def test_loop_polish_places_every_scan_the_edge_count_decides():
     assert 25 <= decided.sum() < graph.n
     result = synchronize(graph)
     anchor = np.flatnonzero(decided)[0]
-    rot, _ = relative_errors(inv_T(result.poses[anchor]) @ result.poses[decided],
-                             inv_T(truth[anchor]) @ truth[decided])
+    rot, _ = relative_errors(inv_T(result.poses[anchor]) @ result.poses[decided], inv_T(truth[anchor]) @ truth[decided])
     assert rot.max() < 3.0
 
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import json
-import re
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -29,9 +29,9 @@ from typer.testing import CliRunner
 from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.gtsam_api import pose_covariances
-from sghr_gtsam.io.g2o import read_g2o, write_g2o
 from sghr_gtsam.io import atomic
 from sghr_gtsam.io.atomic import staged_folder
+from sghr_gtsam.io.g2o import read_g2o, write_g2o
 from sghr_gtsam.io.results import CACHE, RESULT_FILES
 from sghr_gtsam.io.scans import load_scan, write_scan
 from sghr_gtsam.pipeline import Scan, register
@@ -73,8 +73,10 @@ def _good_scan(seed: int = 0) -> np.ndarray:
 
 
 def _ply_header(n: int, fmt: str = "ascii", kind: str = "float") -> str:
-    return (f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty {kind} x\nproperty {kind} y\n"
-            f"property {kind} z\nend_header\n")
+    return (
+        f"ply\nformat {fmt} 1.0\nelement vertex {n}\nproperty {kind} x\nproperty {kind} y\n"
+        f"property {kind} z\nend_header\n"
+    )
 
 
 def _ascii_ply(P: np.ndarray, declared: int | None = None) -> str:
@@ -89,9 +91,11 @@ def _binary_ply(P: np.ndarray, declared: int | None = None, kind: str = "float",
 def _pcd(P: np.ndarray, points: int | None = None, width: int | None = None, rows: list[str] | None = None) -> str:
     n = len(P)
     body = rows if rows is not None else [f"{x} {y} {z}" for x, y, z in P]
-    return ("VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
-            f"WIDTH {n if width is None else width}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
-            f"POINTS {n if points is None else points}\nDATA ascii\n" + "\n".join(body) + "\n")
+    return (
+        "VERSION .7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {n if width is None else width}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {n if points is None else points}\nDATA ascii\n" + "\n".join(body) + "\n"
+    )
 
 
 def _corrupt_row(P: np.ndarray) -> str:
@@ -118,8 +122,11 @@ BAD_FILES = {
     "ply header without end_header": ("bad.ply", _ply_header(5).replace("end_header\n", ""), "end_header"),
     "pcd points differ from width": ("bad.pcd", _pcd(G, width=10), "WIDTH x HEIGHT"),
     "truncated ascii pcd": ("bad.pcd", _pcd(G, rows=[f"{x} {y} {z}" for x, y, z in G[:300]]), "truncated PCD"),
-    "non-number in a pcd row": ("bad.pcd", _pcd(G, rows=[f"{x} {y} {z}" for x, y, z in G[:-1]] + ["1 nan? 2"]),
-                                "not a number"),
+    "non-number in a pcd row": (
+        "bad.pcd",
+        _pcd(G, rows=[f"{x} {y} {z}" for x, y, z in G[:-1]] + ["1 nan? 2"]),
+        "not a number",
+    ),
     "all nan": ("bad.npy", np.full((600, 3), np.nan), "0 finite points"),
     "all inf": ("bad.xyz", np.full((600, 3), np.inf), "0 finite points"),
     "all points identical": ("bad.npy", np.ones((600, 3)), "coincide"),
@@ -133,10 +140,16 @@ BAD_FILES = {
     # nothing that is not a regular file is opened: a link to a FIFO hung the run for ever (the memory check opened
     # it), a plain FIFO was left out without a word, a link to /dev/zero "leads nowhere"
     "named pipe": ("bad.ply", os.mkfifo, "a named pipe (FIFO)"),
-    "symlink to a named pipe": ("bad.ply", lambda p: os.mkfifo(p.with_name("pipe")) or os.symlink("pipe", p),
-                                "a symbolic link to a named pipe (FIFO)"),
-    "symlink to /dev/zero": ("bad.ply", lambda p: os.symlink("/dev/zero", p),
-                             "a symbolic link to a character device (/dev/zero)"),
+    "symlink to a named pipe": (
+        "bad.ply",
+        lambda p: os.mkfifo(p.with_name("pipe")) or os.symlink("pipe", p),
+        "a symbolic link to a named pipe (FIFO)",
+    ),
+    "symlink to /dev/zero": (
+        "bad.ply",
+        lambda p: os.symlink("/dev/zero", p),
+        "a symbolic link to a character device (/dev/zero)",
+    ),
     # UTM-like coordinates stored as float32: rounded to steps of 1 m, they registered nothing, and the error asked
     # only whether the scans overlap
     "float32 at 1e7 m": ("bad.ply", _binary_ply(_good_scan(2) + [1e7, 2e6, 0]), "where float32 rounds to steps of 1,"),
@@ -178,6 +191,7 @@ def _at_most(seconds: float):
     """The block, failed (not hung) when it takes longer than ``seconds``: SIGALRM, sent to the main thread itself
     (sent to the process, another thread may take it and a blocking open goes on waiting) every second from then on
     (code that swallows the error may open the pipe again)."""
+
     def hung(signum, frame):
         raise TimeoutError(f"still running after {seconds} s")
 
@@ -232,8 +246,10 @@ BAD_RUNS = {
     "empty folder": (lambda t, s, o: [(t / "empty").mkdir() or t / "empty", "--out", o], "no scans in"),
     "missing folder": (lambda t, s, o: [t / "nowhere", "--out", o], "does not exist"),
     "scene is a file": (lambda t, s, o: [s / "s0.npy", "--out", o], "is not a folder"),
-    "--out an existing file": (lambda t, s, o: [s, "--out", (t / "f.txt").write_text("x") and t / "f.txt"],
-                               "is an existing file"),
+    "--out an existing file": (
+        lambda t, s, o: [s, "--out", (t / "f.txt").write_text("x") and t / "f.txt"],
+        "is an existing file",
+    ),
     "--out equal to the scene folder": (lambda t, s, o: [s, "--out", s], "is the scan folder"),
     "--out holding the scene folder": (lambda t, s, o: [s, "--out", t], "holds the scan folder"),
     "--out a folder of other files": (lambda t, s, o: [s, "--out", _with_notes(o)], "not a run's results (notes.md)"),
@@ -243,20 +259,34 @@ BAD_RUNS = {
     "--k 0": (["--k", "0"], "k must be a positive integer"),
     "--method unknown": (["--method", "magic"], "method must be one of"),
     "--workers 0": (["--workers", "0"], "workers must be a positive integer"),
-    "config voxel as a string": (lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"voxel": "0.1"}')],
-                                 "voxel must be float or null; got '0.1'"),
-    "config record as a string": (lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"record": "no"}')],
-                                  "record must be bool"),
-    "config negative icp_distance": (lambda t, s, o: [s, "--out", o, "--config",
-                                                      _config_file(t, '{"icp_distance": -5}')], "icp_distance must"),
-    "config negative min_inliers": (lambda t, s, o: [s, "--out", o, "--config",
-                                                     _config_file(t, '{"min_inliers": -1}')], "min_inliers must"),
-    "config negative min_weight": (lambda t, s, o: [s, "--out", o, "--config",
-                                                    _config_file(t, '{"min_weight": -0.5}')], "min_weight must"),
-    "config unknown key": (lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"colour": 1}')],
-                           "unknown keys ['colour']"),
-    "config not an object": (lambda t, s, o: [s, "--out", o, "--config", _config_file(t, "[1, 2]")],
-                             "must hold a JSON object"),
+    "config voxel as a string": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"voxel": "0.1"}')],
+        "voxel must be float or null; got '0.1'",
+    ),
+    "config record as a string": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"record": "no"}')],
+        "record must be bool",
+    ),
+    "config negative icp_distance": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"icp_distance": -5}')],
+        "icp_distance must",
+    ),
+    "config negative min_inliers": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"min_inliers": -1}')],
+        "min_inliers must",
+    ),
+    "config negative min_weight": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"min_weight": -0.5}')],
+        "min_weight must",
+    ),
+    "config unknown key": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, '{"colour": 1}')],
+        "unknown keys ['colour']",
+    ),
+    "config not an object": (
+        lambda t, s, o: [s, "--out", o, "--config", _config_file(t, "[1, 2]")],
+        "must hold a JSON object",
+    ),
     "--features missing folder": (lambda t, s, o: [s, "--out", o, "--features", t / "nowhere"], "features"),
     "--features a file": (lambda t, s, o: [s, "--out", o, "--features", s / "s0.npy"], "features"),
     # crawled the current folder (from /, the whole tree)
@@ -266,10 +296,14 @@ BAD_RUNS = {
     "--iters 2^63": (["--iters", str(2**63)], "iters must be an integer from 1 to 10,000; got 9,223,372,036,854,775,"),
     "--iters 1e6": (["--iters", "1000000"], "iters must be an integer from 1 to 10,000; got 1,000,000"),
     # "unexpected RuntimeError", and "File exists" for "Not a directory"
-    "--out a symbolic link loop": (lambda t, s, o: [s, "--out", os.symlink("loop", t / "loop") or t / "loop"],
-                                   "is, or lies through, a symbolic link loop"),
-    "--out below a file": (lambda t, s, o: [s, "--out", (t / "f").write_text("x") and t / "f" / "sub"],
-                           "cannot be made: "),
+    "--out a symbolic link loop": (
+        lambda t, s, o: [s, "--out", os.symlink("loop", t / "loop") or t / "loop"],
+        "is, or lies through, a symbolic link loop",
+    ),
+    "--out below a file": (
+        lambda t, s, o: [s, "--out", (t / "f").write_text("x") and t / "f" / "sub"],
+        "cannot be made: ",
+    ),
 }
 
 
@@ -303,10 +337,11 @@ def test_scans_that_do_not_overlap_leave_the_earlier_result(tmp_path):
 def test_a_voxel_far_from_the_default_is_named_when_nothing_registers(small_room, tmp_path, voxel, times):
     """A voxel 10⁷× too coarse or 10³× too fine registers nothing; the error asked only whether the scans
     overlap, which they do. (1e308 read "infx the default".)"""
-    code, lines = _cli("run", small_room, "--out", tmp_path / "out", "--voxel", voxel, "--workers", "1",
-                       "--no-record")
-    assert code == 2 and lines[-1].startswith("error: no pair of scans could be registered (do the scans overlap? "
-                                              f"is the voxel {voxel:.3g} right? it is {times} the default "), lines
+    code, lines = _cli("run", small_room, "--out", tmp_path / "out", "--voxel", voxel, "--workers", "1", "--no-record")
+    assert code == 2 and lines[-1].startswith(
+        "error: no pair of scans could be registered (do the scans overlap? "
+        f"is the voxel {voxel:.3g} right? it is {times} the default "
+    ), lines
 
 
 def test_scan_too_large_for_the_memory_stops_before_reading_it(tmp_path):
@@ -316,8 +351,9 @@ def test_scan_too_large_for_the_memory_stops_before_reading_it(tmp_path):
     (scene / "huge.ply").write_text(_ply_header(10**11))
     out = _old_result(tmp_path / "out")
     code, lines = _cli("run", scene, "--out", out, "--workers", "1")
-    assert code == 2 and lines[-1].startswith("error: scan huge.ply holds 100,000,000,000 points: reading it needs "
-                                              "about "), lines
+    assert code == 2 and lines[-1].startswith(
+        "error: scan huge.ply holds 100,000,000,000 points: reading it needs about "
+    ), lines
     assert "GB are available" in lines[-1] and _untouched(out)
 
 
@@ -398,8 +434,11 @@ def test_georeferenced_scans_register_exactly_as_near_the_origin():
     runs = {}
     for offset in (0.0, 1e3, 1e6, 1e9):
         shift = np.array([offset, -0.7 * offset, 0.01 * offset])
-        res = register([Scan(n, P + shift) for n, P in zip(scene.names, scene.scans)],
-                       Config(record=False, workers=1), log=lambda m: None)
+        res = register(
+            [Scan(n, P + shift) for n, P in zip(scene.names, scene.scans)],
+            Config(record=False, workers=1),
+            log=lambda m: None,
+        )
         S = make_T(np.eye(3), shift)
         assert res.unregistered == []
         np.testing.assert_array_equal(res.poses[0], np.eye(4))
@@ -437,6 +476,7 @@ def small_room(tmp_path_factory):
 
 def _stop_mid_run(scene: Path, out: Path, signum: int) -> tuple[int, str, list[int]]:
     """Start a run, send ``signum`` to it alone once it is registering pairs; ``_stopped_run``'s answer."""
+
     def when(proc: subprocess.Popen) -> None:
         for line in proc.stdout:
             if line.startswith("features:"):  # the pairwise stage is starting
@@ -451,9 +491,14 @@ def _stopped_run(scene: Path, out: Path, signum: int, when, group: bool) -> tupl
     the processes it started that are still running 10 s after it ended (workers, fork server)."""
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OPENBLAS_NUM_THREADS": "1"}
     with tempfile.TemporaryFile("w+") as err:  # not a pipe: a killed run's orphaned workers would hold it open
-        proc = subprocess.Popen([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out),
-                                 "--workers", "2"], stdout=subprocess.PIPE, stderr=err, text=True, env=env,
-                                start_new_session=True)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out), "--workers", "2"],
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+            env=env,
+            start_new_session=True,
+        )
         try:
             when(proc)
             if group:
@@ -481,8 +526,12 @@ def _running(session: int | None = None, parent: int | None = None, command: byt
     for proc in Path("/proc").iterdir():
         try:
             state, ppid, _, sid = (proc / "stat").read_text().rsplit(")", 1)[1].split()[:4]
-            if (state != "Z" and (session is None or int(sid) == session) and (parent is None or int(ppid) == parent)
-                    and command in (proc / "cmdline").read_bytes()):
+            if (
+                state != "Z"
+                and (session is None or int(sid) == session)
+                and (parent is None or int(ppid) == parent)
+                and command in (proc / "cmdline").read_bytes()
+            ):
                 found.append(int(proc.name))
         except (OSError, ValueError):  # not a process, or one that ended meanwhile
             continue
@@ -493,6 +542,7 @@ def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
     """A terminal's Ctrl-C reaches the run's whole process group. Sent while the run imports the pipeline and its
     fork server imports the workers' modules, it printed the server's KeyboardInterrupt traceback, and open3d,
     interrupted in its initialisation, ended the run with an ImportError traceback (exit 1)."""
+
     def when(proc: subprocess.Popen) -> None:
         deadline = time.monotonic() + 60
         while not _running(parent=proc.pid, command=b"forkserver") and time.monotonic() < deadline:
@@ -501,13 +551,13 @@ def test_ctrl_c_while_the_run_loads_ends_in_one_line(small_room, tmp_path):
     out = _old_result(tmp_path / "out")
     code, err, left = _stopped_run(small_room, out, signal.SIGINT, when, group=True)
     assert code == 130 and not left, (err, left)
-    assert err.strip().splitlines() == ["error: stopped by SIGINT: nothing written, earlier results left as they "
-                                        "were"], err
+    assert err.strip().splitlines() == [
+        "error: stopped by SIGINT: nothing written, earlier results left as they were"
+    ], err
     assert {p.name: p.read_text() for p in out.iterdir() if p.name != CACHE} == OLD
 
 
-@pytest.mark.parametrize("signum, code", [
-    (signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
+@pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGKILL, -9)])
 def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, code):
     out = _old_result(tmp_path / "out")
     got, err, left = _stop_mid_run(small_room, out, signum)
@@ -523,8 +573,9 @@ def test_stopped_run_leaves_the_earlier_result(small_room, tmp_path, signum, cod
         assert [p.name for p in out.iterdir() if p.name != CACHE] == ["poses.txt"]
     else:
         name = signal.Signals(signum).name
-        assert err.strip().splitlines() == [f"error: stopped by {name}: nothing written, earlier results left as "
-                                            f"they were"], err
+        assert err.strip().splitlines() == [
+            f"error: stopped by {name}: nothing written, earlier results left as they were"
+        ], err
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]
 
 
@@ -559,12 +610,29 @@ def test_a_stop_after_the_results_are_swapped_in_says_they_are_complete(small_ro
     name = signal.Signals(signum).name
     out = tmp_path / "out"
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-    done = subprocess.run([sys.executable, "-c", _STOP_LATE.replace("{signal}", name), when, str(small_room),
-                           "--out", str(out), "--workers", "1", "--no-record", "--quiet"],
-                          capture_output=True, text=True, env=env, timeout=300)
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            _STOP_LATE.replace("{signal}", name),
+            when,
+            str(small_room),
+            "--out",
+            str(out),
+            "--workers",
+            "1",
+            "--no-record",
+            "--quiet",
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=300,
+    )
     assert done.returncode == 128 + signum, done.stderr
-    assert done.stderr.splitlines() == [f"error: stopped by {name} after the results were written: {out} is "
-                                        f"complete"], done.stderr
+    assert done.stderr.splitlines() == [
+        f"error: stopped by {name} after the results were written: {out} is complete"
+    ], done.stderr
     assert (out / "report.json").is_file()
 
 
@@ -577,8 +645,9 @@ def test_a_scan_given_twice_gets_finite_covariances_and_strict_json(small_room, 
     shutil.copy(first, scene / "scan_99.ply")
     code, lines = _cli("run", scene, "--out", tmp_path / "out", "--workers", "1", "--no-record", "--quiet")
     assert code == 0, lines
-    report = json.loads((tmp_path / "out" / "report.json").read_text(),
-                        parse_constant=lambda c: pytest.fail(f"{c} in report.json"))
+    report = json.loads(
+        (tmp_path / "out" / "report.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in report.json")
+    )
     assert report["loose"] == {} and len(report["registered"]) == 5
     covariances = [np.array(c["covariance"]) for c in report["pose_covariances"].values()]
     assert all(np.all(np.isfinite(c)) for c in covariances)
@@ -619,8 +688,11 @@ def test_a_swap_the_file_system_refuses_leaves_the_earlier_results_and_their_cac
 
     monkeypatch.setattr(atomic, "_exchange", lambda a, b: False)
     monkeypatch.setattr(atomic.os, "rename", refusing)
-    with pytest.raises(InputError, match=f"cannot swap the results into {out}: Operation not permitted .*; the "
-                                         "earlier results are left as they were"):
+    with pytest.raises(
+        InputError,
+        match=f"cannot swap the results into {out}: Operation not permitted .*; the "
+        "earlier results are left as they were",
+    ):
         with staged_folder(out, carry=CACHE) as stage:
             (stage / "poses.txt").write_text("new\n")
     monkeypatch.undo()
@@ -630,9 +702,11 @@ def test_a_swap_the_file_system_refuses_leaves_the_earlier_results_and_their_cac
 def test_an_output_name_that_leaves_no_room_for_its_staging_folder_is_named(small_room, tmp_path):
     """An OUT name of 240 bytes is legal, its staging sibling is not: "File name too long" blamed the name given."""
     code, lines = _cli("run", small_room, "--out", tmp_path / ("L" * 240))
-    assert code == 2 and lines[-1] == ("error: output folder name LLLLLLLLLLLLLLLLLLLL... is 240 bytes: the results "
-                                       "are staged beside it as .LLLLLLLL...tmp-PID-XXXXXXXX, a name up to 22 bytes "
-                                       "longer, which the file system refuses; choose a shorter name"), lines
+    assert code == 2 and lines[-1] == (
+        "error: output folder name LLLLLLLLLLLLLLLLLLLL... is 240 bytes: the results "
+        "are staged beside it as .LLLLLLLL...tmp-PID-XXXXXXXX, a name up to 22 bytes "
+        "longer, which the file system refuses; choose a shorter name"
+    ), lines
 
 
 def test_a_failed_first_run_leaves_no_empty_cache_folder(tmp_path):
@@ -650,8 +724,11 @@ def test_a_failed_first_run_leaves_no_empty_cache_folder(tmp_path):
             (out / "cache" / "pairs").mkdir()
             (out / "cache" / "features" / "a.npz").write_text("entry")
             raise OSError(28, "No space left on device")
-    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["cache", "cache/features",
-                                                                       "cache/features/a.npz"]
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == [
+        "cache",
+        "cache/features",
+        "cache/features/a.npz",
+    ]
     shutil.rmtree(out)
     _old_result(out)
     with pytest.raises(OSError):
@@ -703,8 +780,11 @@ def test_cache_entries_that_are_no_files_or_no_rigid_transforms_are_recomputed(s
     shutil.rmtree(out / CACHE / "features")
     (out / CACHE / "features").write_text("not a folder")
     code, lines = _cli(*args[:-1])
-    assert code == 0 and f"the cache {out / CACHE} cannot be used ({out / CACHE / 'features'} is not a folder): this " \
-        "run keeps none" in lines, lines
+    assert (
+        code == 0
+        and f"the cache {out / CACHE} cannot be used ({out / CACHE / 'features'} is not a folder): this run keeps none"
+        in lines
+    ), lines
     shutil.rmtree(out / CACHE)
     (out / CACHE).write_text("a file")
     code, lines = _cli(*args[:-1])
@@ -718,8 +798,10 @@ def test_a_second_run_into_an_output_folder_being_written_refuses(small_room, tm
     out = _old_result(tmp_path / "out")
     with staged_folder(out, carry=CACHE) as stage:  # a run writing OUT
         code, lines = _cli("run", small_room, "--out", out, "--workers", "1", "--no-record", "--quiet")
-        assert code == 2 and lines == [f"error: {out} is being written by another run (pid {os.getpid()}): wait for "
-                                       f"it to end, or choose another output folder"], lines
+        assert code == 2 and lines == [
+            f"error: {out} is being written by another run (pid {os.getpid()}): wait for "
+            f"it to end, or choose another output folder"
+        ], lines
         (stage / "poses.txt").write_text("new\n")
     assert [p.name for p in out.iterdir()] == ["poses.txt"] and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
@@ -741,8 +823,9 @@ def test_a_linked_cache_keeps_the_users_empty_folders_after_a_failure(tmp_path):
 def _tmpfs(folder: Path, size: str):
     """A tmpfs of ``size`` mounted at ``folder`` for the block; skips the test where mounting is not allowed."""
     folder.mkdir(parents=True, exist_ok=True)
-    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)],
-                             capture_output=True, text=True)
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(folder)], capture_output=True, text=True
+    )
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here (needs root): {mounted.stderr.strip()}")
     try:
@@ -812,9 +895,11 @@ def test_demo_replaces_nothing_it_did_not_write(tmp_path):
     (d / "scene" / "sub" / "notes.md").write_text("n")
     before = _tree(d)
     code, lines = _cli("demo", "--out", d, "--scans", "3", "--workers", "1")
-    assert code == 2 and lines == [f"error: --out {d}: {d / 'scene'} holds files the demo did not write (it writes "
-                                   f"generated scans and gt_poses.txt, and replaces that folder as a whole); choose a "
-                                   f"new or empty --out"], lines
+    assert code == 2 and lines == [
+        f"error: --out {d}: {d / 'scene'} holds files the demo did not write (it writes "
+        f"generated scans and gt_poses.txt, and replaces that folder as a whole); choose a "
+        f"new or empty --out"
+    ], lines
     assert _tree(d) == before
 
     e = tmp_path / "e"
@@ -836,11 +921,16 @@ def test_demo_replaces_nothing_it_did_not_write(tmp_path):
 
 def test_demo_with_an_absurd_scan_count_is_refused_before_any_work(tmp_path):
     """`demo --scans 100000000` ran until stopped (generating a building of 1e8 scans)."""
-    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "demo", "--scans", "100000000", "--out",
-                           str(tmp_path / "d")], capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "sghr_gtsam", "demo", "--scans", "100000000", "--out", str(tmp_path / "d")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 2 and done.stderr.splitlines() == [
         "error: --scans must be at most 10,000 (the run's memory grows with the scans and their pairs: ~13 GB at "
-        "10,000); got 100,000,000"], done.stderr
+        "10,000); got 100,000,000"
+    ], done.stderr
     assert not (tmp_path / "d").exists()
 
 
@@ -852,12 +942,15 @@ def test_demo_with_an_unknown_kind_or_too_small_a_building_is_one_line_error(tmp
     assert not (tmp_path / "d").exists()
 
 
-@pytest.mark.parametrize("case, needle", [
-    ("corrupt", "cannot read cached scene"),
-    ("incomplete", "no overlap array"),
-    ("inconsistent", "is inconsistent"),
-    ("empty folder", "no cached scenes"),
-])
+@pytest.mark.parametrize(
+    "case, needle",
+    [
+        ("corrupt", "cannot read cached scene"),
+        ("incomplete", "no overlap array"),
+        ("inconsistent", "is inconsistent"),
+        ("empty folder", "no cached scenes"),
+    ],
+)
 def test_train_on_a_bad_cache_is_one_line_error(tmp_path, case, needle):
     cache = tmp_path / "cache"
     cache.mkdir()
@@ -866,8 +959,7 @@ def test_train_on_a_bad_cache_is_one_line_error(tmp_path, case, needle):
     elif case == "incomplete":
         np.savez(cache / "scene_00000.npz", desc=np.zeros((4, 33)), offsets=np.array([0, 2, 4]))
     elif case == "inconsistent":
-        np.savez(cache / "scene_00000.npz", desc=np.zeros((4, 33)), offsets=np.array([0, 2, 9]),
-                 overlap=np.eye(2))
+        np.savez(cache / "scene_00000.npz", desc=np.zeros((4, 33)), offsets=np.array([0, 2, 9]), overlap=np.eye(2))
     code, lines = _cli("train", cache, "--out", tmp_path / "runs", "--epochs", "1")
     assert code == 2 and len(lines) == 1 and lines[0].startswith("error: ") and needle in lines[0], lines
     assert not (tmp_path / "runs").exists()
@@ -888,12 +980,15 @@ SYNC_ERRORS = {
     "not an SE3 line": (_V.format(0) + "EDGE_SE2 0 1 1 0 0 1 0 1 0 1\n", "line 2: not a VERTEX_SE3:QUAT"),
     "nan in a pose": (_V.format(0) + _V.format(1) + _edge(0, 1, "nan 0 0 0 0 0 1"), "line 3: pose is not finite"),
     "zero quaternion": (_V.format(0) + _V.format(1) + _edge(0, 1, "1 0 0 0 0 0 0"), "quaternion is zero"),
-    "information not positive definite": (_V.format(0) + _V.format(1) + _edge(0, 1, info=_INFO.replace("1", "-1", 1)),
-                                          "line 3: information matrix is not positive definite"),
-    "zero information": (_V.format(0) + _V.format(1) + _edge(0, 1, info=" ".join(["0"] * 21)),
-                         "not positive definite"),
-    "information of 1e-300": (_V.format(0) + _V.format(1) + _edge(0, 1, info=_INFO.replace("1", "1e-300")),
-                              "line 3: information's eigenvalues 1e-300 to 1e-300 leave the range double precision"),
+    "information not positive definite": (
+        _V.format(0) + _V.format(1) + _edge(0, 1, info=_INFO.replace("1", "-1", 1)),
+        "line 3: information matrix is not positive definite",
+    ),
+    "zero information": (_V.format(0) + _V.format(1) + _edge(0, 1, info=" ".join(["0"] * 21)), "not positive definite"),
+    "information of 1e-300": (
+        _V.format(0) + _V.format(1) + _edge(0, 1, info=_INFO.replace("1", "1e-300")),
+        "line 3: information's eigenvalues 1e-300 to 1e-300 leave the range double precision",
+    ),
     "self-loop": (_V.format(0) + _V.format(1) + _edge(1, 1), "line 3: edge 1-1 joins a vertex to itself"),
     "edge to an undefined vertex": (_V.format(0) + _edge(0, 5), "refers to a vertex that is not defined"),
     "duplicate vertex": (_V.format(0) + _V.format(0) + _edge(0, 0), "line 2: vertex 0 is defined a second time"),
@@ -924,8 +1019,9 @@ def test_sync_out_a_pipe_is_refused_and_a_link_followed(tmp_path):
     (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _edge(0, 1))
     os.mkfifo(tmp_path / "out.fifo")
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.fifo")
-    assert code == 2 and lines == [f"error: cannot write {tmp_path / 'out.fifo'}: it is not a regular file (a "
-                                   f"device, pipe or socket)"], lines
+    assert code == 2 and lines == [
+        f"error: cannot write {tmp_path / 'out.fifo'}: it is not a regular file (a device, pipe or socket)"
+    ], lines
     assert (tmp_path / "out.fifo").is_fifo()
     (tmp_path / "real.g2o").write_text("old\n")
     (tmp_path / "link.g2o").symlink_to("real.g2o")
@@ -949,8 +1045,15 @@ def test_run_out_a_link_to_a_folder_fills_the_folder(small_room, tmp_path):
 def test_sync_odd_but_valid_graphs(tmp_path):
     """A 1e300 quaternion (a direction), a duplicate edge, two disconnected parts: synchronized, the truth kept."""
     big = "1 0 0 0 0 0 1e300"
-    text = (_V.format(0) + _V.format(1) + _V.format(2) + _V.format(3) + _edge(0, 1, big) + _edge(0, 1)
-            + _edge(2, 3, "0 2 0 0 0 0 1"))
+    text = (
+        _V.format(0)
+        + _V.format(1)
+        + _V.format(2)
+        + _V.format(3)
+        + _edge(0, 1, big)
+        + _edge(0, 1)
+        + _edge(2, 3, "0 2 0 0 0 0 1")
+    )
     (tmp_path / "in.g2o").write_text(text)
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o")
     assert code == 0 and "2 connected part(s)" in lines[0], lines
@@ -963,8 +1066,15 @@ def test_sync_odd_but_valid_graphs(tmp_path):
 @pytest.mark.parametrize("method", ["history", "lm", "eigse3", "l1_irls", "rotavg", "gnc_tls", "shonan", "open3d"])
 def test_sync_a_vertex_without_edges(tmp_path, method):
     """A vertex on no edge is a part of its own for every method (Shonan failed: "Attempting to at the key")."""
-    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _V.format(9) + _edge(0, 1)
-                                     + _edge(1, 2, "0 1 0 0 0 0 1") + _edge(0, 2, "1 1 0 0 0 0 1"))
+    (tmp_path / "in.g2o").write_text(
+        _V.format(0)
+        + _V.format(1)
+        + _V.format(2)
+        + _V.format(9)
+        + _edge(0, 1)
+        + _edge(1, 2, "0 1 0 0 0 0 1")
+        + _edge(0, 2, "1 1 0 0 0 0 1")
+    )
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
     assert code == 0 and "2 connected part(s)" in lines[0], lines
     ids, poses, _ = read_g2o(tmp_path / "out.g2o")
@@ -972,15 +1082,27 @@ def test_sync_a_vertex_without_edges(tmp_path, method):
     np.testing.assert_allclose((inv_T(poses[0]) @ poses[2])[:3, 3], [1, 1, 0], atol=1e-6)
 
 
-@pytest.mark.parametrize("method, n, words", [
-    ("eigse3", 251, "eigse3 solves a dense eigenproblem of 4N x 4N: at most 250 poses in a connected part, got 251"),
-    ("open3d", 100_000, "open3d's global optimization holds a dense system of 6N x 6N: 100,000 poses need about "
-                        "5364.4 GB")])
+@pytest.mark.parametrize(
+    "method, n, words",
+    [
+        (
+            "eigse3",
+            251,
+            "eigse3 solves a dense eigenproblem of 4N x 4N: at most 250 poses in a connected part, got 251",
+        ),
+        (
+            "open3d",
+            100_000,
+            "open3d's global optimization holds a dense system of 6N x 6N: 100,000 poses need about 5364.4 GB",
+        ),
+    ],
+)
 def test_sync_dense_baselines_refuse_graphs_too_large_for_them(tmp_path, method, n, words):
     """A chain of 2,000 poses kept eigse3 in LAPACK for minutes, deaf to SIGTERM; of 10,000 it asked for 24 GB
     ("unexpected MemoryError"), and open3d said only "std::bad_alloc"."""
-    (tmp_path / "in.g2o").write_text("".join(_V.format(k) for k in range(n))
-                                     + "".join(_edge(k, k + 1) for k in range(n - 1)))
+    (tmp_path / "in.g2o").write_text(
+        "".join(_V.format(k) for k in range(n)) + "".join(_edge(k, k + 1) for k in range(n - 1))
+    )
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
     assert code == 2 and len(lines) == 1 and words in lines[0], lines
     assert not (tmp_path / "out.g2o").exists()
@@ -993,13 +1115,23 @@ def test_sync_keeps_the_input_frame_and_does_not_stack_parts(tmp_path, method):
     the origin. Each part is now placed by its first vertex's input pose, and the parts apart are named."""
     shifted = "VERTEX_SE3:QUAT {} 10 0 0 0 0 0 1\n"
     far = "VERTEX_SE3:QUAT {} 100 5 0 0 0 0 1\n"
-    (tmp_path / "in.g2o").write_text(shifted.format(0) + shifted.format(1) + shifted.format(2) + far.format(7)
-                                     + far.format(8) + _edge(0, 1) + _edge(1, 2, "0 1 0 0 0 0 1")
-                                     + _edge(0, 2, "1 1 0 0 0 0 1") + _edge(7, 8, "0 0 1 0 0 0 1"))
+    (tmp_path / "in.g2o").write_text(
+        shifted.format(0)
+        + shifted.format(1)
+        + shifted.format(2)
+        + far.format(7)
+        + far.format(8)
+        + _edge(0, 1)
+        + _edge(1, 2, "0 1 0 0 0 0 1")
+        + _edge(0, 2, "1 1 0 0 0 0 1")
+        + _edge(7, 8, "0 0 1 0 0 0 1")
+    )
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
     assert code == 0 and "2 connected part(s)" in lines[0], lines
-    assert lines[1] == ("2 pose(s) outside the largest part, joined to it by no kept edge: each part is placed by "
-                        "its first vertex's input pose, not by the graph: 7 8"), lines
+    assert lines[1] == (
+        "2 pose(s) outside the largest part, joined to it by no kept edge: each part is placed by "
+        "its first vertex's input pose, not by the graph: 7 8"
+    ), lines
     ids, poses, _ = read_g2o(tmp_path / "out.g2o")
     np.testing.assert_allclose(poses[[0, 3], :3, 3], [[10, 0, 0], [100, 5, 0]], atol=1e-9)
     np.testing.assert_allclose(poses[[2, 4], :3, 3], [[11, 1, 0], [100, 5, 1]], atol=1e-6)
@@ -1008,8 +1140,15 @@ def test_sync_keeps_the_input_frame_and_does_not_stack_parts(tmp_path, method):
 def test_sync_holds_a_part_at_its_fix_vertex(tmp_path):
     """``FIX`` lines were skipped: the part was held at its first vertex, so the FIX vertex moved. A part now keeps
     its first FIX vertex at its input pose; a second FIX vertex in the same part is named as placed by the graph."""
-    (tmp_path / "in.g2o").write_text("FIX 2 1\n" + _V.format(0) + _V.format(1) + "VERTEX_SE3:QUAT 2 5 5 0 0 0 0 1\n"
-                                     + _edge(0, 1) + _edge(1, 2, "0 1 0 0 0 0 1") + _edge(0, 2, "1 1 0 0 0 0 1"))
+    (tmp_path / "in.g2o").write_text(
+        "FIX 2 1\n"
+        + _V.format(0)
+        + _V.format(1)
+        + "VERTEX_SE3:QUAT 2 5 5 0 0 0 0 1\n"
+        + _edge(0, 1)
+        + _edge(1, 2, "0 1 0 0 0 0 1")
+        + _edge(0, 2, "1 1 0 0 0 0 1")
+    )
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o")
     assert code == 0 and lines[1:] == ["FIX vertices placed by the graph (a part is held at its first FIX vertex): 1"]
     _, poses, _ = read_g2o(tmp_path / "out.g2o")
@@ -1022,14 +1161,21 @@ def test_sync_names_every_method_and_refuses_absurd_translations(tmp_path):
     (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _edge(0, 1))
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", "bogus")
     assert code == 2 and len(lines) == 1 and "gnc_tls" in lines[0] and "open3d_all_uncertain" in lines[0], lines
-    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _edge(0, 1, "1e200 0 0 0 0 0 1")
-                                     + _edge(1, 2) + _edge(0, 2, "2 0 0 0 0 0 1"))
+    (tmp_path / "in.g2o").write_text(
+        _V.format(0)
+        + _V.format(1)
+        + _V.format(2)
+        + _edge(0, 1, "1e200 0 0 0 0 0 1")
+        + _edge(1, 2)
+        + _edge(0, 2, "2 0 0 0 0 0 1")
+    )
     for method in ("history", "lm"):
         code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
-        assert code == 2 and lines == [f"error: {tmp_path / 'in.g2o'}: line 4: translation 1e+200 beyond what double "
-                                       "precision can square (1.3e+154)"], lines
+        assert code == 2 and lines == [
+            f"error: {tmp_path / 'in.g2o'}: line 4: translation 1e+200 beyond what double "
+            "precision can square (1.3e+154)"
+        ], lines
     assert not (tmp_path / "out.g2o").exists()
-
 
 
 def test_scan_files_whose_names_are_not_utf8_are_skipped_and_shown_escaped(tmp_path):
@@ -1041,26 +1187,65 @@ def test_scan_files_whose_names_are_not_utf8_are_skipped_and_shown_escaped(tmp_p
     (scene / "scan_00.ply").rename(scene / os.fsdecode(b"caf\xe9.ply"))
     (scene / "scan_01.ply").rename(scene / "a\nb.ply")
     (scene / os.fsdecode(b"gt_pose\xe9s.txt")).write_text("not a scan")
-    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
-                           "--workers", "1", "--no-record"], capture_output=True, text=True, errors="strict")
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sghr_gtsam",
+            "run",
+            str(scene),
+            "--out",
+            str(tmp_path / "out"),
+            "--workers",
+            "1",
+            "--no-record",
+        ],
+        capture_output=True,
+        text=True,
+        errors="strict",
+    )
     assert done.returncode == 0, done.stderr
     assert re.search(r"skipped files +2: 'a\\nb\.ply', 'caf\\udce9\.ply'", done.stdout), done.stdout
     assert "not a scan, by its name: 'gt_pose\\udce9s.txt'" in done.stdout + done.stderr
     assert (tmp_path / "out" / "poses.txt").read_text().count(".ply") == 2
     (scene / "scan_02.ply").rename(scene / os.fsdecode(b"scan_\xff.ply"))
-    done = subprocess.run([sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(tmp_path / "out"),
-                           "--workers", "1", "--no-record"], capture_output=True, text=True, errors="strict")
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "sghr_gtsam",
+            "run",
+            str(scene),
+            "--out",
+            str(tmp_path / "out"),
+            "--workers",
+            "1",
+            "--no-record",
+        ],
+        capture_output=True,
+        text=True,
+        errors="strict",
+    )
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
-    assert "need at least 2 usable scans, 1 left; skipped 'a\\nb.ply': its name 'a\\nb.ply' cannot be written on " \
-           "its own line in the pose files: rename it (and 2 more)" in done.stderr, done.stderr
+    assert (
+        "need at least 2 usable scans, 1 left; skipped 'a\\nb.ply': its name 'a\\nb.ply' cannot be written on "
+        "its own line in the pose files: rename it (and 2 more)" in done.stderr
+    ), done.stderr
+
 
 @pytest.mark.parametrize("method", ["history", "lm", "shonan", "gnc_tls"])
 def test_sync_information_beyond_double_precision_is_refused_by_every_method(tmp_path, method):
     """Information of 1e-300 on every edge of a loop: Shonan failed ("TridiagEigen: eigen decomposition failed"),
     the other methods wrote a graph; every method refuses it, naming the edge's line."""
     tiny = _INFO.replace("1", "1e-300")
-    (tmp_path / "in.g2o").write_text(_V.format(0) + _V.format(1) + _V.format(2) + _edge(0, 1, info=tiny)
-                                     + _edge(1, 2, "0 1 0 0 0 0 1", tiny) + _edge(0, 2, "1 1 0 0 0 0 1", tiny))
+    (tmp_path / "in.g2o").write_text(
+        _V.format(0)
+        + _V.format(1)
+        + _V.format(2)
+        + _edge(0, 1, info=tiny)
+        + _edge(1, 2, "0 1 0 0 0 0 1", tiny)
+        + _edge(0, 2, "1 1 0 0 0 0 1", tiny)
+    )
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", method)
     assert code == 2 and len(lines) == 1 and "in.g2o: line 4: information's eigenvalues" in lines[0], lines
     assert not (tmp_path / "out.g2o").exists()
@@ -1070,12 +1255,16 @@ def test_sync_shonan_on_precisions_far_apart_says_so_in_one_line(tmp_path):
     """A 5-scan loop and one edge of 1e140 × its information: gtsam's Shonan eigensolver fails ("unexpected
     RuntimeError: TridiagEigen: …" before); the line names the method and the precisions' range."""
     ring = "1 0 0 0 0 0.309017 0.9510565"  # 36° about z a step
-    (tmp_path / "in.g2o").write_text("".join(_V.format(k) for k in range(5))
-                                     + "".join(_edge(k, (k + 1) % 5, ring) for k in range(5))
-                                     + _edge(0, 2, "0 1 0 0.7071068 0 0 0.7071068", _INFO.replace("1", "1e140")))
+    (tmp_path / "in.g2o").write_text(
+        "".join(_V.format(k) for k in range(5))
+        + "".join(_edge(k, (k + 1) % 5, ring) for k in range(5))
+        + _edge(0, 2, "0 1 0 0.7071068 0 0 0.7071068", _INFO.replace("1", "1e140"))
+    )
     code, lines = _cli("sync", tmp_path / "in.g2o", "--out", tmp_path / "out.g2o", "--method", "shonan")
-    assert code == 2 and lines == ["error: Shonan averaging failed (TridiagEigen: eigen decomposition failed) on "
-                                   "rotation precisions from 1 to 1e+140: try another method"], lines
+    assert code == 2 and lines == [
+        "error: Shonan averaging failed (TridiagEigen: eigen decomposition failed) on "
+        "rotation precisions from 1 to 1e+140: try another method"
+    ], lines
     assert not (tmp_path / "out.g2o").exists()
 
 
@@ -1104,13 +1293,16 @@ def _load(path: Path) -> np.ndarray | None:
 
 
 @_FUZZ
-@given(st.lists(st.tuples(_coords, _coords, _coords), min_size=1, max_size=30), st.sampled_from(["ascii", "binary"]),
-       st.data())
+@given(
+    st.lists(st.tuples(_coords, _coords, _coords), min_size=1, max_size=30),
+    st.sampled_from(["ascii", "binary"]),
+    st.data(),
+)
 def test_fuzzed_ply_is_read_exactly_or_refused(rows, fmt, data):
     """A valid PLY comes back exactly; the same file with one byte changed, truncated or with its vertex count
     altered is refused or read as exactly the values its bytes hold (no padding, no uninitialised memory)."""
     P = np.array(rows, dtype=np.float32).astype(np.float64)
-    blob = (_ascii_ply(P).encode() if fmt == "ascii" else _binary_ply(P))
+    blob = _ascii_ply(P).encode() if fmt == "ascii" else _binary_ply(P)
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "f.ply"
         path.write_bytes(blob)
@@ -1118,9 +1310,9 @@ def test_fuzzed_ply_is_read_exactly_or_refused(rows, fmt, data):
         mutation = data.draw(st.sampled_from(["byte", "cut", "count"]))
         if mutation == "byte":
             at = data.draw(st.integers(0, len(blob) - 1))
-            blob = blob[:at] + bytes([data.draw(st.integers(0, 255))]) + blob[at + 1:]
+            blob = blob[:at] + bytes([data.draw(st.integers(0, 255))]) + blob[at + 1 :]
         elif mutation == "cut":
-            blob = blob[:data.draw(st.integers(0, len(blob) - 1))]
+            blob = blob[: data.draw(st.integers(0, len(blob) - 1))]
         else:
             blob = blob.replace(f"vertex {len(P)}".encode(), f"vertex {data.draw(st.integers(0, 40))}".encode(), 1)
         path.write_bytes(blob)
@@ -1177,8 +1369,14 @@ def test_fuzzed_g2o_is_read_or_refused_with_a_line(lines):
 
 
 def test_g2o_written_and_read_back_keeps_a_large_quaternion_exactly(tmp_path):
-    graph = PoseGraph(n=2, i=np.array([0]), j=np.array([1]), T=make_T(np.eye(3), np.ones(3))[None],
-                      weight=np.ones(1), information=np.eye(6)[None])
+    graph = PoseGraph(
+        n=2,
+        i=np.array([0]),
+        j=np.array([1]),
+        T=make_T(np.eye(3), np.ones(3))[None],
+        weight=np.ones(1),
+        information=np.eye(6)[None],
+    )
     write_g2o(tmp_path / "g.g2o", [0, 1], np.tile(np.eye(4), (2, 1, 1)), graph)
     text = (tmp_path / "g.g2o").read_text().replace(" 0.0 0.0 0.0 1.0\n", " 0.0 0.0 0.0 1e300\n", 1)
     (tmp_path / "g.g2o").write_text(text)

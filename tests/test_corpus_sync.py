@@ -37,8 +37,14 @@ def _cli(*args) -> tuple[int, list[str]]:
 
 def _triangle(first: str = "1 0 0 0 0 0 1", info: str = _INFO) -> str:
     """Three vertices and the three edges of a noise-free loop, ``first`` the pose of edge 0-1."""
-    return (_V.format(0) + _V.format(1) + _V.format(2) + _edge(0, 1, first, info) + _edge(1, 2, "0 1 0 0 0 0 1")
-            + _edge(0, 2, "1 1 0 0 0 0 1"))
+    return (
+        _V.format(0)
+        + _V.format(1)
+        + _V.format(2)
+        + _edge(0, 1, first, info)
+        + _edge(1, 2, "0 1 0 0 0 0 1")
+        + _edge(0, 2, "1 1 0 0 0 0 1")
+    )
 
 
 @pytest.mark.parametrize("scale", ["1e-200", "1e300", "5e-324"])

@@ -5,16 +5,23 @@ minimum cut (groups held by several wrong edges)."""
 
 import networkx as nx
 import numpy as np
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from test_sync import FAST, max_errors, random_graph
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.sync import synchronize
-from sghr_gtsam.sync.cycles import (credibility, cut_moves, grow, inlier_odds, replace_groups, triangle_support,
-                                     triangles)
+from sghr_gtsam.sync.cycles import (
+    credibility,
+    cut_moves,
+    grow,
+    inlier_odds,
+    replace_groups,
+    triangle_support,
+    triangles,
+)
 from sghr_gtsam.types import PoseGraph
-
-from test_sync import FAST, max_errors, random_graph
 
 
 @FAST
@@ -33,7 +40,9 @@ def test_triangles_are_those_of_networkx(seed, n, extra):
     assert sorted(nodes) == sorted(expected)
     for e_ab, e_bc, e_ca in tri:
         ab, bc, ca = ({graph.i[e], graph.j[e]} for e in (e_ab, e_bc, e_ca))
-        assert len(ab & bc) == 1 and len(bc & ca) == 1 and len(ca & ab) == 1 and graph.weight[[e_ab, e_bc, e_ca]].min() > 0
+        assert (
+            len(ab & bc) == 1 and len(bc & ca) == 1 and len(ca & ab) == 1 and graph.weight[[e_ab, e_bc, e_ca]].min() > 0
+        )
 
 
 def test_random_outliers_close_no_consistent_triangle():
@@ -59,9 +68,13 @@ def _hung_group(seed: int = 2) -> tuple[PoseGraph, np.ndarray, int]:
     flip = make_T(Rotation.from_euler("z", 180, degrees=True).as_matrix(), np.zeros(3))
     links = [(3, 17, False), (5, 19, True), (8, 16, True), (11, 21, True)]
     T = [inv_T(truth[p]) @ (truth[q] if ok else flip @ truth[q]) for p, q, ok in links]
-    graph = PoseGraph(n=23, i=np.r_[a.i, b.i + 15, [p for p, _, _ in links]],
-                      j=np.r_[a.j, b.j + 15, [q for _, q, _ in links]], T=np.concatenate([a.T, b.T, T]),
-                      weight=np.r_[a.weight, b.weight, 1000.0, 1.0, 1.0, 1.0])
+    graph = PoseGraph(
+        n=23,
+        i=np.r_[a.i, b.i + 15, [p for p, _, _ in links]],
+        j=np.r_[a.j, b.j + 15, [q for _, q, _ in links]],
+        T=np.concatenate([a.T, b.T, T]),
+        weight=np.r_[a.weight, b.weight, 1000.0, 1.0, 1.0, 1.0],
+    )
     return graph, truth, len(a.i) + len(b.i)
 
 
@@ -159,8 +172,13 @@ def _held_group(seed: int, wrong: int, right: int) -> tuple[PoseGraph, np.ndarra
     rng = np.random.default_rng(seed)
     p, q = rng.choice(15, wrong + right, replace=False), 15 + rng.integers(0, 10, wrong + right)
     T = [inv_T(truth[a_]) @ (G if k < wrong else np.eye(4)) @ truth[b_] for k, (a_, b_) in enumerate(zip(p, q))]
-    graph = PoseGraph(n=25, i=np.r_[a.i, b.i + 15, p], j=np.r_[a.j, b.j + 15, q], T=np.concatenate([a.T, b.T, T]),
-                      weight=np.r_[a.weight, b.weight, np.full(wrong, 1000.0), np.full(right, 1.0)])
+    graph = PoseGraph(
+        n=25,
+        i=np.r_[a.i, b.i + 15, p],
+        j=np.r_[a.j, b.j + 15, q],
+        T=np.concatenate([a.T, b.T, T]),
+        weight=np.r_[a.weight, b.weight, np.full(wrong, 1000.0), np.full(right, 1.0)],
+    )
     start = truth.copy()
     start[15:] = G @ truth[15:]
     return graph, truth, start
@@ -170,9 +188,10 @@ def _outvoted(graph: PoseGraph, votes: np.ndarray, wrong: int, right: int) -> np
     """(N,) bool: scans whose wrong edges (``_held_group``'s first ``wrong`` links) carry at least the votes of their
     right ones. Their own edges favour the wrong placement, so where they go is not the cut's to decide."""
     bad = np.zeros(graph.num_edges, dtype=bool)
-    bad[graph.num_edges - wrong - right:graph.num_edges - right] = True
-    wrong_votes, right_votes = (np.bincount(graph.i[m], votes[m], graph.n) + np.bincount(graph.j[m], votes[m], graph.n)
-                                for m in (bad, ~bad))
+    bad[graph.num_edges - wrong - right : graph.num_edges - right] = True
+    wrong_votes, right_votes = (
+        np.bincount(graph.i[m], votes[m], graph.n) + np.bincount(graph.j[m], votes[m], graph.n) for m in (bad, ~bad)
+    )
     return wrong_votes >= right_votes
 
 

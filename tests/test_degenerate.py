@@ -15,8 +15,7 @@ from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.registration import batch
-from sghr_gtsam.registration.information import (displacement_metric, loosest, pose_spread,
-                                                  registration_information)
+from sghr_gtsam.registration.information import displacement_metric, loosest, pose_spread, registration_information
 from sghr_gtsam.registration.pairwise import score_pair
 from sghr_gtsam.registration.refine import Pyramid
 from sghr_gtsam.se3 import inv_T, make_T
@@ -87,7 +86,8 @@ def test_a_corridor_is_free_along_its_axis_and_fixed_across_it(seed):
     assert spread[0] > 100 * spread[1] and spread[1] < VOXEL / 10
     assert abs(vectors[3:, 0] @ axis) > 0.99 * np.linalg.norm(vectors[3:, 0])
     assert np.linalg.norm(vectors[:3, 0]) * np.linalg.norm(source.points, axis=1).max() < 0.05 * np.linalg.norm(
-        vectors[3:, 0])
+        vectors[3:, 0]
+    )
 
 
 def test_displacement_metric_is_the_mean_squared_motion_of_the_points():
@@ -103,16 +103,16 @@ def _graph(kinds: list[tuple[int, int, str]], n: int, seed: int):
     a registration of ``kind`` geometry (``registration_information`` on generated scans); also each edge's
     information part along its free directions."""
     rng = np.random.default_rng(seed)
-    poses = np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.normal(size=3))
-                      for k in range(n)])
+    poses = np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.normal(size=3)) for k in range(n)])
     i, j, T, info, free = [], [], [], [], []
     for e, (a, b, kind) in enumerate(kinds):
         target, source, T_ab = _scan_pair(kind, seed + 10 * e)
         i.append(a), j.append(b), T.append(inv_T(poses[a]) @ poses[b])
         edge = registration_information(target, source, T_ab, 1.5 * VOXEL)
         info.append(edge.matrix), free.append(edge.loose)
-    graph = PoseGraph(n=n, i=np.array(i), j=np.array(j), T=np.stack(T), weight=np.ones(len(i)),
-                      information=np.stack(info))
+    graph = PoseGraph(
+        n=n, i=np.array(i), j=np.array(j), T=np.stack(T), weight=np.ones(len(i)), information=np.stack(info)
+    )
     return graph, poses, source.points, np.stack(free)
 
 
@@ -120,8 +120,9 @@ def _verdict(kinds: list[tuple[int, int, str]]):
     graph, poses, points, free = _graph(kinds, 3, seed=5)
     names = [f"s{k}" for k in range(3)]
     everyone = np.ones(3, dtype=bool)
-    return verify(names, graph, np.ones(graph.num_edges, dtype=bool), poses, everyone, Verification(),
-                  [points] * 3, free=free)
+    return verify(
+        names, graph, np.ones(graph.num_edges, dtype=bool), poses, everyone, Verification(), [points] * 3, free=free
+    )
 
 
 def test_a_scan_held_by_a_corridor_edge_alone_is_loose_and_a_second_edge_fixes_it():
@@ -161,8 +162,9 @@ def _corridor_scene(seed: int = 0):
         boxes.append(np.asarray(box.sample_points_uniformly(2000).points))
     world = np.concatenate([walls] + boxes)
     starts = [0.0, 5.0, 9.0, 13.0, 18.0]
-    poses = np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.normal(size=3))
-                      for k in range(len(starts))])
+    poses = np.stack(
+        [make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.normal(size=3)) for k in range(len(starts))]
+    )
     scans = []
     for k, x0 in enumerate(starts):
         part = world[(world[:, 0] >= x0) & (world[:, 0] <= x0 + 8.0)]
@@ -195,8 +197,11 @@ def test_a_scan_that_sees_only_a_corridor_is_reported_loose(monkeypatch):
     cfg = Config(record=False, workers=1, voxel=voxel, k=1, refine=False, loops=False, retry=False)
     result = register(scans, cfg, log=lambda m: None, scores=scores)
     err = scan_errors(result.names, result.poses, poses)
-    free = {(int(i), int(j)): p.free for i, j, p in zip(result.graph.i, result.graph.j, result.pairs)
-            if abs(int(i) - int(j)) == 1}
+    free = {
+        (int(i), int(j)): p.free
+        for i, j, p in zip(result.graph.i, result.graph.j, result.pairs)
+        if abs(int(i) - int(j)) == 1
+    }
     assert len(free) == n - 1 and all((f >= 1) == (2 in pair) for pair, f in free.items()), free
     loose = result.verdict.loose
     assert list(loose) == ["scan_2.ply", "scan_3.ply", "scan_4.ply"], loose

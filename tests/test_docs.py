@@ -20,8 +20,20 @@ def test_the_gtsam_page_has_snippets():
     blocks = python_blocks(DOCS / "gtsam.md")
     assert len(blocks) >= 5
     code = "\n".join(blocks)  # the public API a SLAM stack uses is shown running, not only described
-    for call in ("sg.run(", "sg.to_gtsam(", "sg.load_results(", "sg.synchronize(", "sg.Session(", ".add_scan(",
-                 ".add_node(", ".add_between(", ".add_prior(", ".add_position(", ".add_factor(", ".key("):
+    for call in (
+        "sg.run(",
+        "sg.to_gtsam(",
+        "sg.load_results(",
+        "sg.synchronize(",
+        "sg.Session(",
+        ".add_scan(",
+        ".add_node(",
+        ".add_between(",
+        ".add_prior(",
+        ".add_position(",
+        ".add_factor(",
+        ".key(",
+    ):
         assert call in code, call
 
 

@@ -52,7 +52,9 @@ def test_a_scan_turned_in_place_shows_its_angle_and_no_other_scan_moves(seed, n,
     est = _random_T(rng)[None] @ gt
     bad = int(rng.integers(n))
     axis = rng.normal(size=3)
-    est[bad, :3, :3] = est[bad, :3, :3] @ Rotation.from_rotvec(np.radians(angle) * axis / np.linalg.norm(axis)).as_matrix()
+    est[bad, :3, :3] = (
+        est[bad, :3, :3] @ Rotation.from_rotvec(np.radians(angle) * axis / np.linalg.norm(axis)).as_matrix()
+    )
     err = whole_model_errors([f"s{k}" for k in range(n)], est, gt)  # positions untouched: alignment exact
     assert err.rotation_deg[bad] == pytest.approx(angle, abs=1e-6)
     assert np.delete(err.rotation_deg, bad).max() < 1e-5 and err.translation.max() < 1e-8
@@ -83,8 +85,11 @@ def test_a_displaced_scan_is_the_worst_and_alignment_never_beats_gt_frame(seed, 
 def test_align_rigid_is_a_least_squares_minimum_and_a_proper_rotation(seed, n):
     rng = np.random.default_rng(seed)
     src = rng.normal(size=(n, 3))
-    dst = src @ Rotation.random(random_state=rng.integers(2**32)).as_matrix().T + rng.normal(size=3) \
+    dst = (
+        src @ Rotation.random(random_state=rng.integers(2**32)).as_matrix().T
+        + rng.normal(size=3)
         + rng.normal(scale=0.3, size=(n, 3))
+    )
     A = align_rigid(src, dst)
     assert np.linalg.det(A[:3, :3]) == pytest.approx(1.0) and np.allclose(A[:3, :3].T @ A[:3, :3], np.eye(3))
 
@@ -106,8 +111,15 @@ def test_align_rigid_never_returns_a_reflection():
 
 def _ring(n: int) -> tuple[list[str], np.ndarray, dict, dict]:
     """n fragments on a circle, every pair in a gt.log with identity information."""
-    poses = np.stack([make_T(Rotation.from_euler("z", 360.0 * k / n, degrees=True).as_matrix(),
-                             [np.cos(2 * np.pi * k / n), np.sin(2 * np.pi * k / n), 0.1 * k]) for k in range(n)])
+    poses = np.stack(
+        [
+            make_T(
+                Rotation.from_euler("z", 360.0 * k / n, degrees=True).as_matrix(),
+                [np.cos(2 * np.pi * k / n), np.sin(2 * np.pi * k / n), 0.1 * k],
+            )
+            for k in range(n)
+        ]
+    )
     log = {(a, b): inv_T(poses[a]) @ poses[b] for a in range(n) for b in range(a + 1, n)}
     return [f"cloud_bin_{k}.ply" for k in range(n)], poses, log, {p: np.eye(6) for p in log}
 
@@ -133,8 +145,9 @@ def test_score_run_counts_unregistered_and_missing_scans_and_names_the_doubted_o
     est[5] = est[5] @ make_T(Rotation.from_euler("x", 60, degrees=True).as_matrix(), np.zeros(3))
     est[2] = np.eye(4)  # garbage pose of a scan the run could not place: must not count
     run_names = names[:7]  # the run never loaded the last scan
-    score = score_run(run_names, est[:7], names, gt, unregistered=[names[2]], flagged=[names[5], names[2]],
-                      gt_log=log, gt_info=info)
+    score = score_run(
+        run_names, est[:7], names, gt, unregistered=[names[2]], flagged=[names[5], names[2]], gt_log=log, gt_info=info
+    )
     assert score.scans == 8 and len(score.placed) == 6
     assert score.unregistered == [names[2], names[7]] and score.flagged == [names[5]]
     assert score.doubted == [names[5]] and score.within == 5 and score.unflagged_wrong == []
@@ -154,8 +167,9 @@ def test_score_run_counts_unregistered_and_missing_scans_and_names_the_doubted_o
 def test_ground_truth_scores_perfectly_on_the_kitchen(data_dir):
     gt_dir = data_dir / "kitchen" / "gt"
     names, gt = read_poses(gt_dir / "gt_poses.txt")
-    score = score_run(names, gt, names, gt, gt_log=read_gt_log(gt_dir / "gt.log"),
-                      gt_info=read_gt_info(gt_dir / "gt.info"))
+    score = score_run(
+        names, gt, names, gt, gt_log=read_gt_log(gt_dir / "gt.log"), gt_info=read_gt_info(gt_dir / "gt.info")
+    )
     assert score.recall.recall == 1.0 and score.within == len(names) and score.whole.ate_rmse < 1e-9
 
 
@@ -168,8 +182,9 @@ def test_score_result_reads_the_runs_own_lists():
     names, gt, _, _ = _ring(6)
     doubts = {names[4]: "single registration", names[0]: "free space"}
     placed = [n for n in names if n != names[1]]
-    verdict = Verdict(parts=[Part(0, placed)], status={n: "doubtful" if n in doubts else "verified" for n in placed},
-                      doubts=doubts)
+    verdict = Verdict(
+        parts=[Part(0, placed)], status={n: "doubtful" if n in doubts else "verified" for n in placed}, doubts=doubts
+    )
     result = SimpleNamespace(names=names, poses=gt, unregistered=[names[1]], verdict=verdict)
     score = score_result(result, names, gt)
     assert score.unregistered == [names[1]] and score.flagged == [names[0], names[4]] and score.within == 5
@@ -188,7 +203,9 @@ def test_a_flagged_group_placed_far_off_does_not_make_the_unflagged_scans_read_w
     est = _random_T(rng)[None] @ gt
     est[:group] = make_T(np.eye(3), np.array([shift, 0.0, 0.0])) @ est[:group]
     score = score_run(names, est, names, gt, flagged=names[:group])
-    assert score.unflagged_wrong == [] and score.certain.within(5.0, 0.2).tolist() == [False] * group + [True] * (10 - group)
+    assert score.unflagged_wrong == [] and score.certain.within(5.0, 0.2).tolist() == [False] * group + [True] * (
+        10 - group
+    )
     assert names[0] in score_run(names, est, names, gt, flagged=names[1:group]).unflagged_wrong
 
 
@@ -196,8 +213,12 @@ def test_a_flagged_group_placed_far_off_does_not_make_the_unflagged_scans_read_w
 @given(st.integers(0, 2**32 - 1))
 def test_pose_alignment_recovers_a_rigid_change_of_world(seed):
     rng = np.random.default_rng(seed)
-    gt = np.stack([make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3) * 0.01)
-                   for _ in range(6)])  # an object's scans: positions nearly coincide
+    gt = np.stack(
+        [
+            make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3) * 0.01)
+            for _ in range(6)
+        ]
+    )  # an object's scans: positions nearly coincide
     A = make_T(Rotation.random(random_state=rng.integers(2**31)).as_matrix(), rng.normal(size=3))
     w = whole_model_errors([str(k) for k in range(6)], inv_T(A)[None] @ gt, gt, align="poses")
     assert w.rotation_deg.max() < 1e-4 and w.translation.max() < 1e-9  # arccos resolves ~1e-6 deg

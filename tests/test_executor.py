@@ -21,9 +21,13 @@ from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError
 
 NO_RAY = "the optional extra ray is not installed (pip install -e '.[ray]')"
-BACKENDS = [pytest.param(1, None, id="in-process"), pytest.param(2, None, id="pool-2"),
-            pytest.param(2, "local", id="ray-local-2",
-                         marks=pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason=NO_RAY))]
+BACKENDS = [
+    pytest.param(1, None, id="in-process"),
+    pytest.param(2, None, id="pool-2"),
+    pytest.param(
+        2, "local", id="ray-local-2", marks=pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason=NO_RAY)
+    ),
+]
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -125,8 +129,9 @@ def test_ray_option_is_checked_before_any_work(monkeypatch, tmp_path):
     for args in (["run", str(tmp_path), "--ray", "local"], ["demo", "--out", str(tmp_path / "demo"), "--ray", "auto"]):
         r = CliRunner().invoke(app, args)
         assert r.exit_code == 2
-        assert r.output.splitlines() == ["error: ray is not installed: pip install 'sghr_gtsam[ray]' (in a checkout: "
-                                         "pip install -e '.[ray]')"]
+        assert r.output.splitlines() == [
+            "error: ray is not installed: pip install 'sghr_gtsam[ray]' (in a checkout: pip install -e '.[ray]')"
+        ]
     assert not (tmp_path / "demo").exists()
 
 

@@ -3,21 +3,24 @@ anchoring of every part, and the per-iteration records. Synthetic graphs only.""
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
+from test_sync import gauge_free, random_graph
 
 from sghr_gtsam.factor_graph import ROT_SIGMA_DEG, edge_information, graph_error, polish
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.sync import synchronize
 from sghr_gtsam.sync.rotation import connected_components
 from sghr_gtsam.types import PoseGraph
-from test_sync import gauge_free, random_graph
 
 
 def _perturb(poses: np.ndarray, seed: int, rot_deg: float, trans: float) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_deg), (len(poses), 3))).as_matrix(),
-                   rng.normal(0.0, trans, (len(poses), 3)))
+    noise = make_T(
+        Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_deg), (len(poses), 3))).as_matrix(),
+        rng.normal(0.0, trans, (len(poses), 3)),
+    )
     out = poses @ noise
     out[0] = poses[0]
     return out
@@ -56,8 +59,14 @@ def test_information_weighted_mean_of_parallel_edges():
     """Two measurements of the same pure translation: least squares returns their information-weighted mean."""
     t1, t2 = np.array([1.0, 0.0, 0.0]), np.array([0.0, 2.0, 0.0])
     T = make_T(np.stack([np.eye(3)] * 2), np.stack([t1, t2]))
-    graph = PoseGraph(n=2, i=np.array([0, 0]), j=np.array([1, 1]), T=T, weight=np.ones(2),
-                      information=np.stack([np.eye(6) * 1.0, np.eye(6) * 3.0]))
+    graph = PoseGraph(
+        n=2,
+        i=np.array([0, 0]),
+        j=np.array([1, 1]),
+        T=T,
+        weight=np.ones(2),
+        information=np.stack([np.eye(6) * 1.0, np.eye(6) * 3.0]),
+    )
     result = synchronize(graph, method="lm")
     np.testing.assert_allclose(result.poses[1], make_T(np.eye(3), (t1 + 3.0 * t2) / 4.0), atol=1e-9)
 
@@ -87,8 +96,13 @@ def test_polish_anchors_every_part_and_skips_dropped_edges():
     rng = np.random.default_rng(7)
     junk = make_T(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3))
     # Nodes 0-5 and 6-9 are two parts; node 10 only has a dropped (weight 0) wrong edge.
-    graph = PoseGraph(n=11, i=np.r_[a.i, b.i + 6, 10], j=np.r_[a.j, b.j + 6, 0],
-                      T=np.concatenate([a.T, b.T, junk[None]]), weight=np.r_[a.weight, b.weight, 0.0])
+    graph = PoseGraph(
+        n=11,
+        i=np.r_[a.i, b.i + 6, 10],
+        j=np.r_[a.j, b.j + 6, 0],
+        T=np.concatenate([a.T, b.T, junk[None]]),
+        weight=np.r_[a.weight, b.weight, 0.0],
+    )
     component = connected_components(11, graph.i, graph.j, graph.weight > 0)
     truth = np.concatenate([inv_T(truth_a[0]) @ truth_a, inv_T(truth_b[0]) @ truth_b, np.eye(4)[None]])
     start = _perturb(truth, 8, rot_deg=3.0, trans=0.2)

@@ -43,8 +43,11 @@ def _write_e57(path, parts):
     with pye57.E57(str(path), mode="w") as e57:
         for P, R, t in parts:
             w, x, y, z = np.roll(Rotation.from_matrix(R).as_quat(), 1)  # E57 stores w x y z
-            e57.write_scan_raw({"cartesianX": P[:, 0], "cartesianY": P[:, 1], "cartesianZ": P[:, 2]},
-                               rotation=np.array([w, x, y, z]), translation=np.asarray(t, dtype=float))
+            e57.write_scan_raw(
+                {"cartesianX": P[:, 0], "cartesianY": P[:, 1], "cartesianZ": P[:, 2]},
+                rotation=np.array([w, x, y, z]),
+                translation=np.asarray(t, dtype=float),
+            )
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
@@ -75,11 +78,14 @@ def test_e57_point_sets_are_moved_by_their_poses_into_one_scan(tmp_path):
     np.testing.assert_allclose(Q, expected, atol=1e-5)  # pye57 writes the coordinates as float32
 
 
-@pytest.mark.parametrize("name, content, reason", [
-    ("broken.laz", "truncated", "not a readable LAZ file"),
-    ("broken.las", b"LASF" + bytes(60), "not a readable LAS file"),
-    ("broken.e57", b"ASTM-E57" + bytes(2000), "not a readable E57 file"),
-])
+@pytest.mark.parametrize(
+    "name, content, reason",
+    [
+        ("broken.laz", "truncated", "not a readable LAZ file"),
+        ("broken.las", b"LASF" + bytes(60), "not a readable LAS file"),
+        ("broken.e57", b"ASTM-E57" + bytes(2000), "not a readable E57 file"),
+    ],
+)
 def test_unreadable_files_are_skipped_with_their_reason(tmp_path, name, content, reason):
     scene = tmp_path / "scene"
     scene.mkdir()
@@ -161,9 +167,9 @@ def _laz_chunk_table(data, entries):
     import lazrs
 
     offset = struct.unpack_from("<I", data, 96)[0]
-    out = io.BytesIO(bytes(data[:struct.unpack_from("<q", data, offset)[0]]))
+    out = io.BytesIO(bytes(data[: struct.unpack_from("<q", data, offset)[0]]))
     out.seek(0, io.SEEK_END)
-    lazrs.write_chunk_table(out, entries, lazrs.LazVlr(bytes(data[offset - 52:offset])))  # the laszip VLR is last
+    lazrs.write_chunk_table(out, entries, lazrs.LazVlr(bytes(data[offset - 52 : offset])))  # the laszip VLR is last
     return bytearray(out.getvalue())
 
 
@@ -190,23 +196,50 @@ LAS_CORRUPTIONS = {
     "EVLR count": ("1.4", ".las", _put(243, "<I", 0xFFFFFFF0), "corrupt header: 4,294,967,280 EVLRs declared"),
     "header size below LAS's": ("1.2", ".las", _put(94, "<H", 100), "corrupt header: a header size of 100 bytes"),
     "point data past the end": ("1.2", ".las", _put(96, "<I", 2**32 - 1), "corrupt header: point data at byte"),
-    "LASF and random bytes": ("1.2", ".las", lambda data: b"LASF" + np.random.default_rng(3).bytes(400),
-                              "corrupt header"),
+    "LASF and random bytes": (
+        "1.2",
+        ".las",
+        lambda data: b"LASF" + np.random.default_rng(3).bytes(400),
+        "corrupt header",
+    ),
     "chunk count of a LAZ": ("1.2", ".laz", _laz_chunks, "corrupt chunk table: 4,294,967,280 chunks"),
-    "chunk sizes of a LAZ": ("1.2", ".laz", _laz_chunk_bytes, "corrupt chunk table: chunks of "
-                             "18,446,744,071,562,067,968 bytes declared in"),
-    "point count of a LAZ": ("1.2", ".laz", _put(107, "<I", 10**9), "corrupt header: 1,000,000,000 points declared "
-                             "where the chunk table holds at most 50,000"),
-    "point count of a streamed LAZ": ("1.2", ".laz", lambda data: _put(107, "<I", 10**9)(_laz_streamed(data)),
-                                      "corrupt header: 1,000,000,000 points declared where the chunk table holds "
-                                      "at most 50,000"),
-    "LAZ without a chunk table": ("1.2", ".laz", lambda data: _put(107, "<I", 10**9)(_laz_without_table(data)),
-                                  "corrupt chunk table: its offset "),
-    "scale factor": ("1.2", ".las", _put(131, "<d", 1e300), "corrupt header: x scale 1e+300 and offset -49.981 put "
-                     "coordinates past ±3.9e+153"),
+    "chunk sizes of a LAZ": (
+        "1.2",
+        ".laz",
+        _laz_chunk_bytes,
+        "corrupt chunk table: chunks of 18,446,744,071,562,067,968 bytes declared in",
+    ),
+    "point count of a LAZ": (
+        "1.2",
+        ".laz",
+        _put(107, "<I", 10**9),
+        "corrupt header: 1,000,000,000 points declared where the chunk table holds at most 50,000",
+    ),
+    "point count of a streamed LAZ": (
+        "1.2",
+        ".laz",
+        lambda data: _put(107, "<I", 10**9)(_laz_streamed(data)),
+        "corrupt header: 1,000,000,000 points declared where the chunk table holds at most 50,000",
+    ),
+    "LAZ without a chunk table": (
+        "1.2",
+        ".laz",
+        lambda data: _put(107, "<I", 10**9)(_laz_without_table(data)),
+        "corrupt chunk table: its offset ",
+    ),
+    "scale factor": (
+        "1.2",
+        ".las",
+        _put(131, "<d", 1e300),
+        "corrupt header: x scale 1e+300 and offset -49.981 put coordinates past ±3.9e+153",
+    ),
     "scale not a number": ("1.4", ".las", _put(147, "<d", float("nan")), "corrupt header: z scale nan and offset"),
-    "offset infinite": ("1.2", ".las", _put(155, "<d", float("inf")), "corrupt header: x scale 0.001 and offset inf "
-                        "are not finite"),
+    "offset infinite": (
+        "1.2",
+        ".las",
+        _put(155, "<d", float("inf")),
+        "corrupt header: x scale 0.001 and offset inf are not finite",
+    ),
 }
 
 
@@ -239,8 +272,10 @@ def test_las_overstating_its_point_count_is_skipped_not_a_memory_error(tmp_path,
     scan of 112 GB that ends the run."""
     content = _put(at, fmt, 10**9)(_las_bytes(_points(3000), version))
     reason = _skipped_reason(tmp_path, "s3.las", content)
-    assert f"1,000,000,000 points of 34 bytes declared in {len(content) - (375 if version == '1.4' else 227):,} " \
-           "bytes of point data" in reason, reason
+    assert (
+        f"1,000,000,000 points of 34 bytes declared in {len(content) - (375 if version == '1.4' else 227):,} "
+        "bytes of point data" in reason
+    ), reason
     check_memory(tmp_path / "scene" / "s3.las")
 
 
@@ -252,11 +287,11 @@ def _variable_chunks(data, P):
     offset = struct.unpack_from("<I", data, 96)[0]
     struct.pack_into("<I", data, offset - 52 + 12, 0xFFFFFFFF)  # the laszip VLR's chunk size: variable
     las = _las_bytes(P)
-    records = bytes(las[struct.unpack_from("<I", las, 96)[0]:])
+    records = bytes(las[struct.unpack_from("<I", las, 96)[0] :])
     out = io.BytesIO(bytes(data[:offset]))
     out.seek(0, io.SEEK_END)
-    compressor = lazrs.LasZipCompressor(out, lazrs.LazVlr(bytes(data[offset - 52:offset])))
-    compressor.compress_chunks([records[:1000 * 34], records[1000 * 34:]])
+    compressor = lazrs.LasZipCompressor(out, lazrs.LazVlr(bytes(data[offset - 52 : offset])))
+    compressor.compress_chunks([records[: 1000 * 34], records[1000 * 34 :]])
     compressor.done()
     return bytearray(out.getvalue())
 
@@ -272,8 +307,10 @@ def test_laz_overstating_its_point_count_is_skipped_not_a_memory_error(tmp_path,
     (tmp_path / "whole.laz").write_bytes(data)
     np.testing.assert_allclose(load_scan(tmp_path / "whole.laz"), P, atol=0.5e-3)
     reason = _skipped_reason(tmp_path, "s3.laz", _put(at, fmt, 10**9)(data))
-    assert f"corrupt header: 1,000,000,000 points declared where the chunk table holds at most " \
-           f"{3000 if variable else 50000:,}" in reason, reason
+    assert (
+        f"corrupt header: 1,000,000,000 points declared where the chunk table holds at most "
+        f"{3000 if variable else 50000:,}" in reason
+    ), reason
     check_memory(tmp_path / "scene" / "s3.laz")
 
 
@@ -304,24 +341,31 @@ def test_any_las_header_field_is_read_or_refused_in_one_line(laspy_bounded, vers
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.tuples(*[st.floats(-1e4, 1e4)] * 3), min_size=1, max_size=20), st.booleans(),
-       st.sampled_from([" ", "\t", "  "]))
+@given(
+    st.lists(st.tuples(*[st.floats(-1e4, 1e4)] * 3), min_size=1, max_size=20),
+    st.booleans(),
+    st.sampled_from([" ", "\t", "  "]),
+)
 def test_decimal_commas_are_refused_naming_the_line(rows, comment, gap):
     """x y z written with decimal commas (a European-locale export): refused naming the line, where reading the
     commas as separators gave x_int, x_frac, y_int as the coordinates."""
-    text = "# exported\n" * comment + "".join(gap.join(f"{v:.6f}".replace(".", ",") for v in row) + "\n"
-                                             for row in rows)
+    text = "# exported\n" * comment + "".join(
+        gap.join(f"{v:.6f}".replace(".", ",") for v in row) + "\n" for row in rows
+    )
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "scan.xyz"
         path.write_text(text)
-        with pytest.raises(InputError, match=f"scan.xyz: line {1 + comment}: decimal commas .* are not read: "
-                                             f"convert them to points$"):
+        with pytest.raises(
+            InputError, match=f"scan.xyz: line {1 + comment}: decimal commas .* are not read: convert them to points$"
+        ):
             load_scan(path)
 
 
 @settings(max_examples=40, deadline=None)
-@given(st.lists(st.tuples(*[st.floats(allow_nan=False, allow_infinity=False)] * 3), min_size=1, max_size=20),
-       st.sampled_from([",", ", "]))
+@given(
+    st.lists(st.tuples(*[st.floats(allow_nan=False, allow_infinity=False)] * 3), min_size=1, max_size=20),
+    st.sampled_from([",", ", "]),
+)
 def test_comma_separated_text_reads_exactly(rows, separator):
     P = np.array(rows, dtype=np.float64)
     with tempfile.TemporaryDirectory() as folder:
@@ -359,8 +403,14 @@ def test_a_data_line_with_a_typo_is_no_header(tmp_path):
         load_scan(path)
 
 
-@pytest.mark.parametrize("text, line", [("x y z\n1 2 3\n# c\n\n4 5 6 7\n1 2 a\n", "line 6: "),
-                                        ("1 2 3\n4 5\n", "line 2: "), ("1,2,3\n4,5,6\n7;x;9\n", "line 3: ")])
+@pytest.mark.parametrize(
+    "text, line",
+    [
+        ("x y z\n1 2 3\n# c\n\n4 5 6 7\n1 2 a\n", "line 6: "),
+        ("1 2 3\n4 5\n", "line 2: "),
+        ("1,2,3\n4,5,6\n7;x;9\n", "line 3: "),
+    ],
+)
 def test_a_bad_line_is_named_by_its_line_in_the_file(tmp_path, text, line):
     """numpy named the row from 0 among data rows only ("row 2" for line 6 above)."""
     (tmp_path / "scan.txt").write_text(text)
@@ -381,18 +431,24 @@ def test_ply_with_a_blank_header_line_reads(tmp_path, fmt):
     """open3d reads a PLY whose header has a blank line; this reader refused it as a malformed header line."""
     P = _points(50).astype(np.float32).astype(np.float64)
     header = f"ply\nformat {fmt} 1.0\n\nelement vertex 50\nproperty float x\nproperty float y\nproperty float z\n"
-    data = ("".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in P.tolist()).encode() if fmt == "ascii"
-            else P.astype("<f4").tobytes())
+    data = (
+        "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in P.tolist()).encode()
+        if fmt == "ascii"
+        else P.astype("<f4").tobytes()
+    )
     (tmp_path / "scan.ply").write_bytes(header.encode() + b"end_header\n" + data)
     np.testing.assert_array_equal(load_scan(tmp_path / "scan.ply"), P)
 
 
-@pytest.mark.parametrize("name, content, reason", [
-    ("json.npy", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy array file (no .npy header; pickled data is not"),
-    ("las.npy", lambda: bytes(_las_bytes(_points(300))), "not a NumPy array file"),
-    ("json.npz", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy .npz archive (not a zip file; pickled data is"),
-    ("array.npz", lambda: _npy_bytes(_points(300)), "file is an .npy array, not an .npz archive"),
-])
+@pytest.mark.parametrize(
+    "name, content, reason",
+    [
+        ("json.npy", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy array file (no .npy header; pickled data is not"),
+        ("las.npy", lambda: bytes(_las_bytes(_points(300))), "not a NumPy array file"),
+        ("json.npz", lambda: b'{"points": [[1, 2, 3]]}', "not a NumPy .npz archive (not a zip file; pickled data is"),
+        ("array.npz", lambda: _npy_bytes(_points(300)), "file is an .npy array, not an .npz archive"),
+    ],
+)
 def test_file_named_npy_or_npz_that_is_not_one_is_named_so(tmp_path, name, content, reason):
     """Not numpy's advice to load the file unsafely with allow_pickle=True (which it gives for any file that is
     not an .npy or .npz)."""
@@ -467,7 +523,9 @@ def test_tum_writer_and_reader_reject_bad_input(tmp_path):
 def test_evo_reads_tum_and_kitti_to_the_same_trajectory(tmp_path):
     """evo's own readers (what evo_traj / evo_ape call) load both files; APE between them is zero and against
     a shifted copy it is the shift."""
-    file_interface = pytest.importorskip("evo.tools.file_interface", reason="evo is a test extra (pip install -e '.[test]')")
+    file_interface = pytest.importorskip(
+        "evo.tools.file_interface", reason="evo is a test extra (pip install -e '.[test]')"
+    )
     from evo.core import metrics, sync
 
     poses = _random_poses(6, 2)
@@ -500,7 +558,9 @@ def test_coordinates_past_float64_geometry_are_dropped_as_not_finite(tmp_path):
         np.save(tmp_path / "scene" / "stray.npy", stray)
         logged = []
         scans, skipped = load_scene(tmp_path / "scene", Config(), log=logged.append)
-    assert "stray.npy" in [s.name for s in scans] and next(s for s in scans if s.name == "stray.npy").stats.points == 299
+    assert (
+        "stray.npy" in [s.name for s in scans] and next(s for s in scans if s.name == "stray.npy").stats.points == 299
+    )
     assert "stray.npy: dropped 1 points not finite or past ±3.9e+153" in logged, logged
 
 

@@ -65,8 +65,9 @@ def test_refined_pair_information_matches_its_error_against_ground_truth():
             truth = inv_T(scene.poses[a]) @ scene.poses[b]
             off = rng.normal(size=6) * np.r_[[np.radians(0.3)] * 3, [0.3 * scene.voxel] * 3]
             guess = truth @ gtsam.Pose3.Expmap(off).matrix()
-            result, converged = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel,
-                                            1.5, BAR)
+            result, converged = refine_pair(
+                features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel, 1.5, BAR
+            )
             assert converged
             xi = gtsam.Pose3.Logmap(gtsam.Pose3(result.T).between(gtsam.Pose3(truth)))
             nees.append(xi @ result.information @ xi)
@@ -91,8 +92,7 @@ def test_refined_object_pairs_with_their_grid_term_have_a_calibrated_mean_nees()
             truth = inv_T(scene.poses[a]) @ scene.poses[b]
             off = rng.normal(size=6) * np.r_[[np.radians(0.5)] * 3, [0.5 * scene.voxel] * 3]
             guess = truth @ gtsam.Pose3.Expmap(off).matrix()
-            result, near = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel, 1.5,
-                                       BAR)
+            result, near = refine_pair(features[a], features[b], pyramids[a], pyramids[b], guess, scene.voxel, 1.5, BAR)
             assert near and result.grid is not None
             xi = gtsam.Pose3.Logmap(gtsam.Pose3(result.T).between(gtsam.Pose3(truth)))
             covariance = np.linalg.inv(result.information) + np.outer(result.grid, result.grid)
@@ -111,8 +111,9 @@ def test_a_refined_pair_that_enters_no_graph_gets_no_information():
     guess = inv_T(scene.poses[0]) @ scene.poses[1]
     kept, near = refine_pair(features[0], features[1], pyramids[0], pyramids[1], guess, scene.voxel, 1.5, BAR)
     assert near and confirms(kept, near, BAR) and kept.information is not None and kept.grid is not None
-    dropped, near = refine_pair(features[0], features[1], pyramids[0], pyramids[1], guess, scene.voxel, 1.5,
-                                kept.inliers + 1)
+    dropped, near = refine_pair(
+        features[0], features[1], pyramids[0], pyramids[1], guess, scene.voxel, 1.5, kept.inliers + 1
+    )
     assert near and not confirms(dropped, near, kept.inliers + 1)
     np.testing.assert_array_equal(dropped.T, kept.T)
     assert (dropped.inliers, dropped.fitness, dropped.coverage) == (kept.inliers, kept.fitness, kept.coverage)
@@ -124,8 +125,14 @@ def test_a_scene_in_millimetres_registers_as_in_metres():
     same poses. ICP stopping on small_gicp's default step, 1e-3 in scene units, refined 4 of these 7 edges in
     millimetres."""
     scene = make_scene(kind="object", n_scans=6, seed=1)
-    metres, millimetres = [register([Scan(n, P * unit) for n, P in zip(scene.names, scene.scans)],
-                                    Config(record=False, workers=1), log=lambda m: None) for unit in (1.0, 1000.0)]
+    metres, millimetres = [
+        register(
+            [Scan(n, P * unit) for n, P in zip(scene.names, scene.scans)],
+            Config(record=False, workers=1),
+            log=lambda m: None,
+        )
+        for unit in (1.0, 1000.0)
+    ]
     assert metres.densify["refined"] == millimetres.densify["refined"] == metres.densify["refine_tried"] > 0
     np.testing.assert_array_equal(metres.graph.weight > 0, millimetres.graph.weight > 0)
     np.testing.assert_allclose(millimetres.poses[:, :3, :3], metres.poses[:, :3, :3], atol=1e-6)
@@ -154,8 +161,9 @@ def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, mo
     # The free-space check sees this plant (scan 5's walls in the room scan 4 saw empty): it is off here, as for
     # scans it cannot check (not seen from their origins), and on at the end.
     for densify in (False, True):
-        cfg = Config(record=False, workers=1, k=2, refine=densify, loops=densify, retry=densify, groups=densify,
-                     free_space=False)
+        cfg = Config(
+            record=False, workers=1, k=2, refine=densify, loops=densify, retry=densify, groups=densify, free_space=False
+        )
         result = register(scans, cfg, log=lambda m: None, scores=scores)
         gt = scene.poses[[scene.names.index(nm) for nm in result.names]]
         err = scan_errors(result.names, result.poses, gt)
@@ -164,8 +172,12 @@ def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, mo
         assert wrong_scans <= flagged, (densify, wrong_scans, flagged)
         if not densify:  # the plant works: scan 5 hangs on the wrong edge alone
             assert result.names[5] in wrong_scans
-    result = register(scans, Config(record=False, workers=1, k=2, refine=False, loops=False, retry=False,
-                                    groups=False), log=lambda m: None, scores=scores)
+    result = register(
+        scans,
+        Config(record=False, workers=1, k=2, refine=False, loops=False, retry=False, groups=False),
+        log=lambda m: None,
+        scores=scores,
+    )
     planted_edge = [e for e in range(result.graph.num_edges) if {result.graph.i[e], result.graph.j[e]} == {4, 5}]
     assert result.edge_conflict[planted_edge[0]] > CONFLICT and result.graph.weight[planted_edge[0]] == 0
     err = scan_errors(result.names, result.poses, scene.poses[[scene.names.index(nm) for nm in result.names]])
@@ -176,7 +188,8 @@ def test_a_planted_wrong_registration_is_never_left_wrong_and_unflagged(room, mo
 def test_a_group_turned_behind_one_wrong_registration_is_registered_whole_and_put_right(seed, monkeypatch):
     """Two groups of four scans of a room, each registered within itself, joined by one registration turned 90°
     (given scores, k = 3; retries and free space off, so nothing else can move the group). Without the group stage
-    the far group ends 90° off, outside the trusted model; with it, its merged scans registered onto the rest put all eight
+    the far group ends 90° off, outside the trusted model; with it, its merged scans registered onto the rest put all
+    eight
     scans within 0.5° / one voxel of the truth, through group edges."""
     scene = make_scene(kind="room", n_scans=8, seed=seed)
     scans = [Scan(n, P) for n, P in zip(scene.names, scene.scans)]
@@ -215,8 +228,9 @@ def test_weak_groups_are_the_flagged_scans_joined_by_kept_edges():
     graph = PoseGraph(n=9, i=i, j=j, T=np.tile(np.eye(4), (8, 1, 1)), weight=np.ones(8))
     weights = np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
     component = np.array([0, 0, 0, 0, 0, 0, 0, 1, 1])
-    result = SyncResult(poses=np.tile(np.eye(4), (9, 1, 1)), weights=weights, residual_deg=np.zeros(8),
-                        component=component)
+    result = SyncResult(
+        poses=np.tile(np.eye(4), (9, 1, 1)), weights=weights, residual_deg=np.zeros(8), component=component
+    )
     flagged = np.zeros(9, dtype=bool)
     flagged[[2, 3, 4, 6]] = True
     assert [g.tolist() for g in weak_groups(graph, result, flagged)] == [[2, 3, 4], [7, 8]]
@@ -265,8 +279,11 @@ def test_a_scan_cut_in_two_and_merged_registers_onto_the_whole_scan(seed):
     for half in halves:
         away = make_T(gtsam.Rot3.Expmap(rng.normal(size=3)).matrix(), rng.normal(size=3))
         back = inv_T(away)  # the half in a frame of its own, ``back`` its pose in the scan's frame
-        parts.append(SimpleNamespace(points=whole.points[half] @ away[:3, :3].T + away[:3, 3],
-                                     normals=whole.normals[half] @ away[:3, :3].T))
+        parts.append(
+            SimpleNamespace(
+                points=whole.points[half] @ away[:3, :3].T + away[:3, 3], normals=whole.normals[half] @ away[:3, :3].T
+            )
+        )
         poses.append(back)
     config = Config()
     target = groups.merged([whole], np.eye(4)[None], np.arange(1), scene.voxel, config)
@@ -285,20 +302,20 @@ def test_predicted_overlap_of_copies_and_of_distant_scans(seed):
     # scan 1 is scan 0 in its own frame moved by T, and placed back by T^-1... i.e. the same world points
     poses = np.stack([np.eye(4), np.linalg.inv(T), np.eye(4)])
     points = [P, P @ T[:3, :3].T + T[:3, 3], P + [10.0, 0.0, 0.0]]
-    O = predicted_overlap(points, poses, np.ones(3, dtype=bool), 0.05)
-    np.testing.assert_allclose(O, O.T)
-    assert O[0, 1] == pytest.approx(1.0)
-    assert O[0, 2] == 0.0 and O[1, 2] == 0.0 and np.all(np.diag(O) == 0)
+    overlap = predicted_overlap(points, poses, np.ones(3, dtype=bool), 0.05)
+    np.testing.assert_allclose(overlap, overlap.T)
+    assert overlap[0, 1] == pytest.approx(1.0)
+    assert overlap[0, 2] == 0.0 and overlap[1, 2] == 0.0 and np.all(np.diag(overlap) == 0)
     assert not predicted_overlap(points, poses, np.array([True, False, True]), 0.05)[:, 1].any()
 
 
 def test_propose_loops_skips_registered_pairs_and_caps_each_scan():
-    O = np.array([[0, .9, .8, .7], [.9, 0, .6, .1], [.8, .6, 0, .5], [.7, .1, .5, 0]])
+    overlap = np.array([[0, 0.9, 0.8, 0.7], [0.9, 0, 0.6, 0.1], [0.8, 0.6, 0, 0.5], [0.7, 0.1, 0.5, 0]])
     registered = np.zeros((4, 4), dtype=bool)
     registered[0, 1] = registered[1, 0] = True
-    pairs = propose_loops(O, registered, per_scan=1)
+    pairs = propose_loops(overlap, registered, per_scan=1)
     assert pairs.tolist() == [[0, 2]]  # (0, 1) is registered; 0 and 2 are then full
-    assert propose_loops(O, registered, per_scan=3).tolist() == [[0, 2], [0, 3], [1, 2], [2, 3]]
+    assert propose_loops(overlap, registered, per_scan=3).tolist() == [[0, 2], [0, 3], [1, 2], [2, 3]]
 
 
 def test_weak_scans_get_their_best_untried_partners():
@@ -306,11 +323,10 @@ def test_weak_scans_get_their_best_untried_partners():
     kept = np.array([True, True, True])
     weak = weak_scans(4, i, j, kept, np.array([0, 0, 0, 1]), np.zeros(4, dtype=bool))
     assert weak.tolist() == [False, False, False, True]  # 3 is outside the largest part
-    scores = np.array([[0, .9, .8, .1], [.9, 0, .7, .6], [.8, .7, 0, .3], [.1, .6, .3, 0]])
+    scores = np.array([[0, 0.9, 0.8, 0.1], [0.9, 0, 0.7, 0.6], [0.8, 0.7, 0, 0.3], [0.1, 0.6, 0.3, 0]])
     tried = np.zeros((4, 4), dtype=bool)
     tried[[0, 1, 0], [1, 2, 2]] = tried[[1, 2, 2], [0, 1, 0]] = True
     assert retry_pairs(weak, scores, tried, per_scan=2).tolist() == [[1, 3], [2, 3]]
-
 
 
 def test_placed_weak_scans_are_retried_once_a_run_and_unplaced_ones_every_round(monkeypatch):
@@ -332,8 +348,12 @@ def test_placed_weak_scans_are_retried_once_a_run_and_unplaced_ones_every_round(
     edges = EdgeSet()
     top_k = np.array([[0, 1], [1, 2], [0, 2], [2, 3], [3, 4], [4, 5], [3, 5]])
     edges.add(top_k, [PairResult(np.eye(4), 50, 1.0, 0.0, None, 0.0)] * len(top_k), "top-k")
-    sync = SyncResult(poses=np.tile(np.eye(4), (n, 1, 1)), weights=np.ones(len(top_k)), residual_deg=np.zeros(len(top_k)),
-                      component=np.array([0, 0, 0, 0, 0, 0, 1, 2]))
+    sync = SyncResult(
+        poses=np.tile(np.eye(4), (n, 1, 1)),
+        weights=np.ones(len(top_k)),
+        residual_deg=np.zeros(len(top_k)),
+        component=np.array([0, 0, 0, 0, 0, 0, 1, 2]),
+    )
     unverified = np.isin(np.arange(n), [4, 5])
     scores = np.random.default_rng(0).uniform(0.5, 1.0, (n, n))
     scores = (scores + scores.T) / 2
@@ -353,11 +373,19 @@ def test_a_script_without_a_main_guard_runs_with_workers(tmp_path):
     from pathlib import Path
 
     script = tmp_path / "unguarded.py"
-    script.write_text("from sghr_gtsam.executor import parallel_map\n"
-                      "from tests.test_front_end import _square\n"
-                      "print(parallel_map(_square, 2, [1, 2, 3], workers=2))\n")
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
-                         cwd=Path(__file__).resolve().parents[1], env={**__import__("os").environ, "PYTHONPATH": "."})
+    script.write_text(
+        "from sghr_gtsam.executor import parallel_map\n"
+        "from tests.test_front_end import _square\n"
+        "print(parallel_map(_square, 2, [1, 2, 3], workers=2))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+        env={**__import__("os").environ, "PYTHONPATH": "."},
+    )
     assert out.returncode == 0, out.stderr[-500:]
     assert out.stdout.splitlines() == ["[2, 8, 18]"]  # once: the workers did not run the script
 
@@ -375,12 +403,20 @@ def test_a_started_server_preloads_the_task_modules(tmp_path):
     from pathlib import Path
 
     script = tmp_path / "early.py"
-    script.write_text("from sghr_gtsam.executor import parallel_map, start_server\n"
-                      "from tests.test_front_end import _has_module\n"
-                      "start_server(['tests.test_front_end', 'xml.dom.minidom'], workers=2)\n"
-                      "print(parallel_map(_has_module, 'xml.dom.minidom', [1, 2], workers=2))\n"
-                      "print(parallel_map(_has_module, 'xml.dom.minidom', [1, 2], workers=1))\n")
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120,
-                         cwd=Path(__file__).resolve().parents[1], env={**__import__("os").environ, "PYTHONPATH": "."})
+    script.write_text(
+        "from sghr_gtsam.executor import parallel_map, start_server\n"
+        "from tests.test_front_end import _has_module\n"
+        "start_server(['tests.test_front_end', 'xml.dom.minidom'], workers=2)\n"
+        "print(parallel_map(_has_module, 'xml.dom.minidom', [1, 2], workers=2))\n"
+        "print(parallel_map(_has_module, 'xml.dom.minidom', [1, 2], workers=1))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, str(script)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parents[1],
+        env={**__import__("os").environ, "PYTHONPATH": "."},
+    )
     assert out.returncode == 0, out.stderr[-500:]
     assert out.stdout.splitlines() == ["[True, True]", "[False, False]"]

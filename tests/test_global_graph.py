@@ -1,5 +1,6 @@
 import numpy as np
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sghr_gtsam.features.netvlad import VladHead, global_features, kmeans_codebook, load_checkpoint
 from sghr_gtsam.graph import gram32, overlap_scores, scores_from_gram, top_k_edges, top_k_graph
@@ -16,8 +17,14 @@ def test_authors_checkpoint_reproduces_their_overlap_scores(data_dir):
 
 
 @settings(max_examples=30, deadline=None)
-@given(clusters=st.integers(1, 12), dim=st.integers(2, 40), points=st.integers(1, 300), alpha=st.floats(0.1, 200),
-       scale=st.floats(1e-3, 1e3), seed=st.integers(0, 10_000))
+@given(
+    clusters=st.integers(1, 12),
+    dim=st.integers(2, 40),
+    points=st.integers(1, 300),
+    alpha=st.floats(0.1, 200),
+    scale=st.floats(1e-3, 1e3),
+    seed=st.integers(0, 10_000),
+)
 def test_numpy_head_computes_what_the_trained_torch_layer_computes(clusters, dim, points, alpha, scale, seed):
     """The pipeline's numpy NetVLAD (no torch on a run) and training's torch layer are one function, before
     and after the torch parameters move away from the codebook initialisation."""
@@ -120,8 +127,14 @@ def _features(kind: str, n: int, d: int, rng: np.random.Generator) -> np.ndarray
 
 
 @settings(max_examples=80, deadline=None)
-@given(n=st.integers(2, 60), k=st.integers(1, 12), d=st.integers(1, 6), form=st.sampled_from(["paper", "authors"]),
-       kind=st.sampled_from(["gauss", "grid", "dups"]), seed=st.integers(0, 10_000))
+@given(
+    n=st.integers(2, 60),
+    k=st.integers(1, 12),
+    d=st.integers(1, 6),
+    form=st.sampled_from(["paper", "authors"]),
+    kind=st.sampled_from(["gauss", "grid", "dups"]),
+    seed=st.integers(0, 10_000),
+)
 def test_fast_top_k_graph_matches_the_reference_on_the_float32_scores(n, k, d, form, kind, seed):
     """``top_k_graph`` (float32 Gram, torch.topk candidates, exact fallback for spilling ties) chooses exactly the
     reference's edges on ``overlap_scores`` — the float64 scores of the same float32 Gram values — ties included."""
@@ -194,15 +207,14 @@ def test_bridged_top_k_graph_is_connected_with_one_bridge_per_extra_part(seed, n
     edges = top_k_edges(S, k)
 
     def parts(e):
-        return connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)),
-                                    directed=False)
+        return connected_components(coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n)), directed=False)
 
     before, label = parts(edges)
     out = bridge_components(edges, S)
     np.testing.assert_array_equal(out[: len(edges)], edges)
     assert len(out) - len(edges) == before - 1
     assert parts(out)[0] == 1
-    added = out[len(edges):]
+    added = out[len(edges) :]
     assert np.all(added[:, 0] < added[:, 1]) and np.all(label[added[:, 0]] != label[added[:, 1]])
     if len(added):  # the first bridge is the best-scoring pair between any two parts
         a, b = np.triu_indices(n, 1)

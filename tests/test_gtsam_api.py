@@ -50,8 +50,12 @@ def noisy_graph(n: int = 6, seed: int = 0, scale: float = 1.0) -> tuple[PoseGrap
     rng = np.random.default_rng(seed + 100)
     i, j = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if min(b - a, n - b + a) <= 2]).T
     info = np.diag(SIGMA**-2)
-    T = np.stack([(gtsam.Pose3(inv_T(truth[a]) @ truth[b]) * gtsam.Pose3.Expmap(scale * rng.normal(0, SIGMA))).matrix()
-                  for a, b in zip(i, j)])
+    T = np.stack(
+        [
+            (gtsam.Pose3(inv_T(truth[a]) @ truth[b]) * gtsam.Pose3.Expmap(scale * rng.normal(0, SIGMA))).matrix()
+            for a, b in zip(i, j)
+        ]
+    )
     return PoseGraph(n=n, i=i, j=j, T=T, weight=np.ones(len(i)), information=np.repeat(info[None], len(i), 0)), truth
 
 
@@ -98,8 +102,14 @@ def test_readme_flow_prior_odometry_optimize_marginals():
     _anchor(factors, x[0], truth[0])
     before = marginal_covariances(factors, optimize(factors, values), x)
     odometry = gtsam.Pose3(inv_T(truth[2]) @ truth[3])  # an exact odometry step, 1 mm / 0.01°
-    factors.add(gtsam.BetweenFactorPose3(x[2], x[3], odometry, gtsam.noiseModel.Diagonal.Sigmas(
-        np.r_[np.full(3, np.radians(0.01)), np.full(3, 0.001)])))
+    factors.add(
+        gtsam.BetweenFactorPose3(
+            x[2],
+            x[3],
+            odometry,
+            gtsam.noiseModel.Diagonal.Sigmas(np.r_[np.full(3, np.radians(0.01)), np.full(3, 0.001)]),
+        )
+    )
     result = optimize(factors, values)
     rot, trans = relative_errors(np.stack([_matrix(result, k) for k in x]), truth)
     assert rot.max() < 3.0 and trans.max() < 0.1
@@ -186,8 +196,9 @@ def object_run(tmp_path_factory):
     scene = make_scene(kind="object", n_scans=5, seed=3)
     folder = tmp_path_factory.mktemp("object")
     write_scene(scene, folder / "scene")
-    result = run(folder / "scene", folder / "out", Config(voxel=scene.voxel, workers=1, record=True),
-                 log=lambda m: None)
+    result = run(
+        folder / "scene", folder / "out", Config(voxel=scene.voxel, workers=1, record=True), log=lambda m: None
+    )
     return scene, result, folder / "out"
 
 
@@ -249,18 +260,30 @@ def _shared_error_run(seed: int, n: int = 8) -> tuple[RunResult, np.ndarray]:
     rng = np.random.default_rng(seed + 100)
     shared = [gtsam.Pose3(truth[k]) * gtsam.Pose3.Expmap(rng.normal(0, SIGMA)) for k in range(n)]
     i, j = np.array([(a, b) for a in range(n) for b in range(a + 1, n) if min(b - a, n - b + a) <= 2]).T
-    T = np.stack([(shared[a].between(shared[b]) * gtsam.Pose3.Expmap(rng.normal(0, 2 * SIGMA))).matrix()
-                  for a, b in zip(i, j)])
-    graph = PoseGraph(n=n, i=i, j=j, T=T, weight=np.ones(len(i)),
-                      information=np.repeat(np.diag(SIGMA**-2)[None], len(i), 0))
+    T = np.stack(
+        [(shared[a].between(shared[b]) * gtsam.Pose3.Expmap(rng.normal(0, 2 * SIGMA))).matrix() for a, b in zip(i, j)]
+    )
+    graph = PoseGraph(
+        n=n, i=i, j=j, T=T, weight=np.ones(len(i)), information=np.repeat(np.diag(SIGMA**-2)[None], len(i), 0)
+    )
     factors, values = to_gtsam(graph, truth)
     _anchor(factors, gtsam.symbol("x", 0), truth[0])
     solved = optimize(factors, values)
     poses = np.stack([_matrix(solved, gtsam.symbol("x", k)) for k in range(n)])
     sync = SyncResult(poses=poses, weights=np.ones(len(i)), residual_deg=np.zeros(len(i)), component=np.zeros(n, int))
     pairs = [PairResult(T[e], 0, 0.0, 0.0, graph.information[e], 0.0) for e in range(len(i))]
-    return RunResult(names=[f"s{k}" for k in range(n)], poses=poses, voxel=0.01, scores=np.zeros((n, n)),
-                     graph=graph, pairs=pairs, sync=sync, unregistered=[], skipped={}, features=[]), truth
+    return RunResult(
+        names=[f"s{k}" for k in range(n)],
+        poses=poses,
+        voxel=0.01,
+        scores=np.zeros((n, n)),
+        graph=graph,
+        pairs=pairs,
+        sync=sync,
+        unregistered=[],
+        skipped={},
+        features=[],
+    ), truth
 
 
 def test_pose_covariances_cover_errors_a_scan_shares_with_its_edges():
@@ -289,8 +312,9 @@ def test_to_gtsam_of_a_run_hands_the_calibrated_information():
     _anchor(factors, gtsam.symbol("x", 0), result.poses[0])
     keys = [gtsam.symbol("x", k) for k in range(1, result.graph.n)]
     expected = pose_covariances(result)[1:]  # its world scan held by the pipeline's stiff prior, not an exact one
-    np.testing.assert_allclose(marginal_covariances(factors, values, keys), expected,
-                               atol=1e-2 * np.abs(expected).max())
+    np.testing.assert_allclose(
+        marginal_covariances(factors, values, keys), expected, atol=1e-2 * np.abs(expected).max()
+    )
     raw = to_gtsam(result, calibrated=False)[0]
     np.testing.assert_allclose(raw.at(0).noiseModel().R().T @ raw.at(0).noiseModel().R(), result.graph.information[0])
     information = calibrated_information(result)
@@ -305,8 +329,9 @@ def test_a_robust_kernel_on_a_runs_factors_keeps_its_good_poses():
         factors, values = to_gtsam(result, kernel="cauchy")
         _anchor(factors, gtsam.symbol("x", 0), result.poses[0])
         solved = optimize(factors, values)
-        moved = relative_errors(np.stack([_matrix(solved, gtsam.symbol("x", k)) for k in range(result.graph.n)]),
-                                result.poses)
+        moved = relative_errors(
+            np.stack([_matrix(solved, gtsam.symbol("x", k)) for k in range(result.graph.n)]), result.poses
+        )
         sigma = sigmas(pose_covariances(result))
         assert all(np.all(m[1:] < 0.1 * s[1:]) for m, s in zip(moved, sigma)), (moved, sigma)
 
@@ -370,8 +395,11 @@ def test_session_back_end_rejects_a_contradicting_edge():
     session = Session(Config(), voxel=0.01)
     session.add_node("0", [])
     for k in range(1, graph.n):
-        edges = [(int(a), graph.T[e] @ (wrong if (a, k) in ((5, 7), (2, 3)) else np.eye(4)), 1.0, graph.information[e])
-                 for e, a in enumerate(graph.i) if graph.j[e] == k]
+        edges = [
+            (int(a), graph.T[e] @ (wrong if (a, k) in ((5, 7), (2, 3)) else np.eye(4)), 1.0, graph.information[e])
+            for e, a in enumerate(graph.i)
+            if graph.j[e] == k
+        ]
         step = session.add_node(str(k), edges)
         assert step.robust == (k == 3), k
     assert session.robust_runs == 1
@@ -440,5 +468,7 @@ def test_sync_kernel_option(tmp_path):
 
     from sghr_gtsam.cli import app
 
-    bad = CliRunner().invoke(app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "o.g2o"), "--kernel", "l1"])
+    bad = CliRunner().invoke(
+        app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "o.g2o"), "--kernel", "l1"]
+    )
     assert bad.exit_code == 2 and "kernel must be one of" in bad.output

@@ -8,8 +8,14 @@ _ROOT = Path(__file__).resolve().parents[1]
 
 
 def _python(code: str) -> list[str]:
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=_ROOT,
-                         env={**__import__("os").environ, "PYTHONPATH": "."})
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=_ROOT,
+        env={**__import__("os").environ, "PYTHONPATH": "."},
+    )
     assert out.returncode == 0, out.stderr[-800:]
     return out.stdout.split()
 

@@ -52,8 +52,13 @@ def _fed(scans: list[np.ndarray], names: list[str] | None = None) -> Session:
 
 def _state(session: Session) -> tuple:
     """What a refused call must leave as it was."""
-    return (list(session.names), len(session.edges), [(e.i, e.j, e.kept) for e in session.edges],
-            session.poses.copy(), session.robust_runs)
+    return (
+        list(session.names),
+        len(session.edges),
+        [(e.i, e.j, e.kept) for e in session.edges],
+        session.poses.copy(),
+        session.robust_runs,
+    )
 
 
 def _assert_unchanged(session: Session, before: tuple) -> None:
@@ -116,7 +121,7 @@ def test_georeferenced_scans_register_as_near_the_origin(world, near):
     poses = far.poses
     assert np.isfinite(poses).all() and np.array_equal(poses[0], np.eye(4))
     assert np.array_equal(near.poses[0], np.eye(4))  # exactly, as the docstring says
-    for session, local in ((near, near.poses), (far, _local(poses, UTM))):
+    for _session, local in ((near, near.poses), (far, _local(poses, UTM))):
         rot, trans = relative_errors(local, truth)
         assert rot.max() < MAX_DEG and trans.max() < MAX_M, (rot.max(), trans.max())
     rot, trans = relative_errors(_local(poses, UTM), near.poses)  # float32 stages round differently
@@ -137,8 +142,13 @@ def test_georeferenced_scans_register_as_near_the_origin(world, near):
 
 # --- 2. names ------------------------------------------------------------------------------------------------------
 
-NAMES = st.one_of(st.text(max_size=6), st.sampled_from(["", " ", "a\nb", "a\rb", "x\u2028y", "#x", " a", "a ", "0"]),
-                  st.integers(), st.none(), st.just(b"bytes"))
+NAMES = st.one_of(
+    st.text(max_size=6),
+    st.sampled_from(["", " ", "a\nb", "a\rb", "x\u2028y", "#x", " a", "a ", "0"]),
+    st.integers(),
+    st.none(),
+    st.just(b"bytes"),
+)
 
 
 @settings(max_examples=60, deadline=None)
@@ -170,18 +180,28 @@ def test_add_scan_refuses_a_name_already_in_the_session(world):
 def _bad_edges(T: np.ndarray) -> dict[str, tuple]:
     shear = np.eye(4)
     shear[0, 1] = 0.1
-    return {"unknown partner": (5, T, 1.0, INFO), "negative partner": (-1, T, 1.0, INFO),
-            "fractional partner": (0.5, T, 1.0, INFO), "bool partner": (True, T, 1.0, INFO),
-            "scaled T": (1, np.diag([2.0, 2.0, 2.0, 1.0]) @ T, 1.0, INFO), "sheared T": (1, shear @ T, 1.0, INFO),
-            "reflected T": (1, np.diag([1.0, 1.0, -1.0, 1.0]) @ T, 1.0, INFO),
-            "NaN T": (1, np.full((4, 4), np.nan), 1.0, INFO), "3x4 T": (1, T[:3], 1.0, INFO),
-            "negative weight": (1, T, -1.0, INFO), "NaN weight": (1, T, np.nan, INFO),
-            "inf weight": (1, T, np.inf, INFO), "str weight": (1, T, "1", INFO),
-            "NaN information": (1, T, 1.0, np.full((6, 6), np.nan)), "3x3 information": (1, T, 1.0, np.eye(3)),
-            "asymmetric information": (1, T, 1.0, INFO + np.triu(np.ones((6, 6)), 1)),
-            "indefinite information": (1, T, 1.0, np.diag([1.0] * 5 + [-1.0])),
-            "singular information": (1, T, 1.0, np.zeros((6, 6))), "no information": (1, T, 1.0, None),
-            "3-tuple": (1, T, 1.0)}
+    return {
+        "unknown partner": (5, T, 1.0, INFO),
+        "negative partner": (-1, T, 1.0, INFO),
+        "fractional partner": (0.5, T, 1.0, INFO),
+        "bool partner": (True, T, 1.0, INFO),
+        "scaled T": (1, np.diag([2.0, 2.0, 2.0, 1.0]) @ T, 1.0, INFO),
+        "sheared T": (1, shear @ T, 1.0, INFO),
+        "reflected T": (1, np.diag([1.0, 1.0, -1.0, 1.0]) @ T, 1.0, INFO),
+        "NaN T": (1, np.full((4, 4), np.nan), 1.0, INFO),
+        "3x4 T": (1, T[:3], 1.0, INFO),
+        "negative weight": (1, T, -1.0, INFO),
+        "NaN weight": (1, T, np.nan, INFO),
+        "inf weight": (1, T, np.inf, INFO),
+        "str weight": (1, T, "1", INFO),
+        "NaN information": (1, T, 1.0, np.full((6, 6), np.nan)),
+        "3x3 information": (1, T, 1.0, np.eye(3)),
+        "asymmetric information": (1, T, 1.0, INFO + np.triu(np.ones((6, 6)), 1)),
+        "indefinite information": (1, T, 1.0, np.diag([1.0] * 5 + [-1.0])),
+        "singular information": (1, T, 1.0, np.zeros((6, 6))),
+        "no information": (1, T, 1.0, None),
+        "3-tuple": (1, T, 1.0),
+    }
 
 
 @pytest.mark.parametrize("bad", list(_bad_edges(np.eye(4))))
@@ -196,9 +216,12 @@ def test_add_node_refuses_a_bad_edge_and_leaves_the_session_as_it_was(scene, bad
 
 
 @settings(max_examples=40, deadline=None)
-@given(quaternion=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
-       t=st.lists(st.floats(-100, 100), min_size=3, max_size=3), column=st.integers(0, 2),
-       scale=st.floats(0.5, 2.0).filter(lambda s: abs(s - 1.0) > 1e-4))
+@given(
+    quaternion=st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1),
+    t=st.lists(st.floats(-100, 100), min_size=3, max_size=3),
+    column=st.integers(0, 2),
+    scale=st.floats(0.5, 2.0).filter(lambda s: abs(s - 1.0) > 1e-4),
+)
 def test_add_node_takes_any_rigid_edge_exactly_and_no_scaled_one(quaternion, t, column, scale):
     T = make_T(Rotation.from_quat(quaternion).as_matrix(), np.array(t))
     session = Session(_config(), voxel=0.05)
@@ -335,8 +358,9 @@ def _batch(n: int, factors: list, initial: np.ndarray, anchor: bool = True) -> n
     for factor in factors:
         graph.add(factor)
     if anchor:
-        graph.add(gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(),
-                                         gtsam.noiseModel.Isotropic.Precision(6, 1e12)))
+        graph.add(
+            gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(), gtsam.noiseModel.Isotropic.Precision(6, 1e12))
+        )
     values = gtsam.Values()
     for k in range(n):
         values.insert(gtsam.symbol("x", k), gtsam.Pose3(initial[k]))
@@ -350,8 +374,9 @@ def _batch(n: int, factors: list, initial: np.ndarray, anchor: bool = True) -> n
 def _between(a: int, b: int, T: np.ndarray, info: np.ndarray = ODOMETRY):
     import gtsam
 
-    return gtsam.BetweenFactorPose3(gtsam.symbol("x", a), gtsam.symbol("x", b), gtsam.Pose3(T),
-                                    gtsam.noiseModel.Gaussian.Information(info))
+    return gtsam.BetweenFactorPose3(
+        gtsam.symbol("x", a), gtsam.symbol("x", b), gtsam.Pose3(T), gtsam.noiseModel.Gaussian.Information(info)
+    )
 
 
 def _odometry_session(truth: np.ndarray, rng: np.random.Generator, anchor: bool = True) -> tuple[Session, list]:
@@ -402,8 +427,9 @@ def test_a_prior_moves_the_solution_as_a_batch_solve_does():
     target = truth[3] @ make_T(np.eye(3), np.array([0.5, 0.0, 0.0]))  # half a metre off in its own x
     info = np.diag([1e2] * 3 + [1e4] * 3)  # a stiff position, a loose rotation
     session.add_prior("n3", target, info)
-    factors.append(gtsam.PriorFactorPose3(gtsam.symbol("x", 3), gtsam.Pose3(target),
-                                          gtsam.noiseModel.Gaussian.Information(info)))
+    factors.append(
+        gtsam.PriorFactorPose3(gtsam.symbol("x", 3), gtsam.Pose3(target), gtsam.noiseModel.Gaussian.Information(info))
+    )
     np.testing.assert_allclose(session.poses, _batch(len(truth), factors, truth), rtol=0, atol=1e-6)
     after = session.poses[3]
     assert np.linalg.norm(after[:3, 3] - target[:3, 3]) < 0.5 * np.linalg.norm(before[:3, 3] - target[:3, 3])
@@ -422,8 +448,11 @@ def test_gnss_positions_and_a_prior_fix_the_world_without_an_anchor():
     prior_info = np.diag([1e2] * 3 + [1.0] * 3)  # 6° and 1 m
     session.add_prior(0, truth[0], prior_info)
     arm, gnss = np.array([0.0, 0.0, 1.0]), np.eye(3) / 0.02**2
-    factors = [gtsam.PriorFactorPose3(gtsam.symbol("x", 0), gtsam.Pose3(truth[0]),
-                                      gtsam.noiseModel.Gaussian.Information(prior_info))]
+    factors = [
+        gtsam.PriorFactorPose3(
+            gtsam.symbol("x", 0), gtsam.Pose3(truth[0]), gtsam.noiseModel.Gaussian.Information(prior_info)
+        )
+    ]
     for k in range(len(truth)):
         if k:
             session.add_node(f"n{k}", [])
@@ -466,8 +495,9 @@ def test_the_caller_s_factors_are_checked_and_a_refused_one_leaves_the_session_a
     session.add_node("waits", [])  # not placed: no edge yet
     before = _state(session)
     noise = gtsam.noiseModel.Isotropic.Sigma(6, 0.1)
-    assert "not a node's key" in _refused(session.add_factor,
-                                           gtsam.PriorFactorPose3(gtsam.symbol("y", 0), gtsam.Pose3(), noise))
+    assert "not a node's key" in _refused(
+        session.add_factor, gtsam.PriorFactorPose3(gtsam.symbol("y", 0), gtsam.Pose3(), noise)
+    )
     assert "not placed" in _refused(session.add_factor, gtsam.PriorFactorPose3(session.key(2), gtsam.Pose3(), noise))
     _refused(session.add_factor, "a factor")
     _refused(session.add_between, 0, 0, np.eye(4), INFO)
@@ -493,8 +523,9 @@ def test_the_caller_s_factors_on_georeferenced_scans_are_in_the_input_frames(wor
     assert np.abs(session.centre(1) - UTM).max() < 10  # registered centred
 
     def moved(poses: np.ndarray, before: np.ndarray) -> float:
-        return max(np.abs(transform_points(T, P) - transform_points(B, P)).max()
-                   for T, B, P in zip(poses, before, scans))
+        return max(
+            np.abs(transform_points(T, P) - transform_points(B, P)).max() for T, B, P in zip(poses, before, scans)
+        )
 
     before = session.poses
     session.add_between(0, 1, inv_T(before[0]) @ before[1], ODOMETRY)

@@ -261,8 +261,11 @@ BAD_SCANS = {
         "malformed PLY header",
     ),
     "ply with zero vertices": (
-        _write("z.ply", "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
-               "property float z\nend_header\n"),
+        _write(
+            "z.ply",
+            "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+            "property float z\nend_header\n",
+        ),
         "no points",
     ),
     "garbage pcd": (_write("g.pcd", "garbage\n"), "not a PCD file"),
@@ -302,13 +305,30 @@ def test_missing_file_and_folder_named_like_a_scan(tmp_path):
 def test_list_scans_natural_order_and_non_scans_skipped(tmp_path):
     for name in ["s10.ply", "s2.npy", "s1.xyz", "S3.TXT", "b.npz", "c.pcd"]:
         (tmp_path / name).write_text("x")
-    for name in ["gt_poses.txt", "poses.txt", "poses_kitti.txt", "0.pose.txt", "overlap.txt", "README.txt",
-                 "gt.log", "bun.conf", "edges.csv", ".s0.ply.tmp.ply", "notes.md"]:
+    for name in [
+        "gt_poses.txt",
+        "poses.txt",
+        "poses_kitti.txt",
+        "0.pose.txt",
+        "overlap.txt",
+        "README.txt",
+        "gt.log",
+        "bun.conf",
+        "edges.csv",
+        ".s0.ply.tmp.ply",
+        "notes.md",
+    ]:
         (tmp_path / name).write_text("x")
     (tmp_path / "sub.ply").mkdir()
     assert [p.name for p in list_scans(tmp_path)] == ["b.npz", "c.pcd", "s1.xyz", "s2.npy", "S3.TXT", "s10.ply"]
-    assert left_out(tmp_path) == ["0.pose.txt", "README.txt", "gt_poses.txt", "overlap.txt", "poses.txt",
-                                  "poses_kitti.txt"]
+    assert left_out(tmp_path) == [
+        "0.pose.txt",
+        "README.txt",
+        "gt_poses.txt",
+        "overlap.txt",
+        "poses.txt",
+        "poses_kitti.txt",
+    ]
 
 
 def test_scans_whose_names_hold_a_non_scan_word_inside_another_word_are_listed(tmp_path):
@@ -316,8 +336,13 @@ def test_scans_whose_names_hold_a_non_scan_word_inside_another_word_are_listed(t
     run without a word."""
     for name in ["exposed_wall_03.txt", "composed.txt", "purpose.txt", "license_plates.ply", "trajan.txt"]:
         (tmp_path / name).write_text("x")
-    assert sorted(p.name for p in list_scans(tmp_path)) == ["composed.txt", "exposed_wall_03.txt",
-                                                           "license_plates.ply", "purpose.txt", "trajan.txt"]
+    assert sorted(p.name for p in list_scans(tmp_path)) == [
+        "composed.txt",
+        "exposed_wall_03.txt",
+        "license_plates.ply",
+        "purpose.txt",
+        "trajan.txt",
+    ]
     assert left_out(tmp_path) == []
 
 
@@ -531,8 +556,11 @@ def test_g2o_with_a_byte_order_mark_a_latin1_comment_or_a_form_feed_reads(tmp_pa
     from sghr_gtsam.io.g2o import read_g2o
 
     body = _VERTEX.format(0) + _VERTEX.format(1) + _edge_line(0, 1)
-    for name, raw in [("bom", b"\xef\xbb\xbf" + body.encode()), ("latin1", b"# caf\xe9\n" + body.encode()),
-                      ("formfeed", body.replace(" 0 0 0 0 0 1 1", " 0 0 0 0 0\x0c1 1", 1).encode())]:
+    for name, raw in [
+        ("bom", b"\xef\xbb\xbf" + body.encode()),
+        ("latin1", b"# caf\xe9\n" + body.encode()),
+        ("formfeed", body.replace(" 0 0 0 0 0 1 1", " 0 0 0 0 0\x0c1 1", 1).encode()),
+    ]:
         (tmp_path / f"{name}.g2o").write_bytes(raw)
         ids, _, graph = read_g2o(tmp_path / f"{name}.g2o")
         assert ids == [0, 1] and graph.num_edges == 1, name
@@ -634,10 +662,14 @@ def test_load_results_refuses_a_folder_that_is_not_a_run_s(small_run, tmp_path):
     with pytest.raises(InputError, match="edges.csv"):
         load_results(tmp_path)
     report = json.loads((folder / "out" / "report.json").read_text())
-    damaged = [("edges.csv", "i,j\n0,1\n"), ("report.json", '{"scans": ["a"'), ("poses.txt", "a.ply\n1 2\n"),
-               ("graph.g2o", "EDGE_SE3:QUAT 0 1\n"),
-               ("report.json", json.dumps({**report, "unregistered": ["nobody.ply"]})),
-               ("report.json", json.dumps({**report, "pose_covariances": {report["scans"][0]: {"covariance": [1]}}}))]
+    damaged = [
+        ("edges.csv", "i,j\n0,1\n"),
+        ("report.json", '{"scans": ["a"'),
+        ("poses.txt", "a.ply\n1 2\n"),
+        ("graph.g2o", "EDGE_SE3:QUAT 0 1\n"),
+        ("report.json", json.dumps({**report, "unregistered": ["nobody.ply"]})),
+        ("report.json", json.dumps({**report, "pose_covariances": {report["scans"][0]: {"covariance": [1]}}})),
+    ]
     for k, (name, text) in enumerate(damaged):
         copy = tmp_path / f"copy{k}"
         shutil.copytree(folder / "out", copy)

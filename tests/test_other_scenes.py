@@ -54,8 +54,9 @@ def test_a_scene_converts_to_the_shared_layout(scene_files):
     assert names == [f"cloud_bin_{i}.ply" for i in range(3)]
     for i in range(3):
         np.testing.assert_allclose(T[i], inv_T(poses[0]) @ poses[i], atol=1e-9)
-        np.testing.assert_allclose(load_scan(root / "out" / "3dmatch-scenes" / "mit_lab" / names[i]), points[i],
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            load_scan(root / "out" / "3dmatch-scenes" / "mit_lab" / names[i]), points[i], atol=1e-6
+        )
 
 
 def test_poses_that_disagree_with_gt_log_are_refused(scene_files):

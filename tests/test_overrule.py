@@ -30,14 +30,24 @@ def building():
     ``Viewpoints`` and the level direction from the room towards the other scans."""
     scene = make_scene("building", N, seed=SEED)
     layout = building_layout(N, seed=SEED)
-    grids = [np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(P)))
-                        .voxel_down_sample(scene.voxel).points) for P in scene.scans]
+    grids = [
+        np.asarray(
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(P))).voxel_down_sample(scene.voxel).points
+        )
+        for P in scene.scans
+    ]
     room = layout.cell_of_scan == next(c for c, cell in enumerate(layout.cells) if cell.kind == "room")
     views = Viewpoints([SimpleNamespace(points=P) for P in grids], scene.voxel, np.zeros((N, 3)))
     towards = scene.poses[~room, :3, 3].mean(axis=0) - scene.poses[room, :3, 3].mean(axis=0)
     towards[2] = 0.0
-    return SimpleNamespace(grids=grids, truth=scene.poses, room=room, voxel=scene.voxel, views=views,
-                           towards=towards / np.linalg.norm(towards))
+    return SimpleNamespace(
+        grids=grids,
+        truth=scene.poses,
+        room=room,
+        voxel=scene.voxel,
+        views=views,
+        towards=towards / np.linalg.norm(towards),
+    )
 
 
 def _graph(poses_kept: np.ndarray, poses_dropped: np.ndarray, group: np.ndarray):
@@ -61,8 +71,9 @@ def _graph(poses_kept: np.ndarray, poses_dropped: np.ndarray, group: np.ndarray)
                 kept.append(k)
     ij = np.array(ij)
     graph = PoseGraph(n=N, i=ij[:, 0], j=ij[:, 1], T=np.array(T), weight=np.array(w))
-    return graph, SyncResult(poses=poses_kept, weights=np.array(kept), residual_deg=np.zeros(len(ij)),
-                             component=np.zeros(N, dtype=int))
+    return graph, SyncResult(
+        poses=poses_kept, weights=np.array(kept), residual_deg=np.zeros(len(ij)), component=np.zeros(N, dtype=int)
+    )
 
 
 def _moved(poses: np.ndarray, group: np.ndarray, degrees: float, shift: np.ndarray) -> np.ndarray:
@@ -103,18 +114,33 @@ def _held_by_one_edge(held: np.ndarray, dropped: list[tuple[np.ndarray, float]],
     measured = [(held, ab, 200.0 if group[ab[0]] else 150.0, 1.0) for ab in inner] + [(held, border[0], 100.0, 1.0)]
     measured += [(P, ab, weight, 0.0) for P, weight in dropped for ab in border]
     ij = np.array([ab for _, ab, _, _ in measured])
-    graph = PoseGraph(n=N, i=ij[:, 0], j=ij[:, 1], T=np.array([inv_T(P[a]) @ P[b] for P, (a, b), _, _ in measured]),
-                      weight=np.array([w for _, _, w, _ in measured]))
-    result = SyncResult(poses=held, weights=np.array([k for _, _, _, k in measured]), residual_deg=np.zeros(len(ij)),
-                        component=np.zeros(N, dtype=int))
+    graph = PoseGraph(
+        n=N,
+        i=ij[:, 0],
+        j=ij[:, 1],
+        T=np.array([inv_T(P[a]) @ P[b] for P, (a, b), _, _ in measured]),
+        weight=np.array([w for _, _, w, _ in measured]),
+    )
+    result = SyncResult(
+        poses=held,
+        weights=np.array([k for _, _, _, k in measured]),
+        residual_deg=np.zeros(len(ij)),
+        component=np.zeros(N, dtype=int),
+    )
     return graph, result, len(inner), [len(inner) + 1 + f * len(border) for f in range(len(dropped) + 1)]
 
 
 @settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(degrees=st.floats(20, 180), sign=st.sampled_from([-1, 1]), inward=st.floats(0, 1.5),
-       other=st.floats(45, 180), other_sign=st.sampled_from([-1, 1]))
-def test_a_room_hung_on_one_edge_is_not_handed_to_a_heavier_wrong_registration(building, degrees, sign, inward,
-                                                                               other, other_sign):
+@given(
+    degrees=st.floats(20, 180),
+    sign=st.sampled_from([-1, 1]),
+    inward=st.floats(0, 1.5),
+    other=st.floats(45, 180),
+    other_sign=st.sampled_from([-1, 1]),
+)
+def test_a_room_hung_on_one_edge_is_not_handed_to_a_heavier_wrong_registration(
+    building, degrees, sign, inward, other, other_sign
+):
     """The room hangs on one kept registration that holds it turned; of its dropped registrations, a heavier family
     agrees on another wrong place (turned ``other``°, 1 m into the other scans' view) and a lighter one on the right
     place. The free space rules out the kept edge and the heavier family with it, so that synchronizing without
@@ -162,14 +188,20 @@ def _views_at_truth(scene, pairs: list[tuple[int, int]]):
     registered at GT, every edge kept."""
     truth, scans, voxel = scene
     names = list(truth)
-    grids = [np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scans[n])).voxel_down_sample(voxel).points)
-             for n in names]
+    grids = [
+        np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scans[n])).voxel_down_sample(voxel).points)
+        for n in names
+    ]
     views = Viewpoints([SimpleNamespace(points=P) for P in grids], voxel, np.zeros((len(names), 3)))
     ij = np.array(pairs, dtype=np.int64)
     T = np.array([inv_T(truth[names[a]]) @ truth[names[b]] for a, b in pairs])
     graph = PoseGraph(n=len(names), i=ij[:, 0], j=ij[:, 1], T=T, weight=np.ones(len(ij)))
-    result = SyncResult(poses=np.array([truth[n] for n in names]), weights=np.ones(len(ij)),
-                        residual_deg=np.zeros(len(ij)), component=np.zeros(len(names), dtype=int))
+    result = SyncResult(
+        poses=np.array([truth[n] for n in names]),
+        weights=np.ones(len(ij)),
+        residual_deg=np.zeros(len(ij)),
+        component=np.zeros(len(names), dtype=int),
+    )
     return views, graph, result, grids
 
 
@@ -198,7 +230,7 @@ def test_a_look_alike_registration_between_vouched_fragments_is_contradicted(kit
     views, graph, result, grids = _views_at_truth(kitchen, _all_pairs(n))
     edges = EdgeSet()
     look_alike = []
-    for (a, b), T in zip(zip(graph.i, graph.j), graph.T):
+    for (_a, b), T in zip(zip(graph.i, graph.j), graph.T):
         ray = transform_points(T, grids[b]).mean(axis=0)
         look_alike.append(make_T(np.eye(3), -ray / np.linalg.norm(ray)) @ T)
     edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in graph.T], "top-k")
@@ -208,7 +240,7 @@ def test_a_look_alike_registration_between_vouched_fragments_is_contradicted(kit
     assert np.isnan(edges.conflict).all()  # not vouched for yet: nothing judged
     assert views.vouch(graph, result) and len(views.images) == n
     assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views) == 2 * len(graph.i)
-    right, wrong = edges.conflict[:len(graph.i)], edges.conflict[len(graph.i):]
+    right, wrong = edges.conflict[: len(graph.i)], edges.conflict[len(graph.i) :]
     assert not np.any(right > CONFLICT), np.round(right, 2)
     judged = np.isfinite(wrong)
     assert judged.sum() >= 30 and np.all(wrong[judged] > CONFLICT), np.round(wrong, 2)
@@ -226,4 +258,3 @@ def test_scans_are_vouched_for_only_where_enough_loops_check_their_frames(kitche
     assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain + [(0, n - 1)])[:3])
     views, graph, result, _ = _views_at_truth(kitchen, _all_pairs(n - 1) + [(n - 2, n - 1)])
     assert views.vouch(graph, result) and len(views.images) == n
-

@@ -100,8 +100,12 @@ def test_a_score_without_matches_is_the_score_on_every_mutual_match(boxes, angle
     off = make_T(Rotation.from_rotvec(sign * angle * np.eye(3)[axis]).as_matrix(), shift * voxel * np.eye(3)[axis - 1])
     T = T_ij @ off
     alone, full = score_pair(fi, fj, T, voxel, 1.5), score_pair(fi, fj, T, voxel, 1.5, mutual_matches(fi, fj))
-    assert (alone.inliers, alone.coverage, alone.fitness, alone.rmse) == (full.inliers, full.coverage, full.fitness,
-                                                                          full.rmse)
+    assert (alone.inliers, alone.coverage, alone.fitness, alone.rmse) == (
+        full.inliers,
+        full.coverage,
+        full.fitness,
+        full.rmse,
+    )
     np.testing.assert_array_equal(alone.information, full.information)
     assert alone.matches is None
 

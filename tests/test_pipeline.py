@@ -13,8 +13,8 @@ from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.io.g2o import read_g2o
 from sghr_gtsam.io.poses import read_kitti, read_poses
 from sghr_gtsam.pipeline import Scan, register, run
-from sghr_gtsam.scene import load_scene
 from sghr_gtsam.registration.visibility import CONFLICT
+from sghr_gtsam.scene import load_scene
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError
@@ -73,9 +73,11 @@ def test_outputs_parse_back_to_the_result(room_run):
     assert report["status"] == {name: "verified" for name in result.names}
     assert [p["scans"] for p in report["parts"]] == [result.names] and report["parts"][0]["join"] is None
     # kept edges only: a failed registration's free directions listed a perfect scene as degenerate
-    assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p, r
-                                          in zip(result.graph.i, result.graph.j, result.pairs, rows)
-                                          if p.free and r["status"] == "kept"]
+    assert report["degenerate_pairs"] == [
+        [result.names[i], result.names[j], p.free]
+        for i, j, p, r in zip(result.graph.i, result.graph.j, result.pairs, rows)
+        if p.free and r["status"] == "kept"
+    ]
     assert report["peak_memory_mb"] > 0
     assert {"features", "pairwise", "sync", "total"} <= set(report["seconds"])
     assert Config.from_json(out / "config.json") == Config(seed=0)
@@ -95,7 +97,7 @@ def test_recording_holds_every_iteration(room_run):
     assert len(irls) == Config().iters
     stages = {r.stage for r in result.sync.history}
     assert {"irls", "lm"} < stages  # the polish's own stages are recorded between them
-    line = next(l for l in summary.splitlines() if l.startswith("/metrics/median_residual_deg"))
+    line = next(row for row in summary.splitlines() if row.startswith("/metrics/median_residual_deg"))
     rows = int(line.split("rows=")[1].split()[0].rstrip(","))
     # one row per record of every synchronization: the first, then one per front-end round (the result keeps
     # the last one's history)
@@ -129,8 +131,7 @@ def test_initial_weight_ablations_use_score_or_inliers_alone():
     """``initial_weight``: w⁰ = s·r (SGHR), s alone or r alone (the paper's ablations), same pairs."""
     scene = make_scene(kind="room", n_scans=4, seed=5)
     scans = [Scan(f"s{k}", P) for k, P in enumerate(scene.scans)]
-    runs = {w: register(scans, Config(record=False, initial_weight=w), log=lambda m: None)
-            for w in ("s*r", "s", "r")}
+    runs = {w: register(scans, Config(record=False, initial_weight=w), log=lambda m: None) for w in ("s*r", "s", "r")}
     g = runs["s*r"].graph
     s = runs["s*r"].scores[g.i, g.j]
     r = np.array([p.inliers for p in runs["s*r"].pairs], dtype=float)
@@ -148,14 +149,17 @@ def _room_scans(n: int = 4) -> list[Scan]:
     return [Scan(name, P) for name, P in zip(scene.names, scene.scans)]
 
 
-@pytest.mark.parametrize("names, message", [
-    (["a", "b", "c", "a"], "two scans are named 'a'"),
-    (["a", "", "c", "d"], "scan name '' cannot be written on its own line"),
-    (["a", "b\nc", "d", "e"], r"scan name 'b\nc' cannot be written on its own line"),
-    (["a", "#b", "c", "d"], "scan name '#b' cannot be written on its own line"),
-    (["a", "b", " c", "d"], "scan name ' c' cannot be written on its own line"),
-    (["a", "b", "c", "d\t"], r"scan name 'd\t' cannot be written on its own line"),
-])
+@pytest.mark.parametrize(
+    "names, message",
+    [
+        (["a", "b", "c", "a"], "two scans are named 'a'"),
+        (["a", "", "c", "d"], "scan name '' cannot be written on its own line"),
+        (["a", "b\nc", "d", "e"], r"scan name 'b\nc' cannot be written on its own line"),
+        (["a", "#b", "c", "d"], "scan name '#b' cannot be written on its own line"),
+        (["a", "b", " c", "d"], "scan name ' c' cannot be written on its own line"),
+        (["a", "b", "c", "d\t"], r"scan name 'd\t' cannot be written on its own line"),
+    ],
+)
 def test_register_refuses_names_results_cannot_be_matched_by(names, message):
     """Duplicate names were accepted: the first scan lost its pose in every output and two others were flagged. A
     name starting with '#' or a space, or ending with one, passed and was refused only by the pose file's writer,
@@ -174,8 +178,10 @@ def test_scan_files_whose_names_a_pose_file_cannot_hold_are_skipped(tmp_path):
     (tmp_path / "scan_01.ply").rename(tmp_path / " scan_01.ply")
     scans, skipped = load_scene(tmp_path, Config(), log=lambda m: None)
     assert [s.name for s in scans] == ["scan_02.ply", "scan_03.ply"]
-    assert skipped == {name: f"its name {name!r} cannot be written on its own line in the pose files: rename it"
-                       for name in ("#scan_00.ply", " scan_01.ply")}
+    assert skipped == {
+        name: f"its name {name!r} cannot be written on its own line in the pose files: rename it"
+        for name in ("#scan_00.ply", " scan_01.ply")
+    }
 
 
 def test_noise_scans_that_set_the_automatic_voxel_are_named_when_nothing_registers():
@@ -185,9 +191,12 @@ def test_noise_scans_that_set_the_automatic_voxel_are_named_when_nothing_registe
     rng = np.random.default_rng(0)
     noise = [Scan(f"noise_{k}.npy", rng.uniform(-0.22, 0.22, (2000, 3)) + scene.scans[0].mean(0)) for k in range(3)]
     scans = [Scan(name, P) for name, P in zip(scene.names, scene.scans)] + noise
-    with pytest.raises(InputError, match=r"\(do the scans overlap\? is the voxel 0.007\d+ right\? it is 1/100 of the "
-                                         r"median scan's extent \(0.7\d+\), and scan_00.ply \((9.9|10)x\), "
-                                         r"scan_01.ply \((9.9|10)x\) differ from it by more than 3x: "):
+    with pytest.raises(
+        InputError,
+        match=r"\(do the scans overlap\? is the voxel 0.007\d+ right\? it is 1/100 of the "
+        r"median scan's extent \(0.7\d+\), and scan_00.ply \((9.9|10)x\), "
+        r"scan_01.ply \((9.9|10)x\) differ from it by more than 3x: ",
+    ):
         register(scans, Config(workers=1, record=False), log=lambda m: None)
 
 
@@ -224,8 +233,11 @@ def test_a_voxel_too_small_for_any_scan_is_named_not_the_scans():
     """``--voxel 1e-300``: every scan was skipped as "its points span 4.82e+300 voxels …: a stray point far away?"."""
     scene = make_scene(kind="room", n_scans=3, seed=1)
     with pytest.raises(InputError, match=r"^voxel 1e-300 is too small: the median scan's diagonal spans \S+ voxels"):
-        register([Scan(n, P) for n, P in zip(scene.names, scene.scans)], Config(workers=1, record=False, voxel=1e-300),
-                 log=lambda m: None)
+        register(
+            [Scan(n, P) for n, P in zip(scene.names, scene.scans)],
+            Config(workers=1, record=False, voxel=1e-300),
+            log=lambda m: None,
+        )
 
 
 def test_degenerate_pairs_lists_only_the_edges_the_result_rests_on(tmp_path):
@@ -238,9 +250,11 @@ def test_degenerate_pairs_lists_only_the_edges_the_result_rests_on(tmp_path):
         status = [r["status"] for r in csv.DictReader(f)]
     assert sum(p.free > 0 and s != "kept" for p, s in zip(result.pairs, status)) >= 5  # what was listed
     report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert report["degenerate_pairs"] == [[result.names[i], result.names[j], p.free] for i, j, p, s
-                                          in zip(result.graph.i, result.graph.j, result.pairs, status)
-                                          if p.free and s == "kept"]
+    assert report["degenerate_pairs"] == [
+        [result.names[i], result.names[j], p.free]
+        for i, j, p, s in zip(result.graph.i, result.graph.j, result.pairs, status)
+        if p.free and s == "kept"
+    ]
 
 
 def test_register_skips_a_scan_under_min_points_and_subsets_given_scores():

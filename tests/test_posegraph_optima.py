@@ -6,13 +6,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from test_sync import random_graph
 
 from sghr_gtsam.factor_graph import graph_error
 from sghr_gtsam.io.g2o import isotropic_information, read_g2o, sesync_objective, sesync_precisions, write_g2o
 from sghr_gtsam.se3 import make_T
 from sghr_gtsam.sync import synchronize
 from sghr_gtsam.types import InputError, PoseGraph
-from test_sync import random_graph
 
 # name: (f* as published, to 4 significant digits; poses; edges)
 OPTIMA = {"sphere2500": (1.687e3, 2500, 4949), "parking-garage": (1.263e0, 1661, 6275)}
@@ -53,8 +53,9 @@ def test_lm_reaches_the_published_sesync_optimum(solved, name):
 def _toro_chain(path) -> np.ndarray:
     """Poses chained from the consecutive ``EDGE3 i i+1 x y z roll pitch yaw`` lines of a TORO file
     (rotation ``Rz(yaw) Ry(pitch) Rx(roll)``, as gtsam reads EDGE3)."""
-    rows = np.array([line.split()[1:9] for line in path.read_text().splitlines() if line.startswith("EDGE3")],
-                    dtype=float)
+    rows = np.array(
+        [line.split()[1:9] for line in path.read_text().splitlines() if line.startswith("EDGE3")], dtype=float
+    )
     chain = rows[rows[:, 1] == rows[:, 0] + 1]
     chain = chain[np.argsort(chain[:, 0])]
     steps = make_T(Rotation.from_euler("ZYX", chain[:, [7, 6, 5]]).as_matrix(), chain[:, 2:5])
@@ -83,9 +84,16 @@ def test_sphere2500_trajectory_error_against_ground_truth(solved, data_dir):
 
 
 @pytest.mark.data
-@pytest.mark.parametrize("path", ["posegraph/sphere2500.g2o", "posegraph/parking-garage.g2o",
-                                  "posegraph/smallGrid3D.g2o", "posegraph/tinyGrid3D.g2o",
-                                  "posegraph/gtsam/pose3example-offdiagonal.txt"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "posegraph/sphere2500.g2o",
+        "posegraph/parking-garage.g2o",
+        "posegraph/smallGrid3D.g2o",
+        "posegraph/tinyGrid3D.g2o",
+        "posegraph/gtsam/pose3example-offdiagonal.txt",
+    ],
+)
 def test_real_g2o_files_round_trip(data_dir, tmp_path, path):
     ids, poses, graph = read_g2o(data_dir / path)
     write_g2o(tmp_path / "out.g2o", ids, poses, graph)
@@ -99,8 +107,9 @@ def test_real_g2o_files_round_trip(data_dir, tmp_path, path):
 def _first_poses(graph: PoseGraph, n: int) -> PoseGraph:
     """The subgraph of ``graph``'s first ``n`` nodes (a benchmark graph's trajectory order: a connected part)."""
     m = (graph.i < n) & (graph.j < n)
-    return replace(graph, n=n, i=graph.i[m], j=graph.j[m], T=graph.T[m], weight=graph.weight[m],
-                   information=graph.information[m])
+    return replace(
+        graph, n=n, i=graph.i[m], j=graph.j[m], T=graph.T[m], weight=graph.weight[m], information=graph.information[m]
+    )
 
 
 @pytest.mark.data
@@ -137,8 +146,9 @@ def test_sync_writes_only_the_edges_its_result_rests_on(data_dir, tmp_path, nois
     ids, given = ids[:500], given[:500]
     noisy, outlier = add_random_outliers(clean, 50, seed=0)
     write_g2o(tmp_path / "in.g2o", ids, given, noisy)
-    r = CliRunner().invoke(app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "out.g2o"),
-                                 "--noise", noise])
+    r = CliRunner().invoke(
+        app, ["sync", str(tmp_path / "in.g2o"), "--out", str(tmp_path / "out.g2o"), "--noise", noise]
+    )
     assert r.exit_code == 0, r.output
     assert f"{clean.num_edges} kept" in r.output and "50 dropped" in r.output, r.output
     _, poses, kept = read_g2o(tmp_path / "out.g2o")
@@ -213,12 +223,23 @@ def test_g2o_information_is_reordered_to_gtsam_order(tmp_path):
     quarter_turn = "1 2 3 0 0 0.7071067811865476 0.7071067811865476"
     (tmp_path / "g.g2o").write_text(
         f"# a comment\nVERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 {quarter_turn}\nFIX 0\n\n"
-        f"EDGE_SE3:QUAT 0 1 {quarter_turn} " + " ".join(map(str, upper)) + "\n")
+        f"EDGE_SE3:QUAT 0 1 {quarter_turn} " + " ".join(map(str, upper)) + "\n"
+    )
     ids, poses, graph = read_g2o(tmp_path / "g.g2o")
     assert ids == [0, 1]
-    np.testing.assert_allclose(graph.information[0], np.array([
-        [40, 0, 0, 0.5, 0, 0], [0, 50, 0, 0, 0, 0], [0, 0, 60, 0, 0, 0],
-        [0.5, 0, 0, 1, 0, 0], [0, 0, 0, 0, 2, 0], [0, 0, 0, 0, 0, 3]]))
+    np.testing.assert_allclose(
+        graph.information[0],
+        np.array(
+            [
+                [40, 0, 0, 0.5, 0, 0],
+                [0, 50, 0, 0, 0, 0],
+                [0, 0, 60, 0, 0, 0],
+                [0.5, 0, 0, 1, 0, 0],
+                [0, 0, 0, 0, 2, 0],
+                [0, 0, 0, 0, 0, 3],
+            ]
+        ),
+    )
     expected = make_T(Rotation.from_rotvec([0, 0, np.pi / 2]).as_matrix(), np.array([1.0, 2, 3]))
     np.testing.assert_allclose(poses[1], expected, atol=1e-12)
     np.testing.assert_allclose(graph.T[0], expected, atol=1e-12)
@@ -227,16 +248,19 @@ def test_g2o_information_is_reordered_to_gtsam_order(tmp_path):
 TWO = "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 0 0 0 0 0 0 1\n"
 
 
-@pytest.mark.parametrize("text, line", [
-    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE2 1 0 0 0\n", 2),
-    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 1\n", 1),
-    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 0 0 x 0 0 0 1\n", 2),
-    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 0\n", 1),
-    ("VERTEX_SE3:QUAT 0 0 0 nan 0 0 0 1\n", 1),
-    ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n\nEDGE_SE3:QUAT 0 7 0 0 0 0 0 0 1" + " 1" * 21 + "\n", 3),
-    (TWO + "EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1" + " 1" * 20 + "\n", 3),  # 20 information values, not 21
-    (TWO + "EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1" + " inf" * 21 + "\n", 3),
-])
+@pytest.mark.parametrize(
+    "text, line",
+    [
+        ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE2 1 0 0 0\n", 2),
+        ("VERTEX_SE3:QUAT 0 0 0 0 0 0 1\n", 1),
+        ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 0 0 x 0 0 0 1\n", 2),
+        ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 0\n", 1),
+        ("VERTEX_SE3:QUAT 0 0 0 nan 0 0 0 1\n", 1),
+        ("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\n\nEDGE_SE3:QUAT 0 7 0 0 0 0 0 0 1" + " 1" * 21 + "\n", 3),
+        (TWO + "EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1" + " 1" * 20 + "\n", 3),  # 20 information values, not 21
+        (TWO + "EDGE_SE3:QUAT 0 1 0 0 0 0 0 0 1" + " inf" * 21 + "\n", 3),
+    ],
+)
 def test_malformed_g2o_lines_raise_input_error_with_the_line_number(tmp_path, text, line):
     (tmp_path / "bad.g2o").write_text(text)
     with pytest.raises(InputError, match=f"line {line}"):
@@ -254,8 +278,9 @@ def test_sesync_objective_and_precisions_by_hand():
     assert kappa[0] == pytest.approx(3.0 / (2.0 * 1.5)) and tau[0] == pytest.approx(3.0 / 0.2)
     np.testing.assert_allclose(np.diag(isotropic_information(Omega[None])[0]), [2.0] * 3 + [15.0] * 3)
     theta, d = 0.3, np.array([0.1, -0.2, 0.4])
-    graph = PoseGraph(n=2, i=np.array([0]), j=np.array([1]), T=np.eye(4)[None], weight=np.ones(1),
-                      information=Omega[None])
+    graph = PoseGraph(
+        n=2, i=np.array([0]), j=np.array([1]), T=np.eye(4)[None], weight=np.ones(1), information=Omega[None]
+    )
     poses = np.stack([np.eye(4), make_T(Rotation.from_rotvec([theta, 0, 0]).as_matrix(), d)])
     expected = kappa[0] * 4.0 * (1.0 - np.cos(theta)) + tau[0] * d @ d  # ‖R − I‖²_F = 4(1 − cos θ)
     assert sesync_objective(poses, graph) == pytest.approx(expected, rel=1e-12)

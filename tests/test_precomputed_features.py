@@ -15,8 +15,8 @@ from sghr_gtsam.config import Config
 from sghr_gtsam.evaluate import scan_errors
 from sghr_gtsam.features.local import compute_features
 from sghr_gtsam.io.features import read_features
-from sghr_gtsam.io.results import CACHE
 from sghr_gtsam.io.poses import read_poses
+from sghr_gtsam.io.results import CACHE
 from sghr_gtsam.pipeline import Scan, register
 from sghr_gtsam.se3 import inv_T, relative_errors
 from sghr_gtsam.synthetic import make_scene, write_scene
@@ -48,8 +48,17 @@ def kitchen_yoho(data_dir, tmp_path_factory):
     """The whole kitchen folder: fragments 6, 21 and 34 have no features, so only 0-5 are registered."""
     out = tmp_path_factory.mktemp("kitchen_yoho")
     ref = data_dir / "sghr-reference"
-    r = _run("run", data_dir / "kitchen", "--out", out, "--no-record",
-             "--features", ref, "--overlap-head", ref / "netvlad_overlap_model_best.pth")
+    r = _run(
+        "run",
+        data_dir / "kitchen",
+        "--out",
+        out,
+        "--no-record",
+        "--features",
+        ref,
+        "--overlap-head",
+        ref / "netvlad_overlap_model_best.pth",
+    )
     assert r.exit_code == 0, r.output
     return out, ref
 
@@ -126,8 +135,9 @@ def test_scan_without_features_is_skipped_and_reported(tmp_path):
     write_scene(scene, tmp_path / "scene")
     _write_features(tmp_path / "feats", scene, skip={scene.names[3]})
     out = tmp_path / "out"
-    r = _run("run", tmp_path / "scene", "--out", out, "--no-record", "--features", tmp_path / "feats",
-             "--voxel", scene.voxel)
+    r = _run(
+        "run", tmp_path / "scene", "--out", out, "--no-record", "--features", tmp_path / "feats", "--voxel", scene.voxel
+    )
     assert r.exit_code == 0, r.output
     report = json.loads((out / "report.json").read_text())
     assert list(report["skipped"]) == [scene.names[3]] and "no keypoints" in report["skipped"][scene.names[3]]
@@ -236,8 +246,15 @@ def test_keypoints_are_checked_on_construction():
     kp, desc = _good(rng)
     k = Keypoints(kp.astype(np.float32), desc.astype(np.float64))
     assert k.points.dtype == np.float64 and k.descriptors.dtype == np.float32
-    for bad in [(kp[:, :2], desc), (kp, desc[:-1]), (kp[:0], desc[:0]), (kp, desc[:, :0]),
-                (kp, np.where(np.eye(400, 32, dtype=bool), np.inf, desc)), (kp.astype(str), desc), (kp[0], desc)]:
+    for bad in [
+        (kp[:, :2], desc),
+        (kp, desc[:-1]),
+        (kp[:0], desc[:0]),
+        (kp, desc[:, :0]),
+        (kp, np.where(np.eye(400, 32, dtype=bool), np.inf, desc)),
+        (kp.astype(str), desc),
+        (kp[0], desc),
+    ]:
         with pytest.raises(InputError):
             Keypoints(*bad)
 

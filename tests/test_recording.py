@@ -7,18 +7,19 @@ from collections import defaultdict
 import numpy as np
 import pytest
 import rerun as rr
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.config import Config
-from sghr_gtsam.pipeline import run
 from sghr_gtsam.palette import FLAG_COLOURS, REJECTED, scan_colours
+from sghr_gtsam.pipeline import run
 from sghr_gtsam.recording import KEPT, TIMELINE, Recorder, edge_radii
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.sync import synchronize
-from sghr_gtsam.verify import Verification, verify
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import PoseGraph
+from sghr_gtsam.verify import Verification, verify
 
 
 def _rows(path) -> dict[str, list[dict]]:
@@ -35,8 +36,11 @@ def _rows(path) -> dict[str, list[dict]]:
 
 def _latest(rows: dict[str, list[dict]], entity: str, component: str, step: int | None = None):
     """The value of ``component`` on ``entity`` at ``step`` (default: the last), as the viewer shows it."""
-    found = [r[component] for r in rows[entity]
-             if r.get(component) is not None and (step is None or r.get(TIMELINE, -1) <= step)]
+    found = [
+        r[component]
+        for r in rows[entity]
+        if r.get(component) is not None and (step is None or r.get(TIMELINE, -1) <= step)
+    ]
     assert found, f"{entity} has no {component}"
     return found[-1]
 
@@ -87,8 +91,10 @@ def flagged(tmp_path_factory):
     result = synchronize(graph, on_iteration=recorder.on_iteration)
     recorder.log_sync(result)
     verdict = verify(names, graph, result.weights > 0, result.poses, result.component == 0, Verification())
-    flags = {"unplaced": [names[k] for k in np.flatnonzero(result.component != 0)],
-             **{reason: [n for n, r in verdict.doubts.items() if r == reason] for reason in set(verdict.doubts.values())}}
+    flags = {
+        "unplaced": [names[k] for k in np.flatnonzero(result.component != 0)],
+        **{reason: [n for n, r in verdict.doubts.items() if r == reason] for reason in set(verdict.doubts.values())},
+    }
     recorder.log_final(result.poses, flags)
     recorder.log_parts(result.poses, verdict.parts)
     recorder.close()
@@ -189,8 +195,9 @@ def test_flagged_scans_are_marked_in_3d_and_in_the_graph(flagged):
         assert (name in marked) == (label != name) and label.startswith(name)
     kept = result.weights > 0
     edges = _latest(rows, "/pose_graph", "GraphEdges:edges")
-    assert {(e["first"], e["second"]) for e in edges} == {(names[a], names[b])
-                                                         for a, b in zip(graph.i[kept], graph.j[kept])}
+    assert {(e["first"], e["second"]) for e in edges} == {
+        (names[a], names[b]) for a, b in zip(graph.i[kept], graph.j[kept])
+    }
 
 
 def test_steps_of_a_synchronization_carry_their_stage(flagged):
@@ -291,6 +298,7 @@ def test_a_run_draws_every_scan_with_its_axes_and_colour(object_run):
 
 
 # --- what a reviewer reads off the recording: up axis, name, seconds, edge statuses, ellipsoid scale ------------
+
 
 def _view(axis: int, sign: int) -> list:
     name = f"RIGHT_HAND_{'XYZ'[axis]}_{'UP' if sign > 0 else 'DOWN'}"

@@ -11,11 +11,24 @@ from benchmarks._results import save
 
 def test_report_renders_every_table_with_its_command_commit_and_machine(tmp_path):
     results = tmp_path / "results"
-    save("sync_optima", [["sphere2500", 1687.0059, 0.0], ["garage", 1.2626, None]], ["graph", "f", "gap"],
-         "python benchmarks/bench_sync_optima.py", "Within 1e-5 of the published optimum.",
-         section="Pose graphs", title="Published optima", folder=results)
-    path = save("3dmatch", [["home_at", "60/60", 1.0]], ["scene", "placed", "RR"], "python benchmarks/bench_3dmatch.py",
-                section="3DMatch end to end", folder=results)
+    save(
+        "sync_optima",
+        [["sphere2500", 1687.0059, 0.0], ["garage", 1.2626, None]],
+        ["graph", "f", "gap"],
+        "python benchmarks/bench_sync_optima.py",
+        "Within 1e-5 of the published optimum.",
+        section="Pose graphs",
+        title="Published optima",
+        folder=results,
+    )
+    path = save(
+        "3dmatch",
+        [["home_at", "60/60", 1.0]],
+        ["scene", "placed", "RR"],
+        "python benchmarks/bench_3dmatch.py",
+        section="3DMatch end to end",
+        folder=results,
+    )
     record = json.loads(path.read_text())
     record.update(transcribed=True, commit="1258102")
     path.write_text(json.dumps(record))

@@ -13,8 +13,8 @@ from typer.testing import CliRunner
 from sghr_gtsam.cli import app
 from sghr_gtsam.config import Config
 from sghr_gtsam.io.poses import read_kitti, read_tum
-from sghr_gtsam.pipeline import run
 from sghr_gtsam.palette import FLAG_COLOURS, REJECTED, scan_colours
+from sghr_gtsam.pipeline import run
 from sghr_gtsam.plots import summary_figure
 from sghr_gtsam.progress import TerminalProgress
 from sghr_gtsam.synthetic import make_scene, write_scene
@@ -96,8 +96,10 @@ def test_summary_figure_draws_kept_and_rejected_edges_apart(watched_run):
     status[kept[0]] = "rejected"
     fig = summary_figure(result, status)
     top = fig.axes[0]
-    rejected, solid = (next(c for c in top.collections if isinstance(c, LineCollection) and c.get_label() == label)
-                       for label in ("rejected", "kept"))
+    rejected, solid = (
+        next(c for c in top.collections if isinstance(c, LineCollection) and c.get_label() == label)
+        for label in ("rejected", "kept")
+    )
     assert len(rejected.get_segments()) == 1 and len(solid.get_segments()) == len(kept) - 1
     assert rejected.get_linestyle()[0][1] is not None  # dashed
     np.testing.assert_allclose(rejected.get_edgecolor()[0][:3], np.divide(REJECTED, 255), atol=1e-6)
@@ -124,7 +126,9 @@ def test_summary_figure_rings_each_doubtful_scan_in_its_reasons_colour(watched_r
     rings = [tuple(np.round(rgba[:3] * 255).astype(int)) for rgba in dots.get_edgecolor()]
     assert rings[1:] == [FLAG_COLOURS["free space"]] * 2 + [FLAG_COLOURS["loose"]]
     assert [t.get_text() for t in top.get_legend().get_texts() if " edge (" not in t.get_text()] == [
-        "free space", "loose"]
+        "free space",
+        "loose",
+    ]
     assert "2 free space · 1 loose" in top.get_title()
 
 
@@ -189,16 +193,30 @@ def _help(command):
 
 def test_run_help_shows_defaults_and_choices():
     text = _help("run")
-    for default in ("[default: results/<scene name>]", "[default: 1/100 of the median scan's bounding-box diagonal]",
-                    "[default: 10]", "[default: 50]", "[default: history]", "[default: loops]", "[default: vlad]",
-                    "[default: 0]", "[default: every core]", "[default: --record]"):
+    for default in (
+        "[default: results/<scene name>]",
+        "[default: 1/100 of the median scan's bounding-box diagonal]",
+        "[default: 10]",
+        "[default: 50]",
+        "[default: history]",
+        "[default: loops]",
+        "[default: vlad]",
+        "[default: 0]",
+        "[default: every core]",
+        "[default: --record]",
+    ):
         assert default in text, default
     for choice in ("history", "constant", "current", "spectral", "lm", "loops", "robust", "none", "learned"):
         assert re.search(rf"\b{choice}\b", text), choice
     assert "--quiet" in text and "Synchronization method ." not in text
     text = _help("sync")
-    for default in ("[default: history]", "[default: 50]", "[default: loops]", "[default: information]",
-                    "[default: none]"):
+    for default in (
+        "[default: history]",
+        "[default: 50]",
+        "[default: loops]",
+        "[default: information]",
+        "[default: none]",
+    ):
         assert default in text, default
     assert "huber, cauchy or tls" in text and "shonan" in text
 

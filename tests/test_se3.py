@@ -64,12 +64,15 @@ def test_non_rigid_tells_rotations_from_scales_reflections_and_bad_rows(seed, sc
     assert bool(non_rigid(np.where(np.eye(4, dtype=bool), np.nan, T)))
 
 
-@given(st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 1e-3),
-       st.floats(-12, np.log10(np.pi)), st.booleans())
+@given(
+    st.lists(st.floats(-1, 1), min_size=3, max_size=3).filter(lambda v: np.linalg.norm(v) > 1e-3),
+    st.floats(-12, np.log10(np.pi)),
+    st.booleans(),
+)
 def test_the_rotation_angle_is_exact_at_every_angle(axis, log_angle, near_pi):
     """Built from an axis and an angle from 1e-12 rad to π (or as far below π), the rotation reads its angle back to
     float precision: no 1e-8 rad floor near 0 (one ulp of the trace) and none near π."""
-    angle = 10.0 ** log_angle
+    angle = 10.0**log_angle
     if near_pi:
         angle = np.pi - angle
     R = Rotation.from_rotvec(angle * np.asarray(axis) / np.linalg.norm(axis)).as_matrix()

@@ -22,8 +22,8 @@ from sghr_gtsam.executor import parallel_map
 from sghr_gtsam.features.local import FEATURES, scan_features
 from sghr_gtsam.pipeline import register, run
 from sghr_gtsam.registration.refine import PYRAMIDS, scan_pyramid
-from sghr_gtsam.store import Attribute, Store, Stored, pair_order
 from sghr_gtsam.scene import load_scene
+from sghr_gtsam.store import Attribute, Store, Stored, pair_order
 from sghr_gtsam.synthetic import make_scene, write_scene
 from sghr_gtsam.types import InputError, Scan
 
@@ -51,8 +51,11 @@ def _stored(room, cache, voxel=0.08):
     grid_keys = [pyramid_key(k) for k in keys]
     box.map(FEATURES, scan_features, settings, room, keys, 1, None, None, keep=lambda f: None)
     box.map(PYRAMIDS, scan_pyramid, voxel, room, grid_keys, 1, None, None, keep=lambda p: None)
-    return (box, box.sequence(FEATURES, keys, lambda k: scan_features(settings, room[k])),
-            box.sequence(PYRAMIDS, grid_keys, lambda k: scan_pyramid(voxel, room[k])))
+    return (
+        box,
+        box.sequence(FEATURES, keys, lambda k: scan_features(settings, room[k])),
+        box.sequence(PYRAMIDS, grid_keys, lambda k: scan_pyramid(voxel, room[k])),
+    )
 
 
 @dataclass
@@ -120,8 +123,9 @@ def test_missing_or_damaged_entries_are_computed_again_where_the_scans_are(room,
     damaged = entry_path(tmp_path, "pyramids", pyramids.keys[2])
     damaged.write_bytes(damaged.read_bytes()[:100])
     worker = pickle.loads(pickle.dumps(features))
-    with pytest.raises(InputError, match=f"^{re.escape(str(entry_path(tmp_path, 'features', features.keys[1])))} "
-                                         "is missing or damaged"):
+    with pytest.raises(
+        InputError, match=f"^{re.escape(str(entry_path(tmp_path, 'features', features.keys[1])))} is missing or damaged"
+    ):
         worker[1]
     for k in range(3):
         assert np.array_equal(features[k].fpfh, expected[k])
@@ -134,8 +138,11 @@ def test_missing_or_damaged_entries_are_computed_again_where_the_scans_are(room,
 def test_a_worker_that_does_not_see_the_folder_says_so(room, tmp_path):
     _, features, _ = _stored(room, Cache(tmp_path / "out" / "cache"))
     elsewhere = Stored(str(tmp_path / "other" / "cache"), FEATURES, features.keys)
-    with pytest.raises(InputError, match="does not exist on .*: on a Ray cluster of several machines the output "
-                                         "folder must be on a filesystem every node mounts at the same path$"):
+    with pytest.raises(
+        InputError,
+        match="does not exist on .*: on a Ray cluster of several machines the output "
+        "folder must be on a filesystem every node mounts at the same path$",
+    ):
         elsewhere[0]
 
 
@@ -207,10 +214,14 @@ def in_memory(demo_room):
     return register(scans, Config(record=False, workers=1), skipped=skipped, store=_InMemory(None), **QUIET)
 
 
-@pytest.mark.parametrize("workers, cache, lru", [(2, True, store.LRU_BYTES), (1, False, 0)],
-                         ids=["pool-2-cached", "in-process-no-cache-lru-0"])
-def test_poses_equal_a_run_holding_everything_in_memory(demo_room, in_memory, tmp_path, monkeypatch, workers, cache,
-                                                        lru):
+@pytest.mark.parametrize(
+    "workers, cache, lru",
+    [(2, True, store.LRU_BYTES), (1, False, 0)],
+    ids=["pool-2-cached", "in-process-no-cache-lru-0"],
+)
+def test_poses_equal_a_run_holding_everything_in_memory(
+    demo_room, in_memory, tmp_path, monkeypatch, workers, cache, lru
+):
     """Through the store, with every item read again at each use (a memory of 0 bytes) or not, the run gives the
     poses of one that holds every scan's features and grids, to the last bit."""
     monkeypatch.setattr(store, "_LRU", store._Lru(lru))

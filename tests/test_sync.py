@@ -5,13 +5,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings, strategies as st
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
-from sghr_gtsam.sync import METHODS, synchronize, unverified
+from sghr_gtsam.sync import METHODS, rotation, synchronize, unverified
 from sghr_gtsam.sync.irls import irls, schedule_weights
-from sghr_gtsam.sync import rotation
 from sghr_gtsam.sync.rotation import DENSE_NODES, rotation_residuals, spectral_rotations
 from sghr_gtsam.types import InputError, PoseGraph, SyncResult
 from sghr_gtsam.verify import Verification, verify
@@ -19,8 +19,15 @@ from sghr_gtsam.verify import Verification, verify
 FAST = settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-def random_graph(seed: int, n: int, extra: int = 2, rot_deg: float = 0.0, trans_sigma: float = 0.0,
-                 outliers: float = 0.0, extent: float = 5.0) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
+def random_graph(
+    seed: int,
+    n: int,
+    extra: int = 2,
+    rot_deg: float = 0.0,
+    trans_sigma: float = 0.0,
+    outliers: float = 0.0,
+    extent: float = 5.0,
+) -> tuple[PoseGraph, np.ndarray, np.ndarray]:
     """Random poses; a random spanning tree plus ``extra · n`` random chords; weights in [1, 100].
     Outliers (random transforms) only on chords, so the inlier edges stay connected. Returns the graph,
     the true poses and the outlier mask."""
@@ -33,12 +40,15 @@ def random_graph(seed: int, n: int, extra: int = 2, rot_deg: float = 0.0, trans_
     pairs = np.vstack([tree, chords])
     is_chord = np.arange(len(pairs)) >= len(tree)
     i, j = pairs.T
-    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_deg), (len(i), 3))).as_matrix(),
-                   rng.normal(0.0, trans_sigma, (len(i), 3)))
+    noise = make_T(
+        Rotation.from_rotvec(rng.normal(0.0, np.radians(rot_deg), (len(i), 3))).as_matrix(),
+        rng.normal(0.0, trans_sigma, (len(i), 3)),
+    )
     T = inv_T(poses[i]) @ poses[j] @ noise
     bad = is_chord & (rng.random(len(i)) < outliers)
-    T[bad] = make_T(Rotation.random(int(bad.sum()), random_state=rng).as_matrix(),
-                    rng.uniform(-extent, extent, (int(bad.sum()), 3)))
+    T[bad] = make_T(
+        Rotation.random(int(bad.sum()), random_state=rng).as_matrix(), rng.uniform(-extent, extent, (int(bad.sum()), 3))
+    )
     return PoseGraph(n=n, i=i, j=j, T=T, weight=rng.uniform(1.0, 100.0, len(i))), poses, bad
 
 
@@ -78,8 +88,9 @@ def test_noise_free_large_graphs_are_recovered_exactly_by_every_method(n):
 
 def test_spectral_rotations_handle_any_node_count():
     R = Rotation.random(1, random_state=0).as_matrix()
-    np.testing.assert_allclose(spectral_rotations(1, np.zeros(0, int), np.zeros(0, int), R[:0], np.zeros(0)),
-                               np.eye(3)[None])
+    np.testing.assert_allclose(
+        spectral_rotations(1, np.zeros(0, int), np.zeros(0, int), R[:0], np.zeros(0)), np.eye(3)[None]
+    )
     out = spectral_rotations(2, np.array([0]), np.array([1]), R, np.array([1.0]))
     np.testing.assert_allclose(out[1], R[0], atol=1e-12)
 
@@ -131,8 +142,13 @@ def test_result_is_equivariant_to_frames_and_invariant_to_labels(seed, n, common
     for method, outliers in (("spectral", 0.15), ("history", 0.15), ("lm", 0.0)):
         graph, _, _ = random_graph(seed, n, extra=3, rot_deg=2.0, trans_sigma=0.05, outliers=outliers)
         shuffle = rng.permutation(graph.num_edges)
-        moved = PoseGraph(n=n, i=perm[graph.i][shuffle], j=perm[graph.j][shuffle],
-                          T=(inv_T(S[graph.i]) @ graph.T @ S[graph.j])[shuffle], weight=graph.weight[shuffle])
+        moved = PoseGraph(
+            n=n,
+            i=perm[graph.i][shuffle],
+            j=perm[graph.j][shuffle],
+            T=(inv_T(S[graph.i]) @ graph.T @ S[graph.j])[shuffle],
+            weight=graph.weight[shuffle],
+        )
         a = synchronize(graph, method=method, iters=10, polish="none", reweight="paper", min_weight=0.0)
         b = synchronize(moved, method=method, iters=10, polish="none", reweight="paper", min_weight=0.0)
         np.testing.assert_allclose(gauge_free(b.poses[perm]), gauge_free(a.poses @ S), atol=atol)
@@ -148,8 +164,9 @@ def test_the_default_does_not_depend_on_the_order_of_the_edges(seed, outliers):
     graph, _, _ = random_graph(seed, 30, extra=3, rot_deg=2.0, trans_sigma=0.05, outliers=outliers)
     shuffle = np.random.default_rng(seed).permutation(graph.num_edges)
     a = synchronize(graph)
-    b = synchronize(PoseGraph(n=graph.n, i=graph.i[shuffle], j=graph.j[shuffle], T=graph.T[shuffle],
-                              weight=graph.weight[shuffle]))
+    b = synchronize(
+        PoseGraph(n=graph.n, i=graph.i[shuffle], j=graph.j[shuffle], T=graph.T[shuffle], weight=graph.weight[shuffle])
+    )
     np.testing.assert_allclose(b.poses, a.poses, atol=1e-9)
     np.testing.assert_array_equal(b.weights, a.weights[shuffle])
     np.testing.assert_array_equal(b.loop_support, a.loop_support[shuffle])
@@ -212,8 +229,13 @@ def test_disconnected_graph_gives_anchored_components_and_no_nan():
     small, small_truth, _ = random_graph(6, 3, extra=1)
     # Nodes 0-7: big part; 8-10: small part; 11: no edge; 12-13: joined by a zero-weight edge only.
     truth = np.concatenate([big_truth, small_truth, np.tile(np.eye(4), (3, 1, 1))])
-    graph = PoseGraph(n=14, i=np.r_[big.i, small.i + 8, 12], j=np.r_[big.j, small.j + 8, 13],
-                      T=np.concatenate([big.T, small.T, np.eye(4)[None]]), weight=np.r_[big.weight, small.weight, 0.0])
+    graph = PoseGraph(
+        n=14,
+        i=np.r_[big.i, small.i + 8, 12],
+        j=np.r_[big.j, small.j + 8, 13],
+        T=np.concatenate([big.T, small.T, np.eye(4)[None]]),
+        weight=np.r_[big.weight, small.weight, 0.0],
+    )
     for method in METHODS:
         result = synchronize(graph, method=method, iters=5)
         assert np.all(np.isfinite(result.poses)) and np.all(np.isfinite(result.residual_deg))
@@ -231,10 +253,13 @@ def test_a_scan_with_only_negligible_edges_ends_in_its_own_component():
     its own (the pipeline reports it unregistered), and the rest is unaffected."""
     graph, _, _ = random_graph(7, 25, extra=3, rot_deg=1.0, trans_sigma=0.02)
     rng = np.random.default_rng(8)
-    weak = PoseGraph(n=26, i=np.r_[graph.i, [25, 25]], j=np.r_[graph.j, [0, 5]],
-                     T=np.concatenate([graph.T, make_T(Rotation.random(2, random_state=rng).as_matrix(),
-                                                       rng.normal(size=(2, 3)))]),
-                     weight=np.r_[graph.weight, [1e-13, 1e-13]])  # < 1e-12 × the largest weight (~100)
+    weak = PoseGraph(
+        n=26,
+        i=np.r_[graph.i, [25, 25]],
+        j=np.r_[graph.j, [0, 5]],
+        T=np.concatenate([graph.T, make_T(Rotation.random(2, random_state=rng).as_matrix(), rng.normal(size=(2, 3)))]),
+        weight=np.r_[graph.weight, [1e-13, 1e-13]],
+    )  # < 1e-12 × the largest weight (~100)
     for method in ("history", "spectral", "lm"):
         result = synchronize(weak, method=method)
         assert result.component[25] == 1 and np.all(result.component[:25] == 0)
@@ -251,9 +276,13 @@ def test_light_right_registrations_place_their_scan_by_default():
     graph, truth, _ = random_graph(7, 25, extra=3, rot_deg=1.0, trans_sigma=0.02)
     extra = make_T(Rotation.random(random_state=9).as_matrix(), np.array([1.0, 2.0, 0.5]))
     truth = np.concatenate([truth, [truth[3] @ extra]])
-    light = PoseGraph(n=26, i=np.r_[graph.i, [25, 25]], j=np.r_[graph.j, [0, 5]],
-                      T=np.concatenate([graph.T, inv_T(truth[25])[None] @ truth[[0, 5]]]),
-                      weight=np.r_[graph.weight, [0.05, 0.05]])
+    light = PoseGraph(
+        n=26,
+        i=np.r_[graph.i, [25, 25]],
+        j=np.r_[graph.j, [0, 5]],
+        T=np.concatenate([graph.T, inv_T(truth[25])[None] @ truth[[0, 5]]]),
+        weight=np.r_[graph.weight, [0.05, 0.05]],
+    )
     result = synchronize(light)
     assert np.all(result.component == 0) and np.all(result.weights[-2:] > 0)
     rot, trans = relative_errors((inv_T(result.poses[0]) @ result.poses[25])[None], (inv_T(truth[0]) @ truth[25])[None])
@@ -291,9 +320,13 @@ def _two_clusters(links: list[tuple[int, int, bool]], seed: int = 3) -> tuple[Po
     truth = np.concatenate([truth_a, truth_b])
     flip = make_T(Rotation.from_euler("z", 180, degrees=True).as_matrix(), np.zeros(3))
     T = [inv_T(truth[p]) @ (truth[q] if ok else flip @ truth[q]) for p, q, ok in links]
-    graph = PoseGraph(n=21, i=np.r_[a.i, b.i + 15, [p for p, _, _ in links]],
-                      j=np.r_[a.j, b.j + 15, [q for _, q, _ in links]], T=np.concatenate([a.T, b.T, T]),
-                      weight=np.r_[a.weight, b.weight, np.full(len(links), 50.0)])
+    graph = PoseGraph(
+        n=21,
+        i=np.r_[a.i, b.i + 15, [p for p, _, _ in links]],
+        j=np.r_[a.j, b.j + 15, [q for _, q, _ in links]],
+        T=np.concatenate([a.T, b.T, T]),
+        weight=np.r_[a.weight, b.weight, np.full(len(links), 50.0)],
+    )
     return graph, truth
 
 
@@ -347,16 +380,21 @@ def test_a_look_alike_placement_is_right_or_set_apart(seed, weak, heavier):
     base, truth, _ = random_graph(seed, 20, extra=3, rot_deg=1.0, trans_sigma=0.02)
     rng = np.random.default_rng(seed)
     scan = 20
-    truth = np.concatenate([truth, truth[:1] @ make_T(Rotation.random(random_state=rng).as_matrix(),
-                                                      rng.uniform(-2, 2, 3))[None]])
+    truth = np.concatenate(
+        [truth, truth[:1] @ make_T(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-2, 2, 3))[None]]
+    )
     wrong = truth[scan] @ make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [0.5, 0.0, 0.0])
     group = rng.choice(20, weak + 2, replace=False)
     partners, right = group[:weak], group[weak:]
     T = [inv_T(truth[p]) @ wrong for p in partners] + [inv_T(truth[p]) @ truth[scan] for p in right]
     base_w = float(np.median(base.weight))
-    graph = PoseGraph(n=21, i=np.r_[base.i, group], j=np.r_[base.j, np.full(len(group), scan)],
-                      T=np.concatenate([base.T, T]),
-                      weight=np.r_[base.weight, np.full(weak, base_w / 10), np.full(2, strong * base_w / 10)])
+    graph = PoseGraph(
+        n=21,
+        i=np.r_[base.i, group],
+        j=np.r_[base.j, np.full(len(group), scan)],
+        T=np.concatenate([base.T, T]),
+        weight=np.r_[base.weight, np.full(weak, base_w / 10), np.full(2, strong * base_w / 10)],
+    )
     result = synchronize(graph)
     rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
     assert rot[:scan].max() < 5.0
@@ -370,7 +408,7 @@ def _linked_clusters(seed: int, links: list[tuple[int, int, bool, float]]) -> tu
     """``_two_clusters`` with each link's own weight: (a, b, right?, w⁰)."""
     graph, truth = _two_clusters([(a, b, ok) for a, b, ok, _ in links], seed)
     weight = graph.weight.copy()
-    weight[-len(links):] = [w for *_, w in links]
+    weight[-len(links) :] = [w for *_, w in links]
     return PoseGraph(n=graph.n, i=graph.i, j=graph.j, T=graph.T, weight=weight), truth
 
 
@@ -384,8 +422,9 @@ def test_a_group_placed_wrong_together_is_right_or_set_apart(seed, weak, heavier
     rng = np.random.default_rng(seed)
     a, b = rng.choice(15, weak + 2, replace=False), 15 + rng.permutation(6)
     light = 2.0
-    links = ([(a[k], b[k % 6], False, light) for k in range(weak)]
-             + [(a[weak + k], b[(weak + k) % 6], True, heavier * weak * light / 2) for k in range(2)])
+    links = [(a[k], b[k % 6], False, light) for k in range(weak)] + [
+        (a[weak + k], b[(weak + k) % 6], True, heavier * weak * light / 2) for k in range(2)
+    ]
     graph, truth = _linked_clusters(seed % 1000, links)
     result = synchronize(graph)
     rot, _ = relative_errors(inv_T(result.poses[0]) @ result.poses, inv_T(truth[0]) @ truth)
@@ -398,8 +437,9 @@ def test_dropped_links_that_disagree_do_not_add_up_against_a_group():
     weight in all when each would put it somewhere else: no two of them agree on one move."""
     rng = np.random.default_rng(5)
     wrong = [(int(rng.integers(15)), 15 + k, None, 24.0) for k in range(5)]
-    graph, truth = _linked_clusters(3, [(2, 16, True, 30.0), (7, 19, True, 30.0)]
-                                    + [(p, q, True, w) for p, q, _, w in wrong])
+    graph, truth = _linked_clusters(
+        3, [(2, 16, True, 30.0), (7, 19, True, 30.0)] + [(p, q, True, w) for p, q, _, w in wrong]
+    )
     T = graph.T.copy()
     for e in range(graph.num_edges - 5, graph.num_edges):  # each wrong link its own random placement
         T[e] = T[e] @ make_T(Rotation.random(random_state=rng).as_matrix(), rng.uniform(-2, 2, 3))
@@ -421,14 +461,20 @@ def test_dropped_edges_accuse_the_scan_at_their_far_end_not_the_group_they_leave
     truth = np.concatenate([truth, scan[None]])
     partners, heavy = [15, 16, 17], [18, 19]
     T = [inv_T(truth[p]) @ wrong for p in partners] + [inv_T(truth[p]) @ scan for p in heavy]
-    graph = PoseGraph(n=22, i=np.r_[graph.i, partners + heavy], j=np.r_[graph.j, [21] * 5],
-                      T=np.concatenate([graph.T, T]), weight=np.r_[graph.weight, [2.0] * 3, [150.0] * 2])
+    graph = PoseGraph(
+        n=22,
+        i=np.r_[graph.i, partners + heavy],
+        j=np.r_[graph.j, [21] * 5],
+        T=np.concatenate([graph.T, T]),
+        weight=np.r_[graph.weight, [2.0] * 3, [150.0] * 2],
+    )
     placed = truth.copy()
     placed[21] = wrong
     weights = graph.weight.copy()
     weights[-2:] = 0.0
-    result = SyncResult(poses=placed, weights=weights, residual_deg=np.zeros(graph.num_edges),
-                        component=np.zeros(22, dtype=int))
+    result = SyncResult(
+        poses=placed, weights=weights, residual_deg=np.zeros(graph.num_edges), component=np.zeros(22, dtype=int)
+    )
     np.testing.assert_array_equal(np.flatnonzero(_apart(graph, result)), [21])
 
 
@@ -449,18 +495,27 @@ def test_unverified_nodes_follow_a_relabelling(perm):
     graph, _ = _two_clusters([(3, 17, True)])
     p = np.asarray(perm)
     relabelled = PoseGraph(n=21, i=p[graph.i], j=p[graph.j], T=graph.T, weight=graph.weight)
-    result = SyncResult(poses=np.tile(np.eye(4), (21, 1, 1)), weights=graph.weight,
-                        residual_deg=np.zeros(graph.num_edges), component=np.zeros(21, dtype=int))
+    result = SyncResult(
+        poses=np.tile(np.eye(4), (21, 1, 1)),
+        weights=graph.weight,
+        residual_deg=np.zeros(graph.num_edges),
+        component=np.zeros(21, dtype=int),
+    )
     np.testing.assert_array_equal(np.flatnonzero(unverified(relabelled, result)), np.sort(p[15:]))
 
 
 def test_a_chain_is_verified_only_at_its_first_scan():
     """Every edge of a chain is a bridge: no block has more than one scan, the first is taken as the core."""
     n = 5
-    graph = PoseGraph(n=n, i=np.arange(n - 1), j=np.arange(1, n), T=np.tile(np.eye(4), (n - 1, 1, 1)),
-                      weight=np.ones(n - 1))
-    result = SyncResult(poses=np.tile(np.eye(4), (n, 1, 1)), weights=graph.weight, residual_deg=np.zeros(n - 1),
-                        component=np.zeros(n, dtype=int))
+    graph = PoseGraph(
+        n=n, i=np.arange(n - 1), j=np.arange(1, n), T=np.tile(np.eye(4), (n - 1, 1, 1)), weight=np.ones(n - 1)
+    )
+    result = SyncResult(
+        poses=np.tile(np.eye(4), (n, 1, 1)),
+        weights=graph.weight,
+        residual_deg=np.zeros(n - 1),
+        component=np.zeros(n, dtype=int),
+    )
     np.testing.assert_array_equal(unverified(graph, result), [False, True, True, True, True])
 
 
@@ -479,22 +534,25 @@ def _bad_T(graph: PoseGraph, value: float) -> np.ndarray:
     return T
 
 
-@pytest.mark.parametrize("change, words", [
-    (dict(n=1), "at least 2 nodes"),
-    (dict(i=np.zeros(0, int), j=np.zeros(0, int), T=np.zeros((0, 4, 4)), weight=np.zeros(0)), "no edges"),
-    ("nan_T", "not finite"),
-    ("inf_T", "not finite"),
-    ("nan_w", "weight"),
-    ("negative_w", "weight"),
-    ("out_of_range", "out of range"),
-    ("self_loop", "itself"),
-    ("shear", "rigid"),
-    ("short_weights", "disagree"),
-    ("float_index", "integers"),
-    ("bad_information", "positive definite"),
-    ("tiny_information", "double precision can square"),
-    ("huge_information", "double precision can square"),
-])
+@pytest.mark.parametrize(
+    "change, words",
+    [
+        (dict(n=1), "at least 2 nodes"),
+        (dict(i=np.zeros(0, int), j=np.zeros(0, int), T=np.zeros((0, 4, 4)), weight=np.zeros(0)), "no edges"),
+        ("nan_T", "not finite"),
+        ("inf_T", "not finite"),
+        ("nan_w", "weight"),
+        ("negative_w", "weight"),
+        ("out_of_range", "out of range"),
+        ("self_loop", "itself"),
+        ("shear", "rigid"),
+        ("short_weights", "disagree"),
+        ("float_index", "integers"),
+        ("bad_information", "positive definite"),
+        ("tiny_information", "double precision can square"),
+        ("huge_information", "double precision can square"),
+    ],
+)
 def test_bad_input_raises_a_one_line_input_error(change, words):
     graph, _, _ = random_graph(0, 6)
     E = graph.num_edges
@@ -530,8 +588,9 @@ def test_method_lm_places_groups_that_edges_of_negligible_information_alone_hold
     rng = np.random.default_rng(4)
     truth = make_T(Rotation.random(6, random_state=rng).as_matrix(), rng.uniform(-3.0, 3.0, (6, 3)))
     pairs = np.array([(0, 1), (1, 2), (0, 2), (3, 4), (4, 5), (3, 5), (0, 3), (1, 4), (2, 5)])
-    noise = make_T(Rotation.from_rotvec(rng.normal(0.0, np.radians(0.5), (9, 3))).as_matrix(),
-                   rng.normal(0.0, 0.01, (9, 3)))
+    noise = make_T(
+        Rotation.from_rotvec(rng.normal(0.0, np.radians(0.5), (9, 3))).as_matrix(), rng.normal(0.0, 0.01, (9, 3))
+    )
     T = inv_T(truth[pairs[:, 0]]) @ truth[pairs[:, 1]] @ noise
     information = np.array([np.eye(6) * (weak if k >= 6 else 1.0) for k in range(9)])
     graph = PoseGraph(n=6, i=pairs[:, 0], j=pairs[:, 1], T=T, weight=np.ones(9), information=information)
@@ -575,8 +634,9 @@ def test_irls_weights_follow_the_formula(reweight, scale, unit, schedule):
         exponent = scale * delta if schedule == "current" else exponent + scale * g[m] * delta
         np.testing.assert_allclose(record.weights, graph.weight * np.exp(-exponent), rtol=1e-10)
         R = record.poses[:, :3, :3]
-        np.testing.assert_allclose(np.degrees(rotation_residuals(R, graph.i, graph.j, graph.T[:, :3, :3])),
-                                   record.residual_deg, atol=1e-6)
+        np.testing.assert_allclose(
+            np.degrees(rotation_residuals(R, graph.i, graph.j, graph.T[:, :3, :3])), record.residual_deg, atol=1e-6
+        )
     np.testing.assert_allclose(result.weights, result.history[-1].weights)
 
 
@@ -635,8 +695,9 @@ def _random_closures(n: int, edges: int, seed: int = 0) -> tuple[PoseGraph, np.n
     extra = extra[:, extra[0] != extra[1]]
     i, j = np.r_[np.arange(n - 1), extra[0]], np.r_[np.arange(1, n), extra[1]]
     information = np.tile(np.diag([1e4] * 3 + [1e3] * 3), (len(i), 1, 1))
-    return PoseGraph(n=n, i=i, j=j, T=inv_T(truth[i]) @ truth[j], weight=np.ones(len(i)),
-                     information=information), truth
+    return PoseGraph(
+        n=n, i=i, j=j, T=inv_T(truth[i]) @ truth[j], weight=np.ones(len(i)), information=information
+    ), truth
 
 
 @pytest.mark.parametrize("method", ["history", "lm"])

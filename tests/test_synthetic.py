@@ -96,7 +96,14 @@ def test_neighbouring_scans_register_with_fpfh_ransac_icp(kind):
     for i in (0, 3):
         (target, f_target), (source, f_source) = features(s.scans[i]), features(s.scans[i + 1])
         coarse = reg.registration_ransac_based_on_feature_matching(
-            source, target, f_source, f_target, True, 1.5 * v, reg.TransformationEstimationPointToPoint(False), 3,
+            source,
+            target,
+            f_source,
+            f_target,
+            True,
+            1.5 * v,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * v)],
             reg.RANSACConvergenceCriteria(100_000, 0.999),
         )

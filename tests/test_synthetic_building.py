@@ -25,8 +25,9 @@ OVERLAP = 0.1  # a pair overlaps when this fraction of their points (mean of bot
 
 def _overlaps(scene) -> np.ndarray:
     """Symmetric GT overlap of every pair from the scans' points under the GT poses (0 on the diagonal)."""
-    M = combine(directed_overlap_matrix(list(scene.scans), scene.poses, 2 * scene.voxel, scene.voxel,
-                                        max_points=400), "mean")
+    M = combine(
+        directed_overlap_matrix(list(scene.scans), scene.poses, 2 * scene.voxel, scene.voxel, max_points=400), "mean"
+    )
     np.fill_diagonal(M, 0.0)
     return M
 
@@ -124,8 +125,9 @@ def test_too_few_scans_for_a_building():
 
 
 def _register(scene):
-    return register([Scan(n, P) for n, P in zip(scene.names, scene.scans)], Config(record=False, seed=0),
-                    log=lambda m: None)
+    return register(
+        [Scan(n, P) for n, P in zip(scene.names, scene.scans)], Config(record=False, seed=0), log=lambda m: None
+    )
 
 
 def test_a_small_building_registers_to_ground_truth():
@@ -137,10 +139,14 @@ def test_a_small_building_registers_to_ground_truth():
     assert len(score.placed) - len(score.flagged) >= 14, score.flagged
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "identical rooms: registrations and free space cannot tell the twin rooms apart; verification splits off the "
-    "groups that dropped registrations place elsewhere (look-alikes), but the world part still stacks scans of "
-    "both rooms (2 of its 5 turned 180°), each loop of it closing"))
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "identical rooms: registrations and free space cannot tell the twin rooms apart; verification splits off the "
+        "groups that dropped registrations place elsewhere (look-alikes), but the world part still stacks scans of "
+        "both rooms (2 of its 5 turned 180°), each loop of it closing"
+    ),
+)
 def test_a_small_hotel_places_no_scan_wrongly_without_a_flag():
     """The repeated-room scene (16 scans, two identical rooms facing each other across the corridor): the graph
     stacks the rooms, and free space cannot tell the two placements apart. No scan should be placed wrongly in
@@ -150,12 +156,16 @@ def test_a_small_hotel_places_no_scan_wrongly_without_a_flag():
     assert score_result(result, scene.names, scene.poses).unflagged_wrong == []
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "look-alikes (the repeated-room test is the 16-scan hotel above), measured: the hotel "
-    "of 24 scans (seed 1; three identical rooms) stacks its rooms, and no "
-    "group of scans has more than two dropped registrations agreeing on another placement: the top-10 graph holds "
-    "look-alike registrations between the rooms and hardly any right one between rooms and corridors. 21 scans "
-    "are placed wrongly without a flag (docs/BENCHMARKS.md at 18b90a6, look-alikes; 20 before the free-space blame)"))
+@pytest.mark.xfail(
+    strict=True,
+    reason=(
+        "look-alikes (the repeated-room test is the 16-scan hotel above), measured: the hotel "
+        "of 24 scans (seed 1; three identical rooms) stacks its rooms, and no "
+        "group of scans has more than two dropped registrations agreeing on another placement: the top-10 graph holds "
+        "look-alike registrations between the rooms and hardly any right one between rooms and corridors. 21 scans "
+        "are placed wrongly without a flag (docs/BENCHMARKS.md at 18b90a6, look-alikes; 20 before the free-space blame)"
+    ),
+)
 def test_a_larger_hotel_places_no_scan_wrongly_without_a_flag():
     scene = make_scene("hotel", 24, seed=1)
     assert score_result(_register(scene), scene.names, scene.poses).unflagged_wrong == []

@@ -13,7 +13,6 @@ from hypothesis import strategies as st
 from data_tools.simulate import make_training_scene, scene_descriptors
 from sghr_gtsam.features.netvlad import DEFAULT_HEAD, global_features, load_checkpoint, load_default_head
 from sghr_gtsam.graph import overlap_scores
-from sghr_gtsam.types import InputError
 from sghr_gtsam.train import (
     cache_path,
     evaluate,
@@ -29,6 +28,7 @@ from sghr_gtsam.train import (
     train,
     write_cache_scene,
 )
+from sghr_gtsam.types import InputError
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +38,14 @@ def cache(tmp_path_factory):
     scene = make_training_scene("object", 8, seed=[7, 0])
     iu = np.triu_indices(8, 1)
     assert scene.overlap[iu].min() < 0.3 < scene.overlap[iu].max()  # low and high overlaps both present
-    write_cache_scene(cache_path(folder, 0), scene_descriptors(scene), scene.overlap, poses=scene.poses,
-                      voxel=scene.voxel, kind=scene.kind)
+    write_cache_scene(
+        cache_path(folder, 0),
+        scene_descriptors(scene),
+        scene.overlap,
+        poses=scene.poses,
+        voxel=scene.voxel,
+        kind=scene.kind,
+    )
     return folder
 
 
@@ -137,8 +143,16 @@ def test_pairwise_training_keeps_the_best_validation_spearman_and_resumes_exactl
     folder.mkdir()
     for k in range(2):
         shutil.copy(cache_path(cache, 0), cache_path(folder, k))
-    kwargs = dict(seed=0, clusters=16, alpha=(8, 8), beta=(1024, 2048), eval_every=1, loss="pairwise",
-                  progress=False, log=lambda _: None)
+    kwargs = dict(
+        seed=0,
+        clusters=16,
+        alpha=(8, 8),
+        beta=(1024, 2048),
+        eval_every=1,
+        loss="pairwise",
+        progress=False,
+        log=lambda _: None,
+    )
     summary = train(folder, tmp_path / "a", epochs=4, **kwargs)
     history = torch.load(tmp_path / "a" / "last.pth", weights_only=False)["history"]
     rho = [h["val_spearman"] for h in history if h["epoch"] >= 0]
@@ -211,13 +225,17 @@ def test_listwise_loss_is_a_kl_divergence_blind_to_overlap_scale(scene, scale, l
     positive = overlap + 1 / 64
     ideal = np.exp(log_tau) * torch.log(positive)
     assert float(listwise_loss(ideal, positive, log_tau)) == pytest.approx(0.0, abs=1e-9)
-    if not torch.allclose(torch.softmax(C / np.exp(log_tau) - 1e9 * torch.eye(len(C)), 1),
-                          torch.softmax(ideal / np.exp(log_tau) - 1e9 * torch.eye(len(C)), 1), atol=1e-3):
+    if not torch.allclose(
+        torch.softmax(C / np.exp(log_tau) - 1e9 * torch.eye(len(C)), 1),
+        torch.softmax(ideal / np.exp(log_tau) - 1e9 * torch.eye(len(C)), 1),
+        atol=1e-3,
+    ):
         assert float(listwise_loss(C, positive, log_tau)) > 0
 
 
-@pytest.mark.parametrize("option, value", [("clusters", 0), ("clusters", 100_000), ("lr", -1.0), ("lr", float("nan")),
-                                           ("tau", float("inf"))])
+@pytest.mark.parametrize(
+    "option, value", [("clusters", 0), ("clusters", 100_000), ("lr", -1.0), ("lr", float("nan")), ("tau", float("inf"))]
+)
 def test_a_setting_training_cannot_use_is_refused_before_anything_is_written(cache, tmp_path, option, value):
     """``--clusters 0`` and ``--lr -1`` failed deep in training ("argmax of an empty sequence", torch's "Invalid
     learning rate") and left an empty output folder; ``--lr nan`` trained on NaN; ``--clusters 100000`` grew to 24 GB

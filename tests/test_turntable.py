@@ -22,8 +22,7 @@ def test_sensors_turn_in_equal_steps_on_a_level_circle(turntable):
     steps = [np.degrees(rotation_angle(poses[k, :3, :3].T @ poses[(k + 1) % 10, :3, :3])) for k in range(10)]
     np.testing.assert_allclose(steps, 36.0, atol=1e-6)
     # every sensor looks at the turntable's centre: its z axis points from the eye to the origin
-    np.testing.assert_allclose(np.einsum("kij,kj->ki", poses[:, :3, :3], [[0, 0, 1.0]] * 10),
-                               -eyes / 2.2, atol=1e-9)
+    np.testing.assert_allclose(np.einsum("kij,kj->ki", poses[:, :3, :3], [[0, 0, 1.0]] * 10), -eyes / 2.2, atol=1e-9)
 
 
 def test_neighbouring_scans_coincide_under_gt(turntable):

@@ -15,8 +15,9 @@ from sghr_gtsam.verify import REASONS, STATUSES, Verification, verify
 
 def _poses(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    return np.stack([make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.uniform(-3, 3, 3))
-                     for k in range(n)])
+    return np.stack(
+        [make_T(Rotation.random(random_state=seed + k).as_matrix(), rng.uniform(-3, 3, 3)) for k in range(n)]
+    )
 
 
 def _graph(poses: np.ndarray, edges: list[tuple[int, int]], wrong: dict[int, np.ndarray] | None = None) -> PoseGraph:
@@ -25,8 +26,14 @@ def _graph(poses: np.ndarray, edges: list[tuple[int, int]], wrong: dict[int, np.
     T = inv_T(poses[i]) @ poses[j]
     for e, move in (wrong or {}).items():
         T[e] = T[e] @ move
-    return PoseGraph(n=len(poses), i=i, j=j, T=T, weight=np.full(len(edges), 10.0),
-                     information=np.tile(np.eye(6) * 1e4, (len(edges), 1, 1)))
+    return PoseGraph(
+        n=len(poses),
+        i=i,
+        j=j,
+        T=T,
+        weight=np.full(len(edges), 10.0),
+        information=np.tile(np.eye(6) * 1e4, (len(edges), 1, 1)),
+    )
 
 
 def _verdict(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray | None = None):
@@ -93,13 +100,13 @@ def test_dropped_registrations_that_agree_on_another_placement_split_the_group_o
     graph = _graph(poses, edges)
     for e in range(len(edges) - 5, len(edges) - 2):  # measured as if the group were moved by ``turn`` in the world
         graph.T[e] = inv_T(poses[graph.i[e]]) @ turn @ poses[graph.j[e]]
-    graph.weight[len(edges) - 5:len(edges) - 2] = 40.0
+    graph.weight[len(edges) - 5 : len(edges) - 2] = 40.0
     kept = np.ones(graph.num_edges, dtype=bool)
-    kept[len(edges) - 5:len(edges) - 2] = False
+    kept[len(edges) - 5 : len(edges) - 2] = False
     verdict = _verdict(graph, poses, kept)
     assert [len(p.scans) for p in verdict.parts] == [5, 4]
     assert "another placement" in verdict.parts[1].join.why
-    graph.weight[len(edges) - 5:len(edges) - 2] = 1.0  # lighter than what holds the group: no dispute
+    graph.weight[len(edges) - 5 : len(edges) - 2] = 1.0  # lighter than what holds the group: no dispute
     assert [len(p.scans) for p in _verdict(graph, poses, kept).parts] == [9]
 
 

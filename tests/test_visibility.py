@@ -145,9 +145,14 @@ def test_contradicted_edges_weigh_nothing(room):
     wrong[:3, 3] = [1.0, 0.0, 0.0]
     right = inv_T(room.poses[0]) @ room.poses[1]
     edges = EdgeSet()
-    edges.add(np.array([[0, 1], [0, 2]]), [PairResult(right, 200, 0.5, 0.01, None, 0.0),
-                                           PairResult(inv_T(room.poses[0]) @ room.poses[2] @ wrong, 200, 0.5,
-                                                      0.01, None, 0.0)], "top-k")
+    edges.add(
+        np.array([[0, 1], [0, 2]]),
+        [
+            PairResult(right, 200, 0.5, 0.01, None, 0.0),
+            PairResult(inv_T(room.poses[0]) @ room.poses[2] @ wrong, 200, 0.5, 0.01, None, 0.0),
+        ],
+        "top-k",
+    )
     edges.check_free_space(Grids(grids), room.voxel, np.zeros((6, 3)))
     assert edges.contradicted().tolist() == [False, True]
     graph = edges.pose_graph(6, np.full((6, 6), 0.5), 15, "s*r")

@@ -36,8 +36,14 @@ CHUNK = 4000
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights" / "patch_rooms.npz"
 
 
-def encode_patches(points: np.ndarray, normals: np.ndarray, voxel: float, rows: np.ndarray | None = None,
-                   tree: cKDTree | None = None, workers: int = 1) -> np.ndarray:
+def encode_patches(
+    points: np.ndarray,
+    normals: np.ndarray,
+    voxel: float,
+    rows: np.ndarray | None = None,
+    tree: cKDTree | None = None,
+    workers: int = 1,
+) -> np.ndarray:
     """(len(rows), CHANNELS, RINGS, LEVELS, SECTORS) float32 cylinder patches of ``points[rows]`` (all points when
     ``rows`` is None) among ``points`` (their k-d ``tree`` when built already); ``normals`` unit."""
     rows = np.arange(len(points)) if rows is None else rows
@@ -46,7 +52,7 @@ def encode_patches(points: np.ndarray, normals: np.ndarray, voxel: float, rows: 
     bins = RINGS * LEVELS * SECTORS
     out = np.zeros((len(rows), CHANNELS, RINGS, LEVELS, SECTORS), np.float32)
     for s in range(0, len(rows), CHUNK):
-        q = rows[s:s + CHUNK]
+        q = rows[s : s + CHUNK]
         _, nb = tree.query(points[q], k=min(NEIGHBOURS, len(points)), distance_upper_bound=radius, workers=workers)
         nb = nb.reshape(len(q), -1)
         valid = nb < len(points)
@@ -72,7 +78,7 @@ def encode_patches(points: np.ndarray, normals: np.ndarray, voxel: float, rows: 
         per_bin = np.maximum(count, 1)
         share = count / np.maximum(valid.sum(1), 1)[:, None] * (bins / 8.0)
         block = np.stack([share, along / per_bin, outward / per_bin], 1)
-        out[s:s + CHUNK] = block.reshape(len(q), CHANNELS, RINGS, LEVELS, SECTORS)
+        out[s : s + CHUNK] = block.reshape(len(q), CHANNELS, RINGS, LEVELS, SECTORS)
     return out
 
 
@@ -86,14 +92,18 @@ class PatchNet:
     head: tuple[tuple[np.ndarray, np.ndarray], ...]
 
     @classmethod
-    def from_state(cls, state: dict[str, np.ndarray]) -> "PatchNet":
+    def from_state(cls, state: dict[str, np.ndarray]) -> PatchNet:
         """From a state dict with torch's key names (``convs.k.weight``, ``norms.k.bias``, ``head.0.weight``,
         ``head.2.weight``, ...), as arrays."""
+
         def layer(name: str) -> tuple[np.ndarray, np.ndarray]:
             return tuple(np.asarray(state[f"{name}.{p}"], dtype=np.float32) for p in ("weight", "bias"))
 
-        return cls(tuple(layer(f"convs.{k}") for k in range(3)), tuple(layer(f"norms.{k}") for k in range(3)),
-                   (layer("head.0"), layer("head.2")))
+        return cls(
+            tuple(layer(f"convs.{k}") for k in range(3)),
+            tuple(layer(f"norms.{k}") for k in range(3)),
+            (layer("head.0"), layer("head.2")),
+        )
 
     def state(self) -> dict[str, np.ndarray]:
         """The inverse of ``from_state``."""
@@ -120,8 +130,9 @@ class PatchNet:
             per_group = len(w) // GROUPS
             cells = length * per_group
             mean = y.sum(1, dtype=np.float64).reshape(b, GROUPS, per_group).sum(2) / cells
-            var = np.maximum((y * y).sum(1, dtype=np.float64).reshape(b, GROUPS, per_group).sum(2) / cells
-                             - mean * mean, 0.0)
+            var = np.maximum(
+                (y * y).sum(1, dtype=np.float64).reshape(b, GROUPS, per_group).sum(2) / cells - mean * mean, 0.0
+            )
             scale = (np.repeat(1.0 / np.sqrt(var + _NORM_EPS), per_group, axis=1) * gamma).astype(np.float32)
             shift = (beta - np.repeat(mean, per_group, axis=1) * scale).astype(np.float32)
             x = np.maximum(y * scale[:, None] + shift[:, None], 0.0)
@@ -142,8 +153,12 @@ def torch_network(net: PatchNet | None = None, width: int = 64, dim: int = 32):
     class _Network(nn.Module):
         def __init__(self):
             super().__init__()
-            self.convs = nn.ModuleList([nn.Conv1d(c, width, 3, padding=1, padding_mode="circular")
-                                        for c in (CHANNELS * RINGS * LEVELS, width, width)])
+            self.convs = nn.ModuleList(
+                [
+                    nn.Conv1d(c, width, 3, padding=1, padding_mode="circular")
+                    for c in (CHANNELS * RINGS * LEVELS, width, width)
+                ]
+            )
             self.norms = nn.ModuleList([nn.GroupNorm(GROUPS, width) for _ in range(3)])
             self.head = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, dim))
 
@@ -172,11 +187,16 @@ def load_patch_net(path: str | Path | None = None) -> PatchNet:
         raise InputError(f"cannot read the patch network {path}: {e}") from None
 
 
-def learned_descriptors(points: np.ndarray, normals: np.ndarray, voxel: float, net: PatchNet | None = None,
-                        workers: int = 1) -> np.ndarray:
+def learned_descriptors(
+    points: np.ndarray, normals: np.ndarray, voxel: float, net: PatchNet | None = None, workers: int = 1
+) -> np.ndarray:
     """(M, 32) float32 unit descriptors of every grid point (``points``, ``normals`` unit and oriented as
     ``features.local.compute_features`` orients them), by ``net`` (default the shipped one)."""
     net = load_patch_net() if net is None else net
     tree = cKDTree(points)
-    return np.concatenate([net(encode_patches(points, normals, voxel, rows, tree, workers))
-                           for rows in np.array_split(np.arange(len(points)), max(1, -(-len(points) // CHUNK)))])
+    return np.concatenate(
+        [
+            net(encode_patches(points, normals, voxel, rows, tree, workers))
+            for rows in np.array_split(np.arange(len(points)), max(1, -(-len(points) // CHUNK)))
+        ]
+    )

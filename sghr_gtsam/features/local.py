@@ -88,8 +88,9 @@ class ScanFeatures:
     @property
     def nbytes(self) -> int:
         """Memory it holds: its arrays and the search structures built so far (``TREE_BYTES``, ``GICP_BYTES``)."""
-        arrays = sum(a.nbytes for a in (self.points, self.normals, self.fpfh, self.keypoints, self.descriptors)
-                     if a is not None)
+        arrays = sum(
+            a.nbytes for a in (self.points, self.normals, self.fpfh, self.keypoints, self.descriptors) if a is not None
+        )
         tree = 0 if self._tree is None else len(self.descriptors) * (8 * self.descriptors.shape[1] + TREE_BYTES)
         return arrays + tree + (0 if self._gicp is None else len(self.points) * GICP_BYTES)
 
@@ -117,8 +118,7 @@ def _encode_features(f: ScanFeatures | str) -> dict[str, np.ndarray] | None:
 def _decode_features(a: dict[str, np.ndarray]) -> ScanFeatures:
     fpfh = a.get("fpfh")
     keypoints = a["points"] if fpfh is not None else a["keypoints"]
-    features = ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints,
-                            a.get("descriptors", fpfh))
+    features = ScanFeatures(a["points"], a["normals"], fpfh, float(a["voxel"]), keypoints, a.get("descriptors", fpfh))
     # Readable arrays of the wrong shape or with NaN (an entry edited or damaged inside) failed every later run.
     m, k = len(features.points), len(features.keypoints)
     shapes = [(features.points, (m, 3)), (features.normals, (m, 3)), (features.keypoints, (k, 3))]
@@ -190,8 +190,10 @@ def compute_features(
     _, sq_dist = features.cloud_tree.batch_nearest_neighbor_search(given.points, GICP_THREADS)
     off = float(np.sqrt(np.median(sq_dist))) / voxel
     if off > KEYPOINT_MAX_DISTANCE:
-        raise InputError(f"keypoints lie {off:.3g} voxels from the scan's points (median; at most "
-                         f"{KEYPOINT_MAX_DISTANCE:g}): are they in the scan's own frame and units?")
+        raise InputError(
+            f"keypoints lie {off:.3g} voxels from the scan's points (median; at most "
+            f"{KEYPOINT_MAX_DISTANCE:g}): are they in the scan's own frame and units?"
+        )
     return features
 
 
@@ -206,8 +208,9 @@ def _described(pcd: o3d.geometry.PointCloud, voxel: float, fpfh_radius: float, d
     return ScanFeatures(grid, normals, fpfh, float(voxel), grid, matched)
 
 
-def grid_features(grid: np.ndarray, normals: np.ndarray, voxel: float, fpfh_radius: float = 5.0,
-                  descriptor: str = "fpfh") -> ScanFeatures:
+def grid_features(
+    grid: np.ndarray, normals: np.ndarray, voxel: float, fpfh_radius: float = 5.0, descriptor: str = "fpfh"
+) -> ScanFeatures:
     """Features, as ``compute_features`` gives them, of points already on a voxel grid (``grid`` (m, 3), one a
     cell) with their unit oriented ``normals``."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(grid, dtype=np.float64)))
@@ -223,8 +226,9 @@ def scan_features(shared: tuple[float, float, float, str], scan: Scan) -> ScanFe
     voxel, normal_radius, fpfh_radius, descriptor = shared
     points, given = scan.read()
     try:
-        return compute_features(points, voxel, normal_radius, fpfh_radius, given, sensor=-scan.centre,
-                                descriptor=descriptor)
+        return compute_features(
+            points, voxel, normal_radius, fpfh_radius, given, sensor=-scan.centre, descriptor=descriptor
+        )
     except InputError as e:
         return str(e)
 

@@ -38,7 +38,7 @@ class VladHead:
     bias: np.ndarray
 
     @classmethod
-    def from_codebook(cls, centres: np.ndarray, alpha: float = 100.0) -> "VladHead":
+    def from_codebook(cls, centres: np.ndarray, alpha: float = 100.0) -> VladHead:
         """The standard NetVLAD initialisation: soft assignment ~ nearest unit centre, sharpness ``alpha``."""
         c = _unit(np.asarray(centres, dtype=np.float64), 1)
         return cls(c, 2.0 * alpha * c, -alpha * (c * c).sum(1))
@@ -66,20 +66,27 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
         raise InputError(f"cannot read overlap head {path}: not a PyTorch checkpoint ({one_line(e)})") from None
     try:
         state = state.get("network_state_dict", state)
-        state = {k[len(prefix):]: v.detach().double().numpy() for k, v in state.items() if k.startswith(prefix)}
+        state = {k[len(prefix) :]: v.detach().double().numpy() for k, v in state.items() if k.startswith(prefix)}
         centroids, weight, bias = state["centroids"], state["conv.weight"], state["conv.bias"]
         head = VladHead(centroids, weight.reshape(len(weight), -1), bias.ravel())
         if head.weight.shape != centroids.shape or head.bias.shape != (len(centroids),):
-            raise ValueError(f"centroids {centroids.shape}, conv.weight {weight.shape}, conv.bias {bias.shape} "
-                             "do not make one head")
+            raise ValueError(
+                f"centroids {centroids.shape}, conv.weight {weight.shape}, conv.bias {bias.shape} do not make one head"
+            )
     except Exception as e:  # noqa: BLE001 - a checkpoint of something else
         reason = f"no {prefix}{e.args[0]}" if isinstance(e, KeyError) else one_line(e)
         raise InputError(f"cannot read overlap head {path}: {reason}") from None
     return head
 
 
-def kmeans_codebook(descriptors: Sequence[np.ndarray], clusters: int = 64, samples: int = 20000,
-                    iters: int = 25, seed: int = 0, counts: Sequence[int] | None = None) -> np.ndarray:
+def kmeans_codebook(
+    descriptors: Sequence[np.ndarray],
+    clusters: int = 64,
+    samples: int = 20000,
+    iters: int = 25,
+    seed: int = 0,
+    counts: Sequence[int] | None = None,
+) -> np.ndarray:
     """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors.
 
     ``descriptors[k]`` (P_k, D) is read one scan at a time, for its sampled rows only; ``counts``: the P_k when
@@ -118,8 +125,9 @@ def _rows(descriptors: Sequence[np.ndarray], counts: list[int], picks: np.ndarra
     return X
 
 
-def global_features(head: VladHead, descriptors: Iterable[np.ndarray], max_points: int = 5000,
-                    seed: int = 0) -> np.ndarray:
+def global_features(
+    head: VladHead, descriptors: Iterable[np.ndarray], max_points: int = 5000, seed: int = 0
+) -> np.ndarray:
     """Unit global feature (N, K·D) of each scan's descriptors (P_i, D), read one scan at a time; at most
     ``max_points`` per scan (the paper samples 5000 keypoints), sampled with a fixed seed so reruns give identical
     scores."""
@@ -132,8 +140,9 @@ def global_features(head: VladHead, descriptors: Iterable[np.ndarray], max_point
     return np.stack(out)
 
 
-def codebook_features(descriptors: Sequence[np.ndarray], seed: int = 0,
-                      counts: Sequence[int] | None = None) -> tuple[np.ndarray, int]:
+def codebook_features(
+    descriptors: Sequence[np.ndarray], seed: int = 0, counts: Sequence[int] | None = None
+) -> tuple[np.ndarray, int]:
     """The unsupervised global feature: a NetVLAD initialised from a k-means codebook of these scans' own
     descriptors (``kmeans_codebook``, ``from_codebook``); the (N, K·D) unit features and the cluster count.
     ``descriptors[k]`` is read one scan at a time (``counts``: as in ``kmeans_codebook``)."""

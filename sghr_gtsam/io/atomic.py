@@ -16,7 +16,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO, Any
 
-from ..errors import InputError
+from sghr_gtsam.errors import InputError
 
 # mkstemp creates files 0600 and mkdtemp folders 0700; finished outputs get the usual 0666 / 0777 & ~umask instead.
 # The umask can only be read by setting it, so read it once at import rather than on every write.
@@ -142,11 +142,15 @@ def mounted(out: Path, carry: str | None = None) -> str | None:
     swap renames both, which a mount point refuses: EBUSY, or EXDEV across filesystems); None if neither is one."""
     out = Path(os.path.realpath(out))
     if os.path.ismount(out):
-        return (f"{out} is a mount point: the results are swapped in by renaming the folder, which a mount point "
-                f"refuses; write them into a folder inside it (e.g. {out / 'results'})")
+        return (
+            f"{out} is a mount point: the results are swapped in by renaming the folder, which a mount point "
+            f"refuses; write them into a folder inside it (e.g. {out / 'results'})"
+        )
     if carry and os.path.ismount(out / carry):
-        return (f"{out / carry} is a mount point: the results are swapped in by renaming the folder with its "
-                f"{carry}, which a mount point refuses; mount the disk at a folder that holds {out.name} instead")
+        return (
+            f"{out / carry} is a mount point: the results are swapped in by renaming the folder with its "
+            f"{carry}, which a mount point refuses; mount the disk at a folder that holds {out.name} instead"
+        )
     return None
 
 
@@ -176,10 +180,15 @@ def _swap_in(stage: Path, out: Path, carry: str | None) -> None:
             if carried and not os.path.lexists(out / carry):
                 os.rename(stage / carry, out / carry)
         if e.errno in (errno.EBUSY, errno.EXDEV):
-            raise InputError(mounted(out, carry) or f"cannot swap the results into {out}: {e.filename} is a mount "
-                             "point (a bind mount?), which cannot be renamed") from None
-        raise InputError(f"cannot swap the results into {out}: {e.strerror or e} ({e.filename}); the earlier "
-                         "results are left as they were") from None
+            raise InputError(
+                mounted(out, carry)
+                or f"cannot swap the results into {out}: {e.filename} is a mount "
+                "point (a bind mount?), which cannot be renamed"
+            ) from None
+        raise InputError(
+            f"cannot swap the results into {out}: {e.strerror or e} ({e.filename}); the earlier "
+            "results are left as they were"
+        ) from None
     fsync_dir(out.parent)
 
 
@@ -211,8 +220,10 @@ def _lock(out: Path) -> int | None:
         except BlockingIOError:
             holder = os.read(fd, 32).decode(errors="replace").strip()
             os.close(fd)
-            raise InputError(f"{out} is being written by another run{f' (pid {holder})' if holder else ''}: wait for "
-                             f"it to end, or choose another output folder") from None
+            raise InputError(
+                f"{out} is being written by another run{f' (pid {holder})' if holder else ''}: wait for "
+                f"it to end, or choose another output folder"
+            ) from None
         except OSError as e:
             os.close(fd)
             if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP):
@@ -256,9 +267,11 @@ def staged_folder(out: Path, carry: str | None = None) -> Iterator[Path]:
     except OSError as e:
         _unlock(out, lock)
         if e.errno == errno.ENAMETOOLONG and len(os.fsencode(out.name)) <= 255:  # the staging name is longer
-            raise InputError(f"output folder name {out.name[:20]}... is {len(os.fsencode(out.name))} bytes: the "
-                             f"results are staged beside it as .{out.name[:8]}...tmp-PID-XXXXXXXX, a name up to 22 "
-                             f"bytes longer, which the file system refuses; choose a shorter name") from None
+            raise InputError(
+                f"output folder name {out.name[:20]}... is {len(os.fsencode(out.name))} bytes: the "
+                f"results are staged beside it as .{out.name[:8]}...tmp-PID-XXXXXXXX, a name up to 22 "
+                f"bytes longer, which the file system refuses; choose a shorter name"
+            ) from None
         raise InputError(f"cannot write the output folder {out}: {e.strerror or e}") from None
     except BaseException:
         _unlock(out, lock)

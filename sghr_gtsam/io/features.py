@@ -23,8 +23,11 @@ def find_feature_files(folder: str | Path) -> dict[str, dict[str, Path]]:
     Raises ``InputError`` when the folder does not exist, holds no such file, or holds one twice."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise InputError(f"features folder {folder} does not exist" if not folder.exists()
-                         else f"features path {folder} is not a folder")
+        raise InputError(
+            f"features folder {folder} does not exist"
+            if not folder.exists()
+            else f"features path {folder} is not a folder"
+        )
     found: dict[str, dict[str, Path]] = {}
     for suffix in (KEYPOINTS_SUFFIX, DESCRIPTORS_SUFFIX):
         for path in sorted(folder.rglob(f"*{suffix}")):
@@ -78,6 +81,8 @@ def read_features(folder: str | Path, stems: list[str]) -> dict[str, Keypoints]:
             raise InputError(f"bad features for {stem} ({kpts}, {desc}): {e}") from None
         first = next(iter(out))
         if out[stem].descriptors.shape[1] != out[first].descriptors.shape[1]:
-            raise InputError(f"descriptors in {folder} differ in dimension: {first} has "
-                             f"{out[first].descriptors.shape[1]}, {stem} has {out[stem].descriptors.shape[1]}")
+            raise InputError(
+                f"descriptors in {folder} differ in dimension: {first} has "
+                f"{out[first].descriptors.shape[1]}, {stem} has {out[stem].descriptors.shape[1]}"
+            )
     return out

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..se3 import make_T
-from ..types import InputError, PoseGraph
-from .atomic import atomic_write
-from .poses import check_rigid
+from sghr_gtsam.io.atomic import atomic_write
+from sghr_gtsam.io.poses import check_rigid
+from sghr_gtsam.se3 import make_T
+from sghr_gtsam.types import InputError, PoseGraph
 
 _UPPER = np.triu_indices(6)
 _G2O_TO_GTSAM = np.array([3, 4, 5, 0, 1, 2])  # gtsam index k holds g2o index _G2O_TO_GTSAM[k]
@@ -90,14 +90,16 @@ def _parse(tok: list[str], where: str) -> tuple[list[int], np.ndarray]:
     """Integer ids and float values of a vertex (1 id, 7 values) or edge (2 ids, 28 values) line."""
     n_ids = {"VERTEX_SE3:QUAT": 1, "EDGE_SE3:QUAT": 2}.get(tok[0])
     if n_ids is None or len(tok) != 1 + n_ids + (7 if n_ids == 1 else 28):
-        raise InputError(f"{where}: not a VERTEX_SE3:QUAT or EDGE_SE3:QUAT line with the right number of "
-                         f"values: {' '.join(tok)[:60]!r}")
-    ids = tok[1:1 + n_ids]
+        raise InputError(
+            f"{where}: not a VERTEX_SE3:QUAT or EDGE_SE3:QUAT line with the right number of "
+            f"values: {' '.join(tok)[:60]!r}"
+        )
+    ids = tok[1 : 1 + n_ids]
     # gtsam keys are unsigned 64-bit: it reads -1 as 2**64 - 1 and wraps larger ids, joining vertices we keep apart
     if not all(_ID.fullmatch(t) and int(t) < 2**64 for t in ids):
         raise InputError(f"{where}: vertex ids must be whole numbers in [0, 2**64): {' '.join(tok)[:60]!r}")
     try:
-        return [int(t) for t in ids], np.array(tok[1 + n_ids:], dtype=float)
+        return [int(t) for t in ids], np.array(tok[1 + n_ids :], dtype=float)
     except ValueError:
         raise InputError(f"{where}: malformed number in {' '.join(tok)[:60]!r}") from None
 
@@ -120,8 +122,9 @@ def _text(path: Path) -> str:
         return raw.decode("latin-1")
 
 
-def read_g2o(path: str | Path, positive_definite: bool = False,
-             indefinite: bool = False) -> tuple[list[int], np.ndarray | None, PoseGraph]:
+def read_g2o(
+    path: str | Path, positive_definite: bool = False, indefinite: bool = False
+) -> tuple[list[int], np.ndarray | None, PoseGraph]:
     """Vertex ids (file order), their poses (N, 4, 4) and the edges as a ``PoseGraph`` (weight 1). A file without
     vertex lines (a run's graph_rejected.g2o: edges only, its scans may have no pose) gives the sorted ids its
     edges name, poses None, and an empty graph when it has no edges either; with ``positive_definite`` (a graph to
@@ -171,8 +174,10 @@ def read_g2o(path: str | Path, positive_definite: bool = False,
     else:
         bad = not_definite(omega) if positive_definite else _lowest_eigenvalues(omega) < -1e-9
     if bad.any():
-        raise InputError(f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
-                         f"{'definite' if positive_definite else 'semi-definite'}")
+        raise InputError(
+            f"{edge_lines[np.flatnonzero(bad)[0]]}: information matrix is not positive "
+            f"{'definite' if positive_definite else 'semi-definite'}"
+        )
     information = omega[:, _G2O_TO_GTSAM][:, :, _G2O_TO_GTSAM]
     if not ids:
         if positive_definite:
@@ -188,9 +193,14 @@ def read_g2o(path: str | Path, positive_definite: bool = False,
             raise InputError(f"{where}: edge {a}-{b} refers to a vertex that is not defined")
         if a == b:
             raise InputError(f"{where}: edge {a}-{b} joins a vertex to itself")
-    graph = PoseGraph(n=len(ids), i=np.array([index[a] for a, _ in ends], dtype=int).reshape(E),
-                      j=np.array([index[b] for _, b in ends], dtype=int).reshape(E), T=T, weight=np.ones(E),
-                      information=information)
+    graph = PoseGraph(
+        n=len(ids),
+        i=np.array([index[a] for a, _ in ends], dtype=int).reshape(E),
+        j=np.array([index[b] for _, b in ends], dtype=int).reshape(E),
+        T=T,
+        weight=np.ones(E),
+        information=information,
+    )
     return ids, poses, graph
 
 
@@ -217,8 +227,9 @@ def _pose_fields(T: np.ndarray) -> list[str]:
     return [" ".join(map(repr, row)) for row in values.tolist()]
 
 
-def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph: PoseGraph,
-              indefinite: bool = False) -> None:
+def write_g2o(
+    path: str | Path, ids: list[int], poses: np.ndarray | None, graph: PoseGraph, indefinite: bool = False
+) -> None:
     """Write vertices ``ids`` at ``poses`` and the measured edges, atomically; ``poses=None``: edges only
     (node ``k`` of ``graph`` written as ``ids[k]``).
 
@@ -237,8 +248,9 @@ def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph:
         raise InputError("write_g2o: duplicate vertex ids")
     n = len(ids)
     if (poses is not None and len(poses) != n) or n != graph.n:
-        raise InputError(f"write_g2o: {n} ids, {'no' if poses is None else len(poses)} poses and "
-                         f"{graph.n} graph nodes differ")
+        raise InputError(
+            f"write_g2o: {n} ids, {'no' if poses is None else len(poses)} poses and {graph.n} graph nodes differ"
+        )
     if poses is not None:
         if not n:
             raise InputError("write_g2o: no vertices to write (poses=None writes the edges alone)")
@@ -254,8 +266,9 @@ def write_g2o(path: str | Path, ids: list[int], poses: np.ndarray | None, graph:
         raise InputError("write_g2o: edge node indices must be integers")
     out = np.flatnonzero((i < 0) | (i >= n) | (j < 0) | (j >= n) | (i == j))
     if len(out):
-        raise InputError(f"write_g2o: edge {out[0]} joins nodes {i[out[0]]} and {j[out[0]]}: not two different "
-                         f"nodes of [0, {n})")
+        raise InputError(
+            f"write_g2o: edge {out[0]} joins nodes {i[out[0]]} and {j[out[0]]}: not two different nodes of [0, {n})"
+        )
     check_rigid(T, "write_g2o: edge")
     if graph.information is None:
         weight = np.asarray(graph.weight, dtype=float)

@@ -85,8 +85,10 @@ def check_rigid(poses: np.ndarray, what: str, labels: Sequence[int] | None = Non
         raise InputError(f"{what} {name[np.flatnonzero(~finite)[0]]} is not finite")
     bad = non_rigid(poses)
     if bad.any():
-        raise InputError(f"{what} {name[np.flatnonzero(bad)[0]]} is not a rigid transform (rotation orthonormal "
-                         f"with determinant +1, last row 0 0 0 1)")
+        raise InputError(
+            f"{what} {name[np.flatnonzero(bad)[0]]} is not a rigid transform (rotation orthonormal "
+            f"with determinant +1, last row 0 0 0 1)"
+        )
 
 
 def unwritable_name(name: object) -> str | None:
@@ -182,8 +184,9 @@ def write_tum(path: str | Path, poses: np.ndarray, stamps: Sequence[float]) -> N
     q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x y z w
     q *= np.where(q[:, 3:] < 0, -1.0, 1.0)
     with atomic_write(path) as f:
-        f.write("".join(" ".join(repr(float(x)) for x in (t, *T[:3, 3], *qk)) + "\n"
-                        for t, T, qk in zip(stamps, poses, q)))
+        f.write(
+            "".join(" ".join(repr(float(x)) for x in (t, *T[:3, 3], *qk)) + "\n" for t, T, qk in zip(stamps, poses, q))
+        )
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:

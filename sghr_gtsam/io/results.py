@@ -12,7 +12,8 @@ edges and their joins among them) as ``EDGE_SE3:QUAT`` lines only (no vertices: 
 poses.txt has every placed scan, the other parts where their best join puts them (report.json says which).
 edges.csv lists every pair with its ``status`` (``registration.edges.EDGE_STATUS``).
 
-The folder is replaced as a whole (``io.atomic.staged_folder``): a run writes into a temporary folder beside it and swaps it
+The folder is replaced as a whole (``io.atomic.staged_folder``): a run writes into a temporary folder beside it and
+swaps it
 in at the end, so a run stopped at any point (SIGINT, SIGTERM, SIGKILL, a failure) leaves the previous results
 complete and untouched, and a finished one leaves no file of an older run (an old recording beside a run made
 with ``--no-record``). ``OUT/cache`` is the exception: the resume cache, written during the run in place and
@@ -33,23 +34,34 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..gtsam_api import calibration, graph_information, pose_covariances, sigmas, variance_factor
-from ..plots import write_summary
-from ..registration.edges import EDGE_STATUS, edge_status
-from ..result import peak_memory_mb
-from ..types import InputError, PoseGraph
-from ..verify import Verdict
-from .atomic import atomic_write, mounted
-from .g2o import read_g2o, write_g2o
-from .poses import read_poses, write_kitti, write_poses, write_tum
-from .scans import write_ply
+from sghr_gtsam.gtsam_api import calibration, graph_information, pose_covariances, sigmas, variance_factor
+from sghr_gtsam.io.atomic import atomic_write, mounted
+from sghr_gtsam.io.g2o import read_g2o, write_g2o
+from sghr_gtsam.io.poses import read_poses, write_kitti, write_poses, write_tum
+from sghr_gtsam.io.scans import write_ply
+from sghr_gtsam.plots import write_summary
+from sghr_gtsam.registration.edges import EDGE_STATUS, edge_status
+from sghr_gtsam.result import peak_memory_mb
+from sghr_gtsam.types import InputError, PoseGraph
+from sghr_gtsam.verify import Verdict
 
 if TYPE_CHECKING:
-    from ..config import Config
-    from ..result import RunResult
+    from sghr_gtsam.config import Config
+    from sghr_gtsam.result import RunResult
 
-RESULT_FILES = ("poses.txt", "poses_kitti.txt", "poses_tum.txt", "graph.g2o", "graph_rejected.g2o", "edges.csv",
-                "merged.ply", "report.json", "config.json", "recording.rrd", "summary.png")
+RESULT_FILES = (
+    "poses.txt",
+    "poses_kitti.txt",
+    "poses_tum.txt",
+    "graph.g2o",
+    "graph_rejected.g2o",
+    "edges.csv",
+    "merged.ply",
+    "report.json",
+    "config.json",
+    "recording.rrd",
+    "summary.png",
+)
 """Every file a run may write (an output added to ``write_results`` belongs here too: a folder holding anything
 else is not replaced, ``check_output_folder``)."""
 CACHE = "cache"
@@ -59,9 +71,21 @@ _OURS_HIDDEN = re.compile(r"^\.(" + "|".join(map(re.escape, RESULT_FILES)) + r")
 """Hidden names a results folder may hold: an output's temporary (``io.atomic``) left by a run from before the swap,
 and the Finder's metadata. Any other (``.git``, ``.env``) is the user's: the swap would delete it."""
 
-EDGE_COLUMNS = ["i", "j", "overlap_score", "inliers", "initial_weight", "final_weight", "residual_deg", "status",
-                "origin", "free_space_conflict"]
-def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
+EDGE_COLUMNS = [
+    "i",
+    "j",
+    "overlap_score",
+    "inliers",
+    "initial_weight",
+    "final_weight",
+    "residual_deg",
+    "status",
+    "origin",
+    "free_space_conflict",
+]
+
+
+def write_edges_csv(path: Path, result: RunResult, status: list[str]) -> None:
     g, s = result.graph, result.sync
     conflict = np.full(g.num_edges, np.nan) if result.edge_conflict is None else result.edge_conflict
     with atomic_write(path, newline="") as f:
@@ -69,13 +93,23 @@ def write_edges_csv(path: Path, result: "RunResult", status: list[str]) -> None:
         w.writerow(EDGE_COLUMNS)
         for e in range(g.num_edges):
             a, b = int(g.i[e]), int(g.j[e])
-            w.writerow([a, b, f"{result.scores[a, b]:.6f}", result.pairs[e].inliers, f"{g.weight[e]:.6g}",
-                        f"{s.weights[e]:.6g}", f"{s.residual_deg[e]:.4f}", status[e],
-                        result.edge_origin[e] if result.edge_origin else "top-k",
-                        "" if np.isnan(conflict[e]) else f"{conflict[e]:.4f}"])
+            w.writerow(
+                [
+                    a,
+                    b,
+                    f"{result.scores[a, b]:.6f}",
+                    result.pairs[e].inliers,
+                    f"{g.weight[e]:.6g}",
+                    f"{s.weights[e]:.6g}",
+                    f"{s.residual_deg[e]:.4f}",
+                    status[e],
+                    result.edge_origin[e] if result.edge_origin else "top-k",
+                    "" if np.isnan(conflict[e]) else f"{conflict[e]:.4f}",
+                ]
+            )
 
 
-def world_part(result: "RunResult") -> list[int]:
+def world_part(result: RunResult) -> list[int]:
     """The scans of the world part (``verify``), in scan order; every registered scan before verification."""
     if result.verdict is None:
         return result.registered
@@ -83,7 +117,7 @@ def world_part(result: "RunResult") -> list[int]:
     return [k for k, name in enumerate(result.names) if name in world]
 
 
-def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
+def write_graphs(out: Path, result: RunResult, status: list[str]) -> None:
     """graph.g2o (the world part's scans and kept edges) and graph_rejected.g2o (every other pair), module doc."""
     g, nodes = result.graph, world_part(result)
     inside = np.zeros(len(result.names), dtype=bool)
@@ -91,26 +125,43 @@ def write_graphs(out: Path, result: "RunResult", status: list[str]) -> None:
     kept = np.array([s == "kept" for s in status], dtype=bool) & inside[g.i] & inside[g.j]
     index = np.full(len(result.names), -1)
     index[nodes] = np.arange(len(nodes))
-    sub = PoseGraph(n=len(nodes), i=index[g.i[kept]], j=index[g.j[kept]], T=g.T[kept], weight=g.weight[kept],
-                    information=graph_information(g, kept)[kept])
+    sub = PoseGraph(
+        n=len(nodes),
+        i=index[g.i[kept]],
+        j=index[g.j[kept]],
+        T=g.T[kept],
+        weight=g.weight[kept],
+        information=graph_information(g, kept)[kept],
+    )
     write_g2o(out / "graph.g2o", list(nodes), result.poses[nodes], sub)
     everyone = list(range(len(result.names)))
-    rest = PoseGraph(n=len(everyone), i=g.i[~kept], j=g.j[~kept], T=g.T[~kept], weight=g.weight[~kept],
-                     information=None if g.information is None else g.information[~kept])
+    rest = PoseGraph(
+        n=len(everyone),
+        i=g.i[~kept],
+        j=g.j[~kept],
+        T=g.T[~kept],
+        weight=g.weight[~kept],
+        information=None if g.information is None else g.information[~kept],
+    )
     write_g2o(out / "graph_rejected.g2o", everyone, None, rest)
 
 
-def covariance_report(result: "RunResult") -> dict[str, dict]:
+def covariance_report(result: RunResult) -> dict[str, dict]:
     """Per registered scan: its pose covariance (6×6, [rotation rad, translation], at the pose) and the
     longest axes of its rotation (degrees) and translation (scene units) ellipsoids."""
     C = result.covariances
     rot, trans = sigmas(C)
-    return {result.names[k]: {"sigma_rotation_deg": float(rot[k]), "sigma_translation": float(trans[k]),
-                              "covariance": C[k].tolist()} for k in result.registered}
+    return {
+        result.names[k]: {
+            "sigma_rotation_deg": float(rot[k]),
+            "sigma_translation": float(trans[k]),
+            "covariance": C[k].tolist(),
+        }
+        for k in result.registered
+    }
 
 
-def write_results(out: Path, result: "RunResult", config: "Config", started: float,
-                  merged: np.ndarray) -> None:
+def write_results(out: Path, result: RunResult, config: Config, started: float, merged: np.ndarray) -> None:
     """Write every output; report.json goes last so its presence means the folder is complete.
 
     Only registered scans get a pose in poses.txt / merged.ply: an unregistered scan has no reliable pose, and it
@@ -123,7 +174,9 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
     header = ("unregistered (no pose): " + ", ".join(result.unregistered)) if result.unregistered else None
     others = len(keep) - len(world)
     if others:
-        joined = f"{others} scan(s) outside the world part, placed by joins that failed verification (report.json parts)"
+        joined = (
+            f"{others} scan(s) outside the world part, placed by joins that failed verification (report.json parts)"
+        )
         header = joined if header is None else header + "\n" + joined
     write_poses(out / "poses.txt", names, result.poses[keep], comment=header)
     write_kitti(out / "poses_kitti.txt", result.poses[world])
@@ -148,8 +201,11 @@ def write_results(out: Path, result: "RunResult", config: "Config", started: flo
         "unregistered": result.unregistered,
         **(result.verdict.as_dict() if result.verdict is not None else {}),
         # the pairs the result rests on: a failed or rejected registration's free directions say nothing of the scene
-        "degenerate_pairs": [[result.names[i], result.names[j], p.free] for i, j, p, s
-                             in zip(result.graph.i, result.graph.j, result.pairs, status) if p.free and s == "kept"],
+        "degenerate_pairs": [
+            [result.names[i], result.names[j], p.free]
+            for i, j, p, s in zip(result.graph.i, result.graph.j, result.pairs, status)
+            if p.free and s == "kept"
+        ],
         "front_end": result.densify,
         "cache": result.cache,
         "skipped": result.skipped,
@@ -189,7 +245,7 @@ def _strict(value: Any) -> Any:
 # --- reading a folder back -------------------------------------------------------------------------------
 
 
-def load_results(out: str | Path) -> "RunResult":
+def load_results(out: str | Path) -> RunResult:
     """A run's results folder ``out`` read back into a ``RunResult``: names, flags, skipped scans, voxel, seconds
     and the front end's report from report.json; poses from poses.txt (NaN for unregistered scans, which have
     none); every edge in its ``graph`` order from edges.csv (overlap score, inliers, weights, residual, origin,
@@ -198,14 +254,17 @@ def load_results(out: str | Path) -> "RunResult":
     Not in a folder, so empty or None: the scans' grids (``features``: empty; merged.ply holds the merged cloud),
     the registrations' fit, the synchronization's history, ``centres``. ``InputError`` for a folder that is not a
     run's complete results."""
-    from ..features.local import ScanFeatures
-    from ..registration.pairwise import PairResult
-    from ..result import RunResult
-    from ..types import SyncResult
+    from sghr_gtsam.features.local import ScanFeatures
+    from sghr_gtsam.registration.pairwise import PairResult
+    from sghr_gtsam.result import RunResult
+    from sghr_gtsam.types import SyncResult
 
     out = Path(out)
-    missing = [name for name in ("report.json", "poses.txt", "edges.csv", "graph.g2o", "graph_rejected.g2o")
-               if not (out / name).is_file()]
+    missing = [
+        name
+        for name in ("report.json", "poses.txt", "edges.csv", "graph.g2o", "graph_rejected.g2o")
+        if not (out / name).is_file()
+    ]
     if missing:
         raise InputError(f"{out} is not a run's complete results folder: no {', '.join(missing)}")
     try:
@@ -218,8 +277,10 @@ def load_results(out: str | Path) -> "RunResult":
         i = np.array([int(r["i"]) for r in rows], dtype=np.int64)
         j = np.array([int(r["j"]) for r in rows], dtype=np.int64)
         status = [r["status"] for r in rows]
-        number = {key: np.array([float(r[key]) for r in rows]) for key in
-                  ("overlap_score", "initial_weight", "final_weight", "residual_deg")}
+        number = {
+            key: np.array([float(r[key]) for r in rows])
+            for key in ("overlap_score", "initial_weight", "final_weight", "residual_deg")
+        }
         conflict = np.array([float(r["free_space_conflict"] or "nan") for r in rows])
     except (OSError, ValueError, KeyError, TypeError) as e:
         raise InputError(f"{out}: report.json or edges.csv is not a run's ({type(e).__name__}: {e})") from None
@@ -247,8 +308,17 @@ def load_results(out: str | Path) -> "RunResult":
     graph = PoseGraph(n=n, i=i, j=j, T=T, weight=number["initial_weight"], information=information)
     scores = np.full((n, n), np.nan)
     scores[i, j] = scores[j, i] = number["overlap_score"]
-    pairs = [PairResult(T=T[e], inliers=int(rows[e]["inliers"]), fitness=float("nan"), rmse=float("nan"),
-                        information=information[e], seconds=0.0) for e in range(len(rows))]
+    pairs = [
+        PairResult(
+            T=T[e],
+            inliers=int(rows[e]["inliers"]),
+            fitness=float("nan"),
+            rmse=float("nan"),
+            information=information[e],
+            seconds=0.0,
+        )
+        for e in range(len(rows))
+    ]
     covariances = np.full((n, 6, 6), np.nan)
     try:
         unregistered = list(report.get("unregistered", []))
@@ -261,18 +331,35 @@ def load_results(out: str | Path) -> "RunResult":
             covariances[index[name]] = C
     except (ValueError, KeyError, TypeError, IndexError) as e:
         raise InputError(f"{out}/report.json: not a run's ({type(e).__name__}: {e})") from None
-    sync = SyncResult(poses=np.where(np.isfinite(poses), poses, np.eye(4)), weights=number["final_weight"],
-                      residual_deg=number["residual_deg"], component=component)
+    sync = SyncResult(
+        poses=np.where(np.isfinite(poses), poses, np.eye(4)),
+        weights=number["final_weight"],
+        residual_deg=number["residual_deg"],
+        component=component,
+    )
     empty = np.zeros((0, 3))
     voxel = float(report["voxel"]) if report.get("voxel") is not None else float("nan")
     features = [ScanFeatures(empty, empty, None, voxel, empty, np.zeros((0, 33), dtype=np.float32))] * n
-    result = RunResult(names=names, poses=poses, voxel=voxel, scores=scores, graph=graph, pairs=pairs, sync=sync,
-                       unregistered=unregistered, skipped=dict(report.get("skipped", {})), features=features,
-                       timings=dict(report.get("seconds", {})), global_feature=report.get("global_feature", ""),
-                       edge_origin=[r["origin"] for r in rows], edge_conflict=conflict,
-                       edge_overruled=np.array([s == "overruled" for s in status], dtype=bool),
-                       densify=dict(report.get("front_end") or {}), covariances=covariances,
-                       cache=report.get("cache"))
+    result = RunResult(
+        names=names,
+        poses=poses,
+        voxel=voxel,
+        scores=scores,
+        graph=graph,
+        pairs=pairs,
+        sync=sync,
+        unregistered=unregistered,
+        skipped=dict(report.get("skipped", {})),
+        features=features,
+        timings=dict(report.get("seconds", {})),
+        global_feature=report.get("global_feature", ""),
+        edge_origin=[r["origin"] for r in rows],
+        edge_conflict=conflict,
+        edge_overruled=np.array([s == "overruled" for s in status], dtype=bool),
+        densify=dict(report.get("front_end") or {}),
+        covariances=covariances,
+        cache=report.get("cache"),
+    )
     if "parts" in report:
         try:
             result.verdict = Verdict.from_dict(report)
@@ -308,18 +395,27 @@ def check_output_folder(out: Path, scene_dir: Path) -> None:
         raise InputError(f"output folder {out} is an existing file, not a folder")
     scene, target = scene_dir.resolve(), out.resolve()
     if target == scene:
-        raise InputError(f"output folder {out} is the scan folder: its results would be read as scans by the next "
-                         f"run (use e.g. --out {out / 'results'})")
+        raise InputError(
+            f"output folder {out} is the scan folder: its results would be read as scans by the next "
+            f"run (use e.g. --out {out / 'results'})"
+        )
     if target in scene.parents:
-        raise InputError(f"output folder {out} holds the scan folder {scene_dir}: replacing it with the results "
-                         f"would delete the scans")
+        raise InputError(
+            f"output folder {out} holds the scan folder {scene_dir}: replacing it with the results "
+            f"would delete the scans"
+        )
     mount = mounted(out, CACHE)  # said now, not after the run's work
     if mount:
         raise InputError(mount)
     if out.is_dir():
-        foreign = sorted(p.name for p in out.iterdir()
-                         if p.name not in RESULT_FILES + _LEGACY + (CACHE,) and not _OURS_HIDDEN.match(p.name))
+        foreign = sorted(
+            p.name
+            for p in out.iterdir()
+            if p.name not in RESULT_FILES + _LEGACY + (CACHE,) and not _OURS_HIDDEN.match(p.name)
+        )
         if foreign:
             shown = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
-            raise InputError(f"output folder {out} holds files that are not a run's results ({shown}): the new "
-                             f"results replace the folder as a whole, so choose a new or empty one")
+            raise InputError(
+                f"output folder {out} holds files that are not a run's results ({shown}): the new "
+                f"results replace the folder as a whole, so choose a new or empty one"
+            )

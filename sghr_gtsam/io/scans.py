@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from sghr_gtsam.io.atomic import atomic_path, atomic_write
 from sghr_gtsam.errors import InputError, one_line
+from sghr_gtsam.io.atomic import atomic_path, atomic_write
 
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
@@ -48,8 +48,13 @@ def _scan_like(path: Path) -> bool:
     return path.suffix.lower() in SCAN_SUFFIXES and not path.name.startswith(".") and not path.is_dir()
 
 
-_KINDS = ((stat.S_ISFIFO, "a named pipe (FIFO)"), (stat.S_ISCHR, "a character device"),
-          (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"), (stat.S_ISDIR, "a folder, not a file"))
+_KINDS = (
+    (stat.S_ISFIFO, "a named pipe (FIFO)"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISDIR, "a folder, not a file"),
+)
 
 
 def not_regular(path: str | Path) -> str | None:
@@ -59,8 +64,13 @@ def not_regular(path: str | Path) -> str | None:
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        return ("a symbolic link that leads nowhere (broken or a loop)" if path.is_symlink()
-                else "no such file" if not os.path.lexists(path) else "cannot be read")
+        return (
+            "a symbolic link that leads nowhere (broken or a loop)"
+            if path.is_symlink()
+            else "no such file"
+            if not os.path.lexists(path)
+            else "cannot be read"
+        )
     if stat.S_ISREG(mode):
         return None
     kind = next((name for test, name in _KINDS if test(mode)), "not a regular file")
@@ -146,7 +156,9 @@ def _parse_rows(rows: list[bytes], columns: int, first_line: int) -> np.ndarray:
             try:
                 np.array(row.split(), dtype=np.float64)
             except ValueError:
-                raise InputError(f"line {first_line + k}: not a number in {row[:60].decode('ascii', 'replace')!r}") from None
+                raise InputError(
+                    f"line {first_line + k}: not a number in {row[:60].decode('ascii', 'replace')!r}"
+                ) from None
         raise
 
 
@@ -202,7 +214,7 @@ def _xyz_columns(element: _PlyElement) -> list[int]:
 def _read_ply(path: Path) -> np.ndarray:
     fmt, elements, data_offset, header_lines = _ply_header(path)
     at = [e.name for e in elements].index("vertex")
-    before, vertex, after = elements[:at], elements[at], elements[at + 1:]
+    before, vertex, after = elements[:at], elements[at], elements[at + 1 :]
     if fmt == "ascii":  # one record a line
         rows = _data_rows(path, data_offset)
         first, total = sum(e.count for e in before), sum(e.count for e in elements)
@@ -212,7 +224,7 @@ def _read_ply(path: Path) -> np.ndarray:
             raise InputError(f"PLY holds {len(rows)} data lines where its header declares {total} (a wrong count)")
         if vertex.has_list:
             return _read_open3d(path, "ply", vertex.count)
-        table = _parse_rows(rows[first:first + vertex.count], len(vertex.properties), header_lines + first + 1)
+        table = _parse_rows(rows[first : first + vertex.count], len(vertex.properties), header_lines + first + 1)
         return table[:, _xyz_columns(vertex)]
     if vertex.has_list or any(e.has_list for e in before):  # record sizes vary: offsets unknown until parsed
         return _read_open3d(path, "ply", vertex.count)
@@ -225,14 +237,26 @@ def _read_ply(path: Path) -> np.ndarray:
     if not any(e.has_list for e in after):
         needed += sum(e.count * e.dtype(order).itemsize for e in after)
         if available != needed:
-            raise InputError(f"PLY holds {available} bytes of data where its header declares {needed} (wrong "
-                             f"property types or counts: float written as double?)")
+            raise InputError(
+                f"PLY holds {available} bytes of data where its header declares {needed} (wrong "
+                f"property types or counts: float written as double?)"
+            )
     table = np.fromfile(path, dtype=vertex.dtype(order), count=vertex.count, offset=start)
     return np.stack([table[f"p{k}"] for k in _xyz_columns(vertex)], axis=1).astype(np.float64)
 
 
-_PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4", ("I", 8): "i8",
-              ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("U", 8): "u8"}
+_PCD_TYPES = {
+    ("F", 4): "f4",
+    ("F", 8): "f8",
+    ("I", 1): "i1",
+    ("I", 2): "i2",
+    ("I", 4): "i4",
+    ("I", 8): "i8",
+    ("U", 1): "u1",
+    ("U", 2): "u2",
+    ("U", 4): "u4",
+    ("U", 8): "u8",
+}
 
 
 def _read_pcd(path: Path) -> np.ndarray:
@@ -255,8 +279,11 @@ def _read_pcd(path: Path) -> np.ndarray:
         data = fields["DATA"][0]
         codes = [_PCD_TYPES[(t, s)] for t, s in zip(types, sizes)]
     except KeyError as e:
-        raise InputError(f"PCD header has no {e.args[0]} line or an unknown type" if isinstance(e.args[0], str)
-                         else f"PCD header has an unknown TYPE/SIZE {e.args[0]}") from None
+        raise InputError(
+            f"PCD header has no {e.args[0]} line or an unknown type"
+            if isinstance(e.args[0], str)
+            else f"PCD header has an unknown TYPE/SIZE {e.args[0]}"
+        ) from None
     except (IndexError, ValueError):
         raise InputError("malformed PCD header") from None
     if not (len(names) == len(sizes) == len(types) == len(counts)) or min(counts + [width, height, points]) < 0:
@@ -267,20 +294,24 @@ def _read_pcd(path: Path) -> np.ndarray:
         raise InputError("PCD has no x, y, z fields")
     if data == "binary_compressed":
         return _read_open3d(path, "pcd", points)
-    columns = [sum(counts[:names.index(axis)]) for axis in "xyz"]
+    columns = [sum(counts[: names.index(axis)]) for axis in "xyz"]
     if data == "ascii":
         rows = _data_rows(path, data_offset)
         if len(rows) != points:
-            raise InputError(f"{'truncated' if len(rows) < points else 'corrupt'} PCD: {len(rows)} data lines "
-                             f"where its header declares {points} POINTS")
+            raise InputError(
+                f"{'truncated' if len(rows) < points else 'corrupt'} PCD: {len(rows)} data lines "
+                f"where its header declares {points} POINTS"
+            )
         return _parse_rows(rows, sum(counts), len(lines) + 1)[:, columns] if points else np.zeros((0, 3))
     if data != "binary":
         raise InputError(f"unknown PCD DATA {data!r}")
     dtype = np.dtype([(f"p{k}", "<" + code, (c,)) for k, (code, c) in enumerate(zip(codes, counts))])
     available, needed = path.stat().st_size - data_offset, points * dtype.itemsize
     if available != needed:
-        raise InputError(f"{'truncated' if available < needed else 'corrupt'} PCD: {available} bytes of data where "
-                         f"its header declares {needed}")
+        raise InputError(
+            f"{'truncated' if available < needed else 'corrupt'} PCD: {available} bytes of data where "
+            f"its header declares {needed}"
+        )
     table = np.fromfile(path, dtype=dtype, count=points, offset=data_offset)
     return np.stack([table[f"p{names.index(axis)}"][:, 0] for axis in "xyz"], axis=1).astype(np.float64)
 
@@ -308,7 +339,7 @@ def _decimal_comma_line(text: str) -> tuple[int, str] | None:
     for match in _DECIMAL_COMMA.finditer(text):
         start = text.rfind("\n", 0, match.start()) + 1
         end = text.find("\n", match.end())
-        row = text[start:end if end >= 0 else len(text)].split("#", 1)[0]
+        row = text[start : end if end >= 0 else len(text)].split("#", 1)[0]
         if match.end() - start <= len(row) and len(row.split()) >= 2:  # data, not a comment
             return text.count("\n", 0, start) + 1, row
     return None
@@ -385,16 +416,22 @@ def _numpy_kind(path: Path) -> str:
 def _read_npy(path: Path) -> np.ndarray:
     kind = _numpy_kind(path)
     if kind != "npy":
-        raise InputError("file is an .npz archive, not .npy" if kind else
-                         "not a NumPy array file (no .npy header; pickled data is not read)")
+        raise InputError(
+            "file is an .npz archive, not .npy"
+            if kind
+            else "not a NumPy array file (no .npy header; pickled data is not read)"
+        )
     return _as_points(np.load(path, allow_pickle=False))
 
 
 def _read_npz(path: Path) -> np.ndarray:
     kind = _numpy_kind(path)
     if kind != "npz":
-        raise InputError("file is an .npy array, not an .npz archive" if kind else
-                         "not a NumPy .npz archive (not a zip file; pickled data is not read)")
+        raise InputError(
+            "file is an .npy array, not an .npz archive"
+            if kind
+            else "not a NumPy .npz archive (not a zip file; pickled data is not read)"
+        )
     with np.load(path, allow_pickle=False) as archive:
         if not archive.files:
             raise InputError("archive holds no arrays")
@@ -434,33 +471,41 @@ def _las_point_count(path: Path) -> int:
     header_size, offset, vlrs, format_id, record = struct.unpack_from("<HIIBH", head, 94)
     least = _LAS_HEADER_SIZES.get(minor, 375)
     if not least <= header_size <= size:
-        raise InputError(f"corrupt header: a header size of {header_size} bytes, where LAS {head[24]}.{minor}'s is at "
-                         f"least {least} and the file holds {size}")
+        raise InputError(
+            f"corrupt header: a header size of {header_size} bytes, where LAS {head[24]}.{minor}'s is at "
+            f"least {least} and the file holds {size}"
+        )
     if not header_size <= offset <= size:
-        raise InputError(f"corrupt header: point data at byte {offset}, outside the {header_size}-byte header and "
-                         f"{size}-byte file")
+        raise InputError(
+            f"corrupt header: point data at byte {offset}, outside the {header_size}-byte header and {size}-byte file"
+        )
     if vlrs * _LAS_VLR_HEADER > offset - header_size:
         raise InputError(f"corrupt header: {vlrs:,} VLRs declared in {offset - header_size:,} bytes")
     count = struct.unpack_from("<I", head, 107)[0]
     if minor >= 4:
         first_evlr, evlrs, count = struct.unpack_from("<QIQ", head, 235)
         if evlrs and first_evlr + evlrs * _LAS_EVLR_HEADER > size:
-            raise InputError(f"corrupt header: {evlrs:,} EVLRs declared from byte {first_evlr:,} of a {size:,}-byte "
-                             f"file")
+            raise InputError(
+                f"corrupt header: {evlrs:,} EVLRs declared from byte {first_evlr:,} of a {size:,}-byte file"
+            )
     point_format = format_id & 0x3F
     if point_format >= len(_LAS_RECORD_SIZES) or record < _LAS_RECORD_SIZES[point_format]:
         raise InputError(f"corrupt header: point format {point_format} with {record}-byte records")
     for axis, scale, shift in zip("xyz", struct.unpack_from("<3d", head, 131), struct.unpack_from("<3d", head, 155)):
         if not abs(scale) * 2**31 + abs(shift) <= COORDINATE_LIMIT:  # also NaN
-            why = (f"put coordinates past ±{COORDINATE_LIMIT:.2g}" if np.isfinite([scale, shift]).all()
-                   else "are not finite")
+            why = (
+                f"put coordinates past ±{COORDINATE_LIMIT:.2g}"
+                if np.isfinite([scale, shift]).all()
+                else "are not finite"
+            )
             raise InputError(f"corrupt header: {axis} scale {scale:g} and offset {shift:g} {why}")
     compressed = bool(format_id & 0x80) and not format_id & 0x40
     if compressed:
         _check_laz_chunk_table(path, header_size, offset, size, count)
     elif count * record > size - offset:
-        raise InputError(f"corrupt header: {count:,} points of {record} bytes declared in {size - offset:,} bytes "
-                         f"of point data")
+        raise InputError(
+            f"corrupt header: {count:,} points of {record} bytes declared in {size - offset:,} bytes of point data"
+        )
     return count
 
 
@@ -482,14 +527,16 @@ def _check_laz_chunk_table(path: Path, header_size: int, offset: int, size: int,
             f.seek(size - 8)
             table = struct.unpack("<q", f.read(8))[0]
         if table is None or not offset + 8 <= table <= size - 8:
-            raise InputError(f"corrupt chunk table: its offset {table} lies outside the {size - offset:,} bytes of "
-                             f"compressed points")
+            raise InputError(
+                f"corrupt chunk table: its offset {table} lies outside the {size - offset:,} bytes of compressed points"
+            )
         f.seek(table)
         _, chunks = struct.unpack("<II", f.read(8))
         available = table - offset - 8
         if chunks > available:
-            raise InputError(f"corrupt chunk table: {chunks:,} chunks declared for {available:,} bytes of compressed "
-                             f"points")
+            raise InputError(
+                f"corrupt chunk table: {chunks:,} chunks declared for {available:,} bytes of compressed points"
+            )
         vlr = _laszip_vlr(f, header_size, offset)
         if vlr is None:
             return
@@ -498,8 +545,9 @@ def _check_laz_chunk_table(path: Path, header_size: int, offset: int, size: int,
         entries = lazrs.read_chunk_table(f, lazrs.LazVlr(vlr))
     points, used = sum(n for n, _ in entries), sum(b for _, b in entries)
     if used > available:
-        raise InputError(f"corrupt chunk table: chunks of {used:,} bytes declared in {available:,} bytes of "
-                         f"compressed points")
+        raise InputError(
+            f"corrupt chunk table: chunks of {used:,} bytes declared in {available:,} bytes of compressed points"
+        )
     if count > points:
         raise InputError(f"corrupt header: {count:,} points declared where the chunk table holds at most {points:,}")
 
@@ -649,8 +697,10 @@ def check_memory(path: str | Path) -> None:
     kind = "text" if _is_text(path) else "binary"
     needed, available = count * READ_BYTES_PER_POINT[kind], psutil.virtual_memory().available
     if needed > available:
-        raise InputError(f"scan {path.name} holds {count:,} points: reading it needs about {needed / 2**30:.1f} GB, "
-                         f"{available / 2**30:.1f} GB are available (thin it first, e.g. by voxel down-sampling)")
+        raise InputError(
+            f"scan {path.name} holds {count:,} points: reading it needs about {needed / 2**30:.1f} GB, "
+            f"{available / 2**30:.1f} GB are available (thin it first, e.g. by voxel down-sampling)"
+        )
 
 
 def _is_text(path: Path) -> bool:
@@ -698,8 +748,11 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
         for k, channel in enumerate(("red", "green", "blue")):
             rows[channel] = colors[:, k]
     types = {"<f8": "double", "u1": "uchar"}
-    header = (f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
-              + "".join(f"property {types[kind]} {name}\n" for name, kind in fields) + "end_header\n")
+    header = (
+        f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n"
+        + "".join(f"property {types[kind]} {name}\n" for name, kind in fields)
+        + "end_header\n"
+    )
     with atomic_write(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(rows.tobytes())

@@ -8,18 +8,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..cache import Cache
-from ..config import Config
-from ..progress import QUIET, Progress
-from ..se3 import inv_T
-from ..store import Attribute, Stored
-from ..types import PoseGraph, SyncResult
-from .batch import register_edges
-from .edges import EdgeSet
-from .groups import merged, register_group, weak_groups
-from .loops import predicted_overlap, propose_loops
-from .refine import confirms, register_from_guesses, stays_near
-from .retry import retry_pairs, weak_scans
+from sghr_gtsam.cache import Cache
+from sghr_gtsam.config import Config
+from sghr_gtsam.progress import QUIET, Progress
+from sghr_gtsam.registration.batch import register_edges
+from sghr_gtsam.registration.edges import EdgeSet
+from sghr_gtsam.registration.groups import merged, register_group, weak_groups
+from sghr_gtsam.registration.loops import predicted_overlap, propose_loops
+from sghr_gtsam.registration.refine import confirms, register_from_guesses, stays_near
+from sghr_gtsam.registration.retry import retry_pairs, weak_scans
+from sghr_gtsam.se3 import inv_T
+from sghr_gtsam.store import Attribute, Stored
+from sghr_gtsam.types import PoseGraph, SyncResult
 
 
 @dataclass
@@ -69,9 +69,17 @@ def _guesses(poses: np.ndarray, ij: np.ndarray) -> np.ndarray:
     return inv_T(poses[ij[:, 0]]) @ poses[ij[:, 1]]
 
 
-def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncResult,
-                 voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET,
-                 cache: Cache | None = None) -> int:
+def refine_edges(
+    features: Stored,
+    pyramids: Stored,
+    edges: EdgeSet,
+    sync: SyncResult,
+    voxel: float,
+    config: Config,
+    report: DensifyReport,
+    progress: Progress = QUIET,
+    cache: Cache | None = None,
+) -> int:
     """Re-register every kept edge of the largest part not refined yet by multi-scale ICP from the
     synchronized ``T_i⁻¹ T_j``; an edge takes the result when it ``confirms`` the guess. Returns the count."""
     main = sync.component == 0
@@ -80,8 +88,17 @@ def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncR
         return 0
     guesses = _guesses(sync.poses, edges.ij[todo])
     with progress.stage("refinement", len(todo)) as tick:
-        results, near = register_from_guesses(features, pyramids, edges.ij[todo], guesses, voxel, config,
-                                              [edges.pairs[e].matches for e in todo], tick, cache)
+        results, near = register_from_guesses(
+            features,
+            pyramids,
+            edges.ij[todo],
+            guesses,
+            voxel,
+            config,
+            [edges.pairs[e].matches for e in todo],
+            tick,
+            cache,
+        )
     changed = 0
     for e, result, ok in zip(todo, results, near):
         edges.refined[e] = True
@@ -93,25 +110,56 @@ def refine_edges(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncR
     return changed
 
 
-def close_loops(features: Stored, pyramids: Stored, edges: EdgeSet, sync: SyncResult,
-                voxel: float, config: Config, report: DensifyReport, progress: Progress = QUIET,
-                cache: Cache | None = None) -> int:
+def close_loops(
+    features: Stored,
+    pyramids: Stored,
+    edges: EdgeSet,
+    sync: SyncResult,
+    voxel: float,
+    config: Config,
+    report: DensifyReport,
+    progress: Progress = QUIET,
+    cache: Cache | None = None,
+) -> int:
     """Register the pairs of the largest part that overlap under the synchronized poses but have no kept edge,
     by multi-scale ICP from the synchronized guess: pairs never tried, and pairs whose global registration
     synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
     as loop edges (a rejected edge's registration is replaced). Each pair is tried once a run."""
     n = len(features)
     skip = report.or_tried(_kept_pairs(edges, sync, n))
-    tried, closed = _register_guessed(features, pyramids, edges, sync.poses, sync.component == 0, skip, voxel,
-                                      config, report, progress, cache, "loop", "loop closure")
+    tried, closed = _register_guessed(
+        features,
+        pyramids,
+        edges,
+        sync.poses,
+        sync.component == 0,
+        skip,
+        voxel,
+        config,
+        report,
+        progress,
+        cache,
+        "loop",
+        "loop closure",
+    )
     report.loops_tried += tried
     report.loops_closed += closed
     return closed
 
 
-def register_weak_groups(features: Stored, pyramids: Stored, edges: EdgeSet, graph: PoseGraph, sync: SyncResult,
-                         flagged: np.ndarray, voxel: float, config: Config, report: DensifyReport,
-                         progress: Progress = QUIET, cache: Cache | None = None) -> int:
+def register_weak_groups(
+    features: Stored,
+    pyramids: Stored,
+    edges: EdgeSet,
+    graph: PoseGraph,
+    sync: SyncResult,
+    flagged: np.ndarray,
+    voxel: float,
+    config: Config,
+    report: DensifyReport,
+    progress: Progress = QUIET,
+    cache: Cache | None = None,
+) -> int:
     """Each weak group (``groups.weak_groups`` of the ``flagged`` scans), merged, registered globally onto the
     merged verified rest of the largest part (``groups.register_group``); where that moves it, the pairs across its
     border that overlap at the new place are registered by ICP from it and those that ``confirm`` it enter as group
@@ -141,8 +189,21 @@ def register_weak_groups(features: Stored, pyramids: Stored, edges: EdgeSet, gra
         member = np.zeros(n, dtype=bool)
         member[group] = True
         skip = kept | ~(member[:, None] & rest[None, :] | rest[:, None] & member[None, :])  # across its border only
-        _, closed = _register_guessed(features, pyramids, edges, poses, rest | member, skip, voxel, config, report,
-                                      progress, cache, "group", "group closure")
+        _, closed = _register_guessed(
+            features,
+            pyramids,
+            edges,
+            poses,
+            rest | member,
+            skip,
+            voxel,
+            config,
+            report,
+            progress,
+            cache,
+            "group",
+            "group closure",
+        )
         report.group_edges += closed
         added += closed
     return added
@@ -156,9 +217,21 @@ def _kept_pairs(edges: EdgeSet, sync: SyncResult, n: int) -> np.ndarray:
     return kept
 
 
-def _register_guessed(features: Stored, pyramids: Stored, edges: EdgeSet, poses: np.ndarray, placed: np.ndarray,
-                      skip: np.ndarray, voxel: float, config: Config, report: DensifyReport, progress: Progress,
-                      cache: Cache | None, origin: str, label: str) -> tuple[int, int]:
+def _register_guessed(
+    features: Stored,
+    pyramids: Stored,
+    edges: EdgeSet,
+    poses: np.ndarray,
+    placed: np.ndarray,
+    skip: np.ndarray,
+    voxel: float,
+    config: Config,
+    report: DensifyReport,
+    progress: Progress,
+    cache: Cache | None,
+    origin: str,
+    label: str,
+) -> tuple[int, int]:
     """Multi-scale ICP from ``poses`` of the ``placed`` pairs that overlap under them (``loops.propose_loops``; not
     those in ``skip``, (n, n) bool); those that ``confirm`` their guess enter with ``origin``, replacing the pair's
     earlier registration if it has one. Returns the pairs tried and those that entered."""
@@ -187,9 +260,18 @@ def _register_guessed(features: Stored, pyramids: Stored, edges: EdgeSet, poses:
     return len(ij), entered
 
 
-def retry_weak(features: Stored, scores: np.ndarray, edges: EdgeSet, sync: SyncResult,
-               unverified: np.ndarray, voxel: float, config: Config, report: DensifyReport,
-               progress: Progress = QUIET, cache: Cache | None = None) -> int:
+def retry_weak(
+    features: Stored,
+    scores: np.ndarray,
+    edges: EdgeSet,
+    sync: SyncResult,
+    unverified: np.ndarray,
+    voxel: float,
+    config: Config,
+    report: DensifyReport,
+    progress: Progress = QUIET,
+    cache: Cache | None = None,
+) -> int:
     """Global registration of each weak scan (``retry.weak_scans``) against its next ``config.k`` candidates
     by overlap score; the pairs that register enter as retry edges. A scan placed in the largest part is retried
     once a run; only one left outside it is retried again (on a scene of repeated desks a second round of

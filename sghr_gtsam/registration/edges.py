@@ -8,15 +8,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..store import Stored
-from ..types import PoseGraph
-from .information import FREE_FLOOR
-from .pairwise import PairResult
-from .visibility import conflicts, contradicted
+from sghr_gtsam.registration.information import FREE_FLOOR
+from sghr_gtsam.registration.pairwise import PairResult
+from sghr_gtsam.registration.visibility import conflicts, contradicted
+from sghr_gtsam.store import Stored
+from sghr_gtsam.types import PoseGraph
 
 if TYPE_CHECKING:
-    from ..result import RunResult
-    from .overrule import Viewpoints
+    from sghr_gtsam.registration.overrule import Viewpoints
+    from sghr_gtsam.result import RunResult
 
 ORIGINS = ("top-k", "loop", "retry", "group")
 """How an edge entered: the sparse graph (with its bridges), a loop closure, a retry of a weak scan, or an ICP
@@ -29,9 +29,9 @@ EDGE_STATUS = {
     "rejected": "registered, but inconsistent with the result (graph_rejected.g2o)",
     "failed": "the registration failed (too few inliers): no measurement (graph_rejected.g2o)",
     "contradicted": "registered, but it puts one scan's surfaces where the other saw empty space: no measurement "
-                    "(registration.visibility, or overrule.Viewpoints once vouched for; graph_rejected.g2o)",
+    "(registration.visibility, or overrule.Viewpoints once vouched for; graph_rejected.g2o)",
     "overruled": "registered, but it held a group of scans where their free space rules them out, against a place "
-                 "other registrations agree on: no measurement (registration.overrule; graph_rejected.g2o)",
+    "other registrations agree on: no measurement (registration.overrule; graph_rejected.g2o)",
     "unplaced": "kept, but between scans outside the largest part, which have no pose (graph_rejected.g2o)",
 }
 
@@ -49,16 +49,25 @@ def _information(pairs: list[PairResult]) -> np.ndarray | None:
     return np.stack([weakest if p.information is None else p.information for p in pairs])
 
 
-def edge_status(result: "RunResult") -> list[str]:
+def edge_status(result: RunResult) -> list[str]:
     """The ``EDGE_STATUS`` key of every edge of ``result.graph``."""
     g = result.graph
     placed = np.zeros(len(result.names), dtype=bool)
     placed[result.registered] = True
-    ruled_out = np.zeros(g.num_edges, dtype=bool) if result.edge_conflict is None else contradicted(result.edge_conflict)
+    ruled_out = (
+        np.zeros(g.num_edges, dtype=bool) if result.edge_conflict is None else contradicted(result.edge_conflict)
+    )
     overruled = np.zeros(g.num_edges, dtype=bool) if result.edge_overruled is None else result.edge_overruled
-    return [("contradicted" if ruled_out[e] else "overruled" if overruled[e] else "failed") if g.weight[e] <= 0
-            else "rejected" if result.sync.weights[e] <= 0
-            else "kept" if placed[g.i[e]] and placed[g.j[e]] else "unplaced" for e in range(g.num_edges)]
+    return [
+        ("contradicted" if ruled_out[e] else "overruled" if overruled[e] else "failed")
+        if g.weight[e] <= 0
+        else "rejected"
+        if result.sync.weights[e] <= 0
+        else "kept"
+        if placed[g.i[e]] and placed[g.j[e]]
+        else "unplaced"
+        for e in range(g.num_edges)
+    ]
 
 
 @dataclass
@@ -94,8 +103,9 @@ class EdgeSet:
         if origin is not None:
             self.origin[e] = origin
 
-    def check_free_space(self, features: Stored, voxel: float, centres: np.ndarray,
-                         views: Viewpoints | None = None) -> int:
+    def check_free_space(
+        self, features: Stored, voxel: float, centres: np.ndarray, views: Viewpoints | None = None
+    ) -> int:
         """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and, once
         ``views`` vouches for the scene's frames (``overrule.Viewpoints.vouch``), of those it leaves unjudged the
         coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
@@ -135,7 +145,9 @@ class EdgeSet:
         r = np.array([p.inliers for p in self.pairs], dtype=float)
         r[(r < min_inliers) | self.contradicted() | self.overruled] = 0.0
         return PoseGraph(
-            n=n, i=i, j=j,
+            n=n,
+            i=i,
+            j=j,
             T=np.stack([p.T for p in self.pairs]) if self.pairs else np.zeros((0, 4, 4)),
             weight={"s*r": s * r, "s": np.where(r > 0, s, 0.0), "r": r}[initial_weight],
             information=_information(self.pairs),

@@ -13,12 +13,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..cells import unique_cells
-from ..config import Config
-from ..features.local import ScanFeatures, grid_features
-from ..sync.rotation import connected_components
-from ..types import PoseGraph, SyncResult
-from .pairwise import PairResult, register_pair
+from sghr_gtsam.cells import unique_cells
+from sghr_gtsam.config import Config
+from sghr_gtsam.features.local import ScanFeatures, grid_features
+from sghr_gtsam.registration.pairwise import PairResult, register_pair
+from sghr_gtsam.sync.rotation import connected_components
+from sghr_gtsam.types import PoseGraph, SyncResult
 
 MIN_SCANS = 2
 """A single weak scan is the retries' business (``retry``); a group has geometry of its own to register."""
@@ -42,8 +42,9 @@ def weak_groups(graph: PoseGraph, result: SyncResult, flagged: np.ndarray) -> li
     return sorted((g for g in groups if len(g) >= MIN_SCANS), key=lambda g: (-len(g), g[0]))
 
 
-def merged(features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndarray, voxel: float,
-           config: Config) -> ScanFeatures | None:
+def merged(
+    features: Sequence[ScanFeatures], poses: np.ndarray, members: np.ndarray, voxel: float, config: Config
+) -> ScanFeatures | None:
     """The features (``features.local.grid_features``) of the ``members``' grids under ``poses`` (their centred
     frames into the world), merged on one grid of ``GRID`` voxels: each cell's centroid and mean normal, as open3d's
     ``voxel_down_sample`` of all their points would give, but summed one scan at a time, so that only the cells are
@@ -80,8 +81,14 @@ def _summed(index: np.ndarray, n: int, values: np.ndarray) -> np.ndarray:
     return out
 
 
-def register_group(target: ScanFeatures | None, features: Sequence[ScanFeatures], poses: np.ndarray,
-                   group: np.ndarray, voxel: float, config: Config) -> PairResult | None:
+def register_group(
+    target: ScanFeatures | None,
+    features: Sequence[ScanFeatures],
+    poses: np.ndarray,
+    group: np.ndarray,
+    voxel: float,
+    config: Config,
+) -> PairResult | None:
     """The global registration of the merged ``group`` (under ``poses``) onto ``target``, the rest's ``merged``
     features: its ``T`` maps the group's world frame into the rest's, so the group's scans belong at
     ``T @ poses[group]``. None when a side is too large (``MAX_POINTS``)."""

@@ -40,8 +40,8 @@ import numpy as np
 import small_gicp
 from scipy.linalg import eigh
 
-from ..cells import unique_cells
-from ..features.local import COV_NEIGHBORS, GICP_THREADS
+from sghr_gtsam.cells import unique_cells
+from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_THREADS
 
 MIN_PAIRS = 7
 """Fewer close pairs than this leave σ̂² without a degree of freedom: no information."""
@@ -73,8 +73,9 @@ class Grid(Protocol):
     cloud_tree: small_gicp.KdTree
 
 
-def plane_information(q: np.ndarray, normals: np.ndarray, residuals: np.ndarray,
-                      cell: float | None = None) -> np.ndarray:
+def plane_information(
+    q: np.ndarray, normals: np.ndarray, residuals: np.ndarray, cell: float | None = None
+) -> np.ndarray:
     """Information (6, 6) of the point-to-plane alignment from points ``q`` (m, 3) of scan j, the matched
     normals ``normals`` (m, 3) expressed in scan j's frame, and the point-to-plane residuals (m,).
 
@@ -137,8 +138,9 @@ def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
     return float(r @ r) / len(r)
 
 
-def free_directions(target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray,
-                    step: float, base: float) -> Information:
+def free_directions(
+    target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray, step: float, base: float
+) -> Information:
     """``information`` of ``T exp(ξ)`` with the directions the pair's geometry does not fix (a plane's three, a
     corridor's one, a cylinder's two) bounded only by the overlap's extent, and their number.
 
@@ -203,8 +205,13 @@ class Information:
     measured: np.ndarray
 
 
-def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray, max_distance: float,
-                             search: tuple[np.ndarray, np.ndarray] | None = None) -> Information | None:
+def registration_information(
+    target_i: Grid,
+    source_j: Grid,
+    T: np.ndarray,
+    max_distance: float,
+    search: tuple[np.ndarray, np.ndarray] | None = None,
+) -> Information | None:
     """Information of ``T`` (``T_ij``: scan j into scan i's frame) for ``T exp(ξ)``, from the grid points of
     scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``. Both grids
     must be those ``T`` was aligned on: its residuals there are what σ̂ and the sum measure. The directions
@@ -222,8 +229,9 @@ def registration_information(target_i: Grid, source_j: Grid, T: np.ndarray, max_
     residuals = np.einsum("mk,mk->m", moved[close] - target_i.points[nearest], n)
     cell = correlation_length(target_i, target_i.points[nearest])
     information = plane_information(q[close], n @ R, residuals, cell)
-    return free_directions(target_i, q[close], T, information, max_distance,
-                           float(residuals @ residuals) / len(residuals))
+    return free_directions(
+        target_i, q[close], T, information, max_distance, float(residuals @ residuals) / len(residuals)
+    )
 
 
 def nearest_points(target_i: Grid, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -246,8 +254,9 @@ def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
     return float(np.sqrt(max(np.linalg.eigvalsh(L.T @ covariance @ L)[-1], 0.0)))
 
 
-def loosest(covariances: np.ndarray, points: Sequence[np.ndarray], registered: Sequence[int]) -> tuple[np.ndarray,
-                                                                                                  np.ndarray]:
+def loosest(
+    covariances: np.ndarray, points: Sequence[np.ndarray], registered: Sequence[int]
+) -> tuple[np.ndarray, np.ndarray]:
     """(N,) ``pose_spread`` of each ``registered`` scan (inf where its covariance is not finite, NaN for the others)
     and (N, 3) the unit axis along which its position is least determined (the translation block's longest axis;
     NaN where not judged). ``points[k]``: scan k's points in its own frame, read once."""

@@ -13,14 +13,16 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import sparse
 
-from ..cells import unique_cells
-from ..se3 import transform_points
+from sghr_gtsam.cells import unique_cells
+from sghr_gtsam.se3 import transform_points
 
 CELL = 2.0
 """Occupancy cell, in voxels: coarse enough that the synchronized poses' drift (a voxel or two) keeps a
 true overlap visible, fine enough that two walls a metre apart do not overlap."""
 MIN_OVERLAP = 0.3
 """Predicted overlap above which a pair is worth an ICP: 3DMatch's own threshold for a benchmark pair."""
+
+
 def predicted_overlap(points: Sequence[np.ndarray], poses: np.ndarray, placed: np.ndarray, voxel: float) -> np.ndarray:
     """(N, N) overlap of every pair of placed scans (``placed``: (N,) bool) under ``poses``: cells shared over
     the smaller scan's cells; 0 for pairs with an unplaced scan and on the diagonal. ``points[k]`` is read once,

@@ -14,7 +14,8 @@ more than half the scan pairs judged; at the move its dropped registrations prop
 (docs/benchmarks.md, free space).
 
 Fused RGB-D fragments are seen from their first camera but fused over many: their free space is noisier than one
-range image's, so the range image here is coarser (``COARSE_BIN_DEG``, ``COARSE_MARGIN_VOXELS``) than the per-pair check's
+range image's, so the range image here is coarser (``COARSE_BIN_DEG``, ``COARSE_MARGIN_VOXELS``) than the per-pair
+check's
 (``visibility``), and only a clear majority of conflicts decides (``RATIO``, ``MIN_GAIN``).
 
 Identical rooms give no conflict at either placement: nothing in the scans says which placement is right, and such
@@ -31,13 +32,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..se3 import transform_points
-from ..store import Attribute, Stored
-from ..sync.bridges import bridge_edges
-from ..sync.consensus import translation_tolerance
-from ..sync.disputes import agreeing_edges, linkage_groups
-from ..types import PoseGraph, SyncResult
-from .visibility import CONFLICT, MAX_PARTNERS, MIN_IN_VIEW, range_image, seen_from_origin, seen_in_front_of
+from sghr_gtsam.registration.visibility import (
+    CONFLICT,
+    MAX_PARTNERS,
+    MIN_IN_VIEW,
+    range_image,
+    seen_from_origin,
+    seen_in_front_of,
+)
+from sghr_gtsam.se3 import transform_points
+from sghr_gtsam.store import Attribute, Stored
+from sghr_gtsam.sync.bridges import bridge_edges
+from sghr_gtsam.sync.consensus import translation_tolerance
+from sghr_gtsam.sync.disputes import agreeing_edges, linkage_groups
+from sghr_gtsam.types import PoseGraph, SyncResult
 
 COARSE_BIN_DEG = 3.0
 """Angular cells of the range image (degrees). Fused fragments' free space is blurred by their many cameras: on
@@ -94,10 +102,11 @@ class Viewpoints:
             P = points[k]  # one scan at a time
             if _takes_part(P, voxel):
                 self.images[k] = range_image(P, COARSE_BIN_DEG)
-                self.samples[k] = P[::max(1, len(P) // SAMPLE)]
+                self.samples[k] = P[:: max(1, len(P) // SAMPLE)]
                 lo, hi = P.min(axis=0), P.max(axis=0)
-                self.corners[k] = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                                            for z in (lo[2], hi[2])])
+                self.corners[k] = np.array(
+                    [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+                )
 
     def box(self, k: int, T: np.ndarray) -> np.ndarray:
         """(2, 3) lower and upper corner of a box that holds scan k under pose ``T``."""
@@ -130,13 +139,19 @@ class Viewpoints:
             return float("nan")
         return max(self._fractions(a, b, lambda: T_ab, lambda: np.linalg.inv(T_ab)), default=float("nan"))
 
-    def _fractions(self, a: int, b: int, T_ab: Callable[[], np.ndarray],
-                   T_ba: Callable[[], np.ndarray]) -> Iterator[float]:
+    def _fractions(
+        self, a: int, b: int, T_ab: Callable[[], np.ndarray], T_ba: Callable[[], np.ndarray]
+    ) -> Iterator[float]:
         """The fraction of scan b's points in scan a's free space, then of a's in b's, each when judged on at least
         ``MIN_IN_VIEW`` points in view; the moves are made only when asked for."""
         for x, y, T_xy in ((a, b, T_ab), (b, a, T_ba)):
-            seen, fraction = seen_in_front_of(self.images[x], transform_points(T_xy(), self.samples[y]),
-                                              self.voxel, COARSE_MARGIN_VOXELS, COARSE_BIN_DEG)
+            seen, fraction = seen_in_front_of(
+                self.images[x],
+                transform_points(T_xy(), self.samples[y]),
+                self.voxel,
+                COARSE_MARGIN_VOXELS,
+                COARSE_BIN_DEG,
+            )
             if seen >= MIN_IN_VIEW:
                 yield fraction
 
@@ -146,7 +161,8 @@ class Viewpoints:
         edges that ``result`` kept and that are no bridges of the kept graph are each checked by a loop; judged at
         their registrations (``fraction``), at least ``MIN_LOOPED`` of them, at most ``MAX_FALSE_ALARMS`` of them
         may read as conflicts. Where a frame's origin is no viewpoint, right registrations read as conflicts: the
-        scans of an object turned on a table are in the object's frame (origin inside it), 7 of its 25 loop-checked edges after
+        scans of an object turned on a table are in the object's frame (origin inside it), 7 of its 25 loop-checked
+        edges after
         the first synchronization, all right; on fused RGB-D fragments, seen from their first camera, 9 of 802, all
         wrong (docs/benchmarks.md, free space)."""
         kept = result.weights > 0
@@ -273,8 +289,14 @@ def overruled_edges(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> 
 
 def _overruled(trials: list[_Trial], graph: PoseGraph) -> np.ndarray:
     """``overruled_edges`` of the groups tried."""
-    found = [t for t in trials if t.support >= SUPPORT and t.before >= MIN_GAIN
-             and t.after <= RATIO * t.before and t.before - t.after >= MIN_GAIN]
+    found = [
+        t
+        for t in trials
+        if t.support >= SUPPORT
+        and t.before >= MIN_GAIN
+        and t.after <= RATIO * t.before
+        and t.before - t.after >= MIN_GAIN
+    ]
     # A conflict is explained once: a group's neighbours, tried as a group, see the same edges from the other side.
     out = np.zeros(graph.num_edges, dtype=bool)
     taken = np.zeros(graph.n, dtype=bool)
@@ -293,5 +315,8 @@ def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list
     ``overruled_edges`` has edges to overrule: that model is not the last."""
     if overruled_edges(views, graph, result).any():  # its conflicts are kept for the trials below (``judged``)
         return []
-    return [t.group for t in _trials(views, graph, result, alike=True)
-            if t.agreeing >= MIN_LOOK_ALIKE and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0]
+    return [
+        t.group
+        for t in _trials(views, graph, result, alike=True)
+        if t.agreeing >= MIN_LOOK_ALIKE and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0
+    ]

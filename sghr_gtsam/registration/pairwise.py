@@ -17,11 +17,10 @@ from sghr_gtsam.cache import Kind
 from sghr_gtsam.cells import unique_cells
 from sghr_gtsam.config import MATCHERS
 from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
+from sghr_gtsam.registration.estimators import sc2_estimate
+from sghr_gtsam.registration.information import Information, nearest_points, registration_information
 from sghr_gtsam.se3 import non_rigid
 from sghr_gtsam.types import InputError
-
-from .estimators import sc2_estimate
-from .information import Information, nearest_points, registration_information
 
 # Approximate k-d search in 33-d: the neighbour returned is within (1 + eps) of the nearest. With 2
 # matching is 4-6x faster than exact search and registers the same pairs (+-1) on the 3DMatch fragments and
@@ -104,8 +103,20 @@ def _decode_pair(a: dict[str, np.ndarray]) -> PairResult:
     T = a["T"]  # a scaled or reflected rotation failed the run downstream, as a NaN did
     if T.shape != (4, 4) or not np.isfinite(T).all() or non_rigid(T):
         raise ValueError(f"T of shape {T.shape}, not finite or no rigid transform")
-    return PairResult(a["T"], int(inliers), fitness, rmse, a.get("information"), seconds, int(coverage), matches,
-                      int(free), a.get("bounded"), a.get("loose"), a.get("grid"))
+    return PairResult(
+        a["T"],
+        int(inliers),
+        fitness,
+        rmse,
+        a.get("information"),
+        seconds,
+        int(coverage),
+        matches,
+        int(free),
+        a.get("bounded"),
+        a.get("loose"),
+        a.get("grid"),
+    )
 
 
 PAIRS = Kind("pairs", _encode_pair, _decode_pair)
@@ -127,9 +138,7 @@ def _kiss(p_i: np.ndarray, p_j: np.ndarray, voxel: float) -> np.ndarray:
     # refuses voxels under 5 mm (an object's scans get 2.5 mm). ROBIN's max-core pruning before the GNC
     # solver matters: the solver alone got 14 3DMatch pairs right where pruning got 17 (3 cm grid).
     solver = kiss_matcher.KISSMatcher(kiss_matcher.KISSMatcherConfig(1.0))
-    solution = solver.prune_and_solve(
-        list((p_j / voxel).astype(np.float32)), list((p_i / voxel).astype(np.float32))
-    )
+    solution = solver.prune_and_solve(list((p_j / voxel).astype(np.float32)), list((p_i / voxel).astype(np.float32)))
     T = np.eye(4)
     T[:3, :3] = np.asarray(solution.rotation)
     T[:3, 3] = np.asarray(solution.translation).ravel() * voxel
@@ -202,8 +211,9 @@ def register_pair(
     return result
 
 
-def agreeing_matches(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float,
-                     search: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def agreeing_matches(
+    target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, search: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """The ``mutual_matches`` that ``T`` brings within ``INLIER_DISTANCE`` voxels, for keypoints that are the grid
     points (FPFH, the learned descriptor; not given keypoints). Only a point of scan j with a point of scan i that
     close can be one, so only those are looked up in descriptor space, and only their partners looked back
@@ -220,9 +230,15 @@ def agreeing_matches(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarr
     return nn_in_i[mutual].astype(np.int32), near[mutual].astype(np.int32)
 
 
-def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
-               matches: tuple[np.ndarray, np.ndarray] | None = None,
-               information: Information | None = None) -> PairResult:
+def score_pair(
+    target_i: ScanFeatures,
+    source_j: ScanFeatures,
+    T: np.ndarray,
+    voxel: float,
+    icp_distance: float,
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
+    information: Information | None = None,
+) -> PairResult:
     """The ``PairResult`` of ``T`` (however it was found): its mutual descriptor ``matches`` within
     ``INLIER_DISTANCE`` voxels (``r_ij``) and the cells they cover, fitness, rmse, and ``information`` when given
     (from the grid ``T`` was aligned on), else the matching grid's; ``seconds`` 0. Without ``matches``, on keypoints
@@ -232,8 +248,14 @@ def score_pair(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, vo
     return informed(target_i, source_j, result, search, voxel, icp_distance, information)
 
 
-def scored(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel: float, icp_distance: float,
-           matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[PairResult, tuple[np.ndarray, np.ndarray]]:
+def scored(
+    target_i: ScanFeatures,
+    source_j: ScanFeatures,
+    T: np.ndarray,
+    voxel: float,
+    icp_distance: float,
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[PairResult, tuple[np.ndarray, np.ndarray]]:
     """``score_pair`` without the information (None), and the ``information.nearest_points`` of scan j's points
     moved by ``T`` that it searched (``registration_information`` takes it)."""
     max_distance = icp_distance * voxel
@@ -263,8 +285,15 @@ def scored(target_i: ScanFeatures, source_j: ScanFeatures, T: np.ndarray, voxel:
     ), search
 
 
-def informed(target_i: ScanFeatures, source_j: ScanFeatures, result: PairResult, search: tuple[np.ndarray, np.ndarray],
-             voxel: float, icp_distance: float, information: Information | None = None) -> PairResult:
+def informed(
+    target_i: ScanFeatures,
+    source_j: ScanFeatures,
+    result: PairResult,
+    search: tuple[np.ndarray, np.ndarray],
+    voxel: float,
+    icp_distance: float,
+    information: Information | None = None,
+) -> PairResult:
     """``result`` (``scored``, with its ``search``) carrying ``information`` when given and measured, else the
     matching grid's (``registration_information``; None with too few close pairs)."""
     if information is None:

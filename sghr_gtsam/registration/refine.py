@@ -27,14 +27,14 @@ import numpy as np
 import open3d as o3d
 import small_gicp
 
-from ..cache import Cache, Kind, refined_key
-from ..config import Config
-from ..features.local import COV_NEIGHBORS, GICP_BYTES, GICP_THREADS, ScanFeatures
-from ..se3 import inv_T, rotation_angle
-from ..store import Stored, pair_map
-from ..types import Scan
-from .information import registration_information
-from .pairwise import PAIRS, PairResult, informed, scored
+from sghr_gtsam.cache import Cache, Kind, refined_key
+from sghr_gtsam.config import Config
+from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_BYTES, GICP_THREADS, ScanFeatures
+from sghr_gtsam.registration.information import registration_information
+from sghr_gtsam.registration.pairwise import PAIRS, PairResult, informed, scored
+from sghr_gtsam.se3 import inv_T, rotation_angle
+from sghr_gtsam.store import Stored, pair_map
+from sghr_gtsam.types import Scan
 
 LEVELS = (1.0, 0.5)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six object pairs started a voxel
@@ -166,10 +166,17 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
     for k in range(_levels(target_i, source_j)):
         coarser = T
         target, source = target_i.level(k), source_j.level(k)
-        result = small_gicp.align(target.cloud, source.cloud, target.cloud_tree, init_T_target_source=T,
-                                  registration_type="GICP", max_correspondence_distance=_distance(target_i, k),
-                                  num_threads=GICP_THREADS, max_iterations=LEVEL_ITERATIONS[k],
-                                  translation_epsilon=STEP_VOXELS * target_i.voxels[0])
+        result = small_gicp.align(
+            target.cloud,
+            source.cloud,
+            target.cloud_tree,
+            init_T_target_source=T,
+            registration_type="GICP",
+            max_correspondence_distance=_distance(target_i, k),
+            num_threads=GICP_THREADS,
+            max_iterations=LEVEL_ITERATIONS[k],
+            translation_epsilon=STEP_VOXELS * target_i.voxels[0],
+        )
         T, converged = result.T_target_source, bool(result.converged)
     return T, converged, coarser
 
@@ -177,13 +184,23 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
 def stays_near(T: np.ndarray, guess: np.ndarray, voxel: float) -> bool:
     """Whether ``T`` lies within ``MAX_MOVE_DEG`` and ``MAX_MOVE_VOXELS`` voxels of ``guess``."""
     move = inv_T(guess) @ T
-    return bool(rotation_angle(move[:3, :3]) <= np.radians(MAX_MOVE_DEG)
-                and np.linalg.norm(move[:3, 3]) <= MAX_MOVE_VOXELS * voxel)
+    return bool(
+        rotation_angle(move[:3, :3]) <= np.radians(MAX_MOVE_DEG)
+        and np.linalg.norm(move[:3, 3]) <= MAX_MOVE_VOXELS * voxel
+    )
 
 
-def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyramid, pyramid_j: Pyramid,
-                T_init: np.ndarray, voxel: float, icp_distance: float, min_inliers: int,
-                matches: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[PairResult, bool]:
+def refine_pair(
+    target_i: ScanFeatures,
+    source_j: ScanFeatures,
+    pyramid_i: Pyramid,
+    pyramid_j: Pyramid,
+    T_init: np.ndarray,
+    voxel: float,
+    icp_distance: float,
+    min_inliers: int,
+    matches: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[PairResult, bool]:
     """Multi-scale ICP from ``T_init``, and whether its finest level converged within ``MAX_MOVE_DEG`` /
     ``MAX_MOVE_VOXELS`` of ``T_init``. Only then is the pair scored at the result (``score_pair``, on the pair's
     earlier ``matches`` when given), and only a result that ``confirms`` the guess at ``min_inliers`` gets the
@@ -198,8 +215,9 @@ def refine_pair(target_i: ScanFeatures, source_j: ScanFeatures, pyramid_i: Pyram
     result, search = scored(target_i, source_j, T, voxel, icp_distance, matches)
     if confirms(result, True, min_inliers):
         finest = _levels(pyramid_i, pyramid_j) - 1
-        information = registration_information(pyramid_i.level(finest), pyramid_j.level(finest), T,
-                                               _distance(pyramid_i, finest))
+        information = registration_information(
+            pyramid_i.level(finest), pyramid_j.level(finest), T, _distance(pyramid_i, finest)
+        )
         result = informed(target_i, source_j, result, search, voxel, icp_distance, information)
         if finest > 0:
             result.grid = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(coarser)))
@@ -217,14 +235,22 @@ def confirms(result: PairResult, near: bool, min_inliers: int) -> bool:
 def _refine_task(shared: tuple[Stored, Stored, float, float, int], task: tuple) -> tuple[PairResult, bool]:
     features, pyramids, voxel, icp_distance, min_inliers = shared
     a, b, T_init, matches = task
-    return refine_pair(features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance, min_inliers,
-                       matches)
+    return refine_pair(
+        features[a], features[b], pyramids[a], pyramids[b], T_init, voxel, icp_distance, min_inliers, matches
+    )
 
 
-def register_from_guesses(features: Stored, pyramids: Stored, ij: np.ndarray, guesses: np.ndarray, voxel: float,
-                          config: Config, matches: list | None = None,
-                          on_result: Callable[[int, object], None] | None = None,
-                          cache: Cache | None = None) -> tuple[list[PairResult], np.ndarray]:
+def register_from_guesses(
+    features: Stored,
+    pyramids: Stored,
+    ij: np.ndarray,
+    guesses: np.ndarray,
+    voxel: float,
+    config: Config,
+    matches: list | None = None,
+    on_result: Callable[[int, object], None] | None = None,
+    cache: Cache | None = None,
+) -> tuple[list[PairResult], np.ndarray]:
     """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), on the scans' stored
     ``features`` and ``pyramids``, over the executor's processes (``config.workers``, ``config.ray``), with each
     pair's earlier descriptor ``matches`` where known (None: found anew): the results and whether each converged
@@ -232,8 +258,10 @@ def register_from_guesses(features: Stored, pyramids: Stored, ij: np.ndarray, gu
     ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored and reused (``cache.Cache``)."""
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
-    keys = [refined_key(features.keys[a], features.keys[b], T, config.icp_distance, config.inlier_bar)
-            for a, b, T, _ in tasks]
+    keys = [
+        refined_key(features.keys[a], features.keys[b], T, config.icp_distance, config.inlier_bar)
+        for a, b, T, _ in tasks
+    ]
     shared = (features, pyramids, voxel, config.icp_distance, config.inlier_bar)
     out = pair_map(cache, REFINED, _refine_task, shared, ij, tasks, keys, config.workers, on_result, config.ray)
     return [p for p, _ in out], np.array([c for _, c in out], dtype=bool)

@@ -10,8 +10,9 @@ MIN_DEGREE = 2
 """A scan held by one kept edge has nothing to check that edge against."""
 
 
-def weak_scans(n: int, i: np.ndarray, j: np.ndarray, kept: np.ndarray, component: np.ndarray,
-               unverified: np.ndarray) -> np.ndarray:
+def weak_scans(
+    n: int, i: np.ndarray, j: np.ndarray, kept: np.ndarray, component: np.ndarray, unverified: np.ndarray
+) -> np.ndarray:
     """(N,) bool: scans outside the largest part, ``unverified``, or with fewer than ``MIN_DEGREE`` kept edges."""
     degree = np.bincount(np.r_[i[kept], j[kept]], minlength=n)
     return (component != 0) | unverified | (degree < MIN_DEGREE)

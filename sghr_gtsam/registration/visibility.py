@@ -6,7 +6,8 @@ whatever the descriptors agreed on: look-alike rooms and corridors register with
 
 Only scans whose frame origin is their viewpoint can say it. A scan seen from its origin hides almost none of
 its own points behind others (``SELF_HIDDEN``); a fused RGB-D fragment, an object scan in its object's frame or a
-georeferenced scan hides a sixth or more of them (16-18 % of a fused RGB-D fragment, 18 % of an object's range scan), and its
+georeferenced scan hides a sixth or more of them (16-18 % of a fused RGB-D fragment, 18 % of an object's range scan),
+and its
 pairs are not checked here; fused fragments' are by the overrule's coarser range images, once the graph's loops
 vouch for the scene's frames (``overrule.Viewpoints.vouch``)."""
 
@@ -16,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..store import Attribute, Stored
+from sghr_gtsam.store import Attribute, Stored
 
 BIN_DEG = 1.0
 """Angular size of the range image's cells (azimuth x elevation); a cell keeps its nearest point."""
@@ -89,8 +90,14 @@ def range_image(P: np.ndarray, bin_deg: float = BIN_DEG) -> np.ndarray:
     return _nearest(*_cells(P, bin_deg))
 
 
-def in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS,
-                bin_deg: float = BIN_DEG, min_seen: int = 1) -> float:
+def in_front_of(
+    image: np.ndarray,
+    P: np.ndarray,
+    voxel: float,
+    margin: float = MARGIN_VOXELS,
+    bin_deg: float = BIN_DEG,
+    min_seen: int = 1,
+) -> float:
     """Fraction of points ``P`` (in the frame of the scan whose range image of ``bin_deg`` cells is ``image``) that
     lie in front of its surface by more than ``margin`` voxels, among those in cells it observed (0 with fewer than
     ``min_seen``)."""
@@ -98,8 +105,9 @@ def in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, margin: float = 
     return fraction if seen >= min_seen else 0.0
 
 
-def seen_in_front_of(image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS,
-                     bin_deg: float = BIN_DEG) -> tuple[int, float]:
+def seen_in_front_of(
+    image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS, bin_deg: float = BIN_DEG
+) -> tuple[int, float]:
     """``in_front_of``'s count of points in observed cells, and the fraction (NaN for none)."""
     r, cell, _ = _cells(P, bin_deg)
     surface = image[cell]
@@ -149,8 +157,9 @@ def conflicts(features: Stored, ij: np.ndarray, T: np.ndarray, voxel: float, cen
     return out
 
 
-def placement_conflicts(points: Sequence[np.ndarray], poses: np.ndarray, checked: np.ndarray,
-                        voxel: float) -> np.ndarray:
+def placement_conflicts(
+    points: Sequence[np.ndarray], poses: np.ndarray, checked: np.ndarray, voxel: float
+) -> np.ndarray:
     """(N, N) symmetric bool: pairs of ``checked`` scans that the poses (N, 4, 4; ``points[k]`` in scan k's frame)
     place so that one's points lie in the other's free space (``free_space_conflict`` above ``CONFLICT``, judged on
     at least ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. Each scan is tested against
@@ -173,8 +182,9 @@ def placement_conflicts(points: Sequence[np.ndarray], poses: np.ndarray, checked
         near = near[np.argsort(np.linalg.norm(centre[near] - centre[x], axis=1), kind="stable")[:MAX_PARTNERS]]
         for b in index[near]:
             T_ab = np.linalg.solve(poses[a], poses[b])
-            clash[a, b] = in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel,
-                                      min_seen=MIN_IN_VIEW) > CONFLICT
+            clash[a, b] = (
+                in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel, min_seen=MIN_IN_VIEW) > CONFLICT
+            )
     return clash | clash.T
 
 
@@ -201,8 +211,14 @@ def contradicted_scans(clash: np.ndarray, doubted: np.ndarray | None = None) -> 
     return blamed
 
 
-def contradicted_placements(features: Stored, poses: np.ndarray, placed: np.ndarray, voxel: float,
-                            centres: np.ndarray, doubted: np.ndarray | None = None) -> np.ndarray:
+def contradicted_placements(
+    features: Stored,
+    poses: np.ndarray,
+    placed: np.ndarray,
+    voxel: float,
+    centres: np.ndarray,
+    doubted: np.ndarray | None = None,
+) -> np.ndarray:
     """(N,) bool: the ``placed`` scans blamed for free-space conflicts under ``poses`` (scan k's feature grid in
     its centred frame to the world; ``placement_conflicts``, ``contradicted_scans`` with the run's ``doubted``
     scans first), among the scans that can say where there is nothing (``viewpoints``)."""

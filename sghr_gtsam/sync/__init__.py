@@ -18,25 +18,39 @@ from functools import lru_cache
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from ..io.g2o import sesync_precisions
-from ..se3 import inv_T, non_rigid, project_to_so3
-from ..types import InputError, IterationRecord, PoseGraph, SyncResult
-from .bridges import biconnected_core, blocks
-from .consensus import MAX_DEG, consensus_placement, consistent_edges, edge_residuals, translation_tolerance
-from .cycles import (credibility, cut_moves, grow, inlier_odds, kept_edges_at, replace_groups, triangle_support,
-                     within_shown_noise)
-from .irls import REWEIGHTS, irls, solve_poses, usable_edges
-from .rotation import connected_components, rotation_residuals
+from sghr_gtsam.io.g2o import sesync_precisions
+from sghr_gtsam.se3 import inv_T, non_rigid, project_to_so3
+from sghr_gtsam.sync.bridges import biconnected_core, blocks
+from sghr_gtsam.sync.consensus import (
+    MAX_DEG,
+    consensus_placement,
+    consistent_edges,
+    edge_residuals,
+    translation_tolerance,
+)
+from sghr_gtsam.sync.cycles import (
+    credibility,
+    cut_moves,
+    grow,
+    inlier_odds,
+    kept_edges_at,
+    replace_groups,
+    triangle_support,
+    within_shown_noise,
+)
+from sghr_gtsam.sync.irls import REWEIGHTS, irls, solve_poses, usable_edges
+from sghr_gtsam.sync.rotation import connected_components, rotation_residuals
+from sghr_gtsam.types import InputError, IterationRecord, PoseGraph, SyncResult
 
 POLISHES: dict[str, str] = {
     "loops": "loop evidence (sync.cycles): the IRLS poses and scans grown outward from the most consistent "
-             "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups "
-             "and by scans where most edges agree; the one with more consistent edges wins (unless the other fits "
-             "more of the edges they place far apart), its groups held by several wrong edges move across a "
-             "minimum cut, and it is re-placed once more with the votes its consistent edges teach each weight "
-             "class; then LM",
+    "core, each polished by gtsam Levenberg-Marquardt on its consistent edges and re-placed by groups "
+    "and by scans where most edges agree; the one with more consistent edges wins (unless the other fits "
+    "more of the edges they place far apart), its groups held by several wrong edges move across a "
+    "minimum cut, and it is re-placed once more with the votes its consistent edges teach each weight "
+    "class; then LM",
     "robust": "consensus re-placement of scans, gtsam GNC (TLS) over every edge, consensus again, then "
-              "gtsam Levenberg-Marquardt on the edges consistent with the poses",
+    "gtsam Levenberg-Marquardt on the edges consistent with the poses",
     "lm": "gtsam Levenberg-Marquardt on the edges IRLS kept",
     "none": "the IRLS poses as they are",
 }
@@ -83,9 +97,16 @@ def _blas() -> ThreadpoolController:
     return ThreadpoolController()  # finds the loaded BLAS libraries once (~30 ms)
 
 
-def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, reweight: str = "authors",
-                polish: str = "loops", min_weight: float = 1e-3,
-                on_iteration: Callable[[IterationRecord], None] | None = None) -> SyncResult:
+def synchronize(
+    graph: PoseGraph,
+    *,
+    method: str = "history",
+    iters: int = 50,
+    reweight: str = "authors",
+    polish: str = "loops",
+    min_weight: float = 1e-3,
+    on_iteration: Callable[[IterationRecord], None] | None = None,
+) -> SyncResult:
     """Absolute poses ``T_i`` (``T_ij = T_i⁻¹ T_j``) of every node of ``graph``.
 
     ``method``: a key of ``METHODS``. ``iters``: IRLS iterations M. ``reweight``: ``"authors"`` (δ in degrees,
@@ -112,12 +133,27 @@ def synchronize(graph: PoseGraph, *, method: str = "history", iters: int = 50, r
     # time synchronising threads, 10-30× slower on a busy 2-core machine (a 180×180 Cholesky: 0.8 ms on one
     # thread, 3 ms on two; a warm eigen-solve 12 ms against 165 ms).
     with _blas().limit(limits=1, user_api="blas"):
-        return _synchronize(graph, method=method, iters=iters, reweight=reweight, polish=polish,
-                            min_weight=min_weight, on_iteration=on_iteration)
+        return _synchronize(
+            graph,
+            method=method,
+            iters=iters,
+            reweight=reweight,
+            polish=polish,
+            min_weight=min_weight,
+            on_iteration=on_iteration,
+        )
 
 
-def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, polish: str, min_weight: float,
-                 on_iteration: Callable[[IterationRecord], None] | None) -> SyncResult:
+def _synchronize(
+    graph: PoseGraph,
+    *,
+    method: str,
+    iters: int,
+    reweight: str,
+    polish: str,
+    min_weight: float,
+    on_iteration: Callable[[IterationRecord], None] | None,
+) -> SyncResult:
     if polish not in POLISHES:
         raise InputError(f"unknown polish {polish!r}; choose from {', '.join(POLISHES)}")
     if method not in METHODS:
@@ -140,8 +176,9 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
 
     if method in ("history", "constant", "current"):
         # The IRLS methods are named after their history schedule.
-        result = irls(graph, iters=iters, reweight=reweight, schedule=method, min_weight=min_weight,
-                      on_iteration=keep_history)
+        result = irls(
+            graph, iters=iters, reweight=reweight, schedule=method, min_weight=min_weight, on_iteration=keep_history
+        )
         weights, kept, poses = result.weights, result.kept, result.poses
     else:
         weights = graph.weight
@@ -160,7 +197,8 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         poses, kept, support = _loop_placement(graph, poses, keep_history, iterative)
         weights = graph.weight
     if polish != "none" or method == "lm":
-        from ..factor_graph import edge_information, polish as lm_polish
+        from sghr_gtsam.factor_graph import edge_information
+        from sghr_gtsam.factor_graph import polish as lm_polish
 
         # The history weights decide which edges are kept; as precisions they are miscalibrated (an inlier
         # 3° off has e⁻⁶ of the weight of a perfect one), which measurably costs accuracy, so the kept edges
@@ -168,10 +206,16 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
         def solve(P: np.ndarray, kept: np.ndarray, record: bool = True) -> np.ndarray:
             component = connected_components(graph.n, graph.i, graph.j, kept)
             information = edge_information(graph, np.where(kept, graph.weight, 0.0))
-            return lm_polish(graph, P, information, component, weights=np.where(kept, weights, 0.0),
-                             iterative=iterative,
-                             relative_tol=1e-9 if method == "lm" else 1e-6,
-                             on_iteration=keep_history if record else None).poses
+            return lm_polish(
+                graph,
+                P,
+                information,
+                component,
+                weights=np.where(kept, weights, 0.0),
+                iterative=iterative,
+                relative_tol=1e-9 if method == "lm" else 1e-6,
+                on_iteration=keep_history if record else None,
+            ).poses
 
         poses = solve(poses, kept)
         if polish == "loops" and method != "lm":
@@ -180,9 +224,15 @@ def _synchronize(graph: PoseGraph, *, method: str, iters: int, reweight: str, po
     component = connected_components(graph.n, graph.i, graph.j, kept)
     poses = _anchored(poses, component)  # a part re-judged apart is anchored at its own first node
     residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
-    return SyncResult(poses=poses, weights=weights[back], residual_deg=np.degrees(residual)[back], component=component,
-                      history=history, loop_support=None if support is None else support[back],
-                      held=None if held is None else held[back])
+    return SyncResult(
+        poses=poses,
+        weights=weights[back],
+        residual_deg=np.degrees(residual)[back],
+        component=component,
+        history=history,
+        loop_support=None if support is None else support[back],
+        held=None if held is None else held[back],
+    )
 
 
 def _chordal(graph: PoseGraph) -> np.ndarray:
@@ -195,8 +245,8 @@ def _chordal(graph: PoseGraph) -> np.ndarray:
 def _iterative(graph: PoseGraph) -> bool:
     """Whether the LM polishes of ``graph`` solve by conjugate gradients (``factor_graph.DIRECT_FLOPS``): judged
     on its usable edges, a superset of those any polish uses."""
-    from ..factor_graph import DIRECT_FLOPS
-    from .fill import direct_cost
+    from sghr_gtsam.factor_graph import DIRECT_FLOPS
+    from sghr_gtsam.sync.fill import direct_cost
 
     usable = usable_edges(graph.weight)
     return direct_cost(graph.n, graph.i[usable], graph.j[usable]) > DIRECT_FLOPS
@@ -207,8 +257,9 @@ def _canonical(graph: PoseGraph) -> tuple[PoseGraph, np.ndarray]:
     keys = [*graph.T[:, :3].reshape(graph.num_edges, 12).T[::-1], graph.weight, graph.j, graph.i]
     order = np.lexsort(keys)
     info = None if graph.information is None else graph.information[order]
-    return replace(graph, i=graph.i[order], j=graph.j[order], T=graph.T[order], weight=graph.weight[order],
-                   information=info), order
+    return replace(
+        graph, i=graph.i[order], j=graph.j[order], T=graph.T[order], weight=graph.weight[order], information=info
+    ), order
 
 
 def _usable(graph: PoseGraph) -> PoseGraph:
@@ -222,8 +273,9 @@ def _anchored(poses: np.ndarray, component: np.ndarray) -> np.ndarray:
     return inv_T(poses[first[component]]) @ poses
 
 
-def _readmit(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray,
-             solve: Callable[..., np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _readmit(
+    graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, solve: Callable[..., np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop polish's kept edges re-judged at least-squares optima (``kept_edges_at``), at most
     ``REFIT_ROUNDS`` solves: the placement steps judge edges at poses before least squares and with tolerances
     for registrations good to a few degrees, so on a clean graph with large noise (gtsam's grids: σ ≈ 11°
@@ -270,8 +322,9 @@ def _holding(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray, refit: np.nd
     return kept & ~refit & (part[graph.i] != part[graph.j]) & ~_far(graph, poses)
 
 
-def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[[IterationRecord], None],
-                    iterative: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _loop_placement(
+    graph: PoseGraph, poses: np.ndarray, keep_history: Callable[[IterationRecord], None], iterative: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The loop polish before its last LM (``sync.cycles``): the poses, the (E,) mask of the edges
     consistent with them and every edge's loop support.
 
@@ -291,7 +344,8 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[
     outliers every edge stays and the final LM is plain least squares. Edges negligible from
     the start (below ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
-    from ..factor_graph import edge_information, polish as lm_polish
+    from sghr_gtsam.factor_graph import edge_information
+    from sghr_gtsam.factor_graph import polish as lm_polish
 
     usable = _usable(graph)
     support = triangle_support(usable)
@@ -299,14 +353,22 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[
 
     def record(stage: str, k: int, P: np.ndarray, kept: np.ndarray) -> None:
         residual = rotation_residuals(P[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
-        keep_history(IterationRecord(stage=stage, iteration=k, poses=P, weights=np.where(kept, graph.weight, 0.0),
-                                     residual_deg=np.degrees(residual)))
+        keep_history(
+            IterationRecord(
+                stage=stage,
+                iteration=k,
+                poses=P,
+                weights=np.where(kept, graph.weight, 0.0),
+                residual_deg=np.degrees(residual),
+            )
+        )
 
     def place(P: np.ndarray, votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kept = consistent_edges(usable, P)
         component = connected_components(graph.n, graph.i, graph.j, kept)
-        P = lm_polish(graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component,
-                      iterative=iterative).poses
+        P = lm_polish(
+            graph, P, edge_information(graph, np.where(kept, graph.weight, 0.0)), component, iterative=iterative
+        ).poses
         P = consensus_placement(replace(usable, weight=votes), replace_groups(usable, P, votes))
         return P, consistent_edges(usable, P)
 
@@ -333,8 +395,12 @@ def _loop_placement(graph: PoseGraph, poses: np.ndarray, keep_history: Callable[
     return _anchored(P, connected_components(graph.n, graph.i, graph.j, kept)), kept, support
 
 
-def _overturns(graph: PoseGraph, votes: np.ndarray, challenger: tuple[np.ndarray, np.ndarray],
-               incumbent: tuple[np.ndarray, np.ndarray]) -> bool:
+def _overturns(
+    graph: PoseGraph,
+    votes: np.ndarray,
+    challenger: tuple[np.ndarray, np.ndarray],
+    incumbent: tuple[np.ndarray, np.ndarray],
+) -> bool:
     """Whether the ``challenger`` answer (poses, consistent edges) replaces the ``incumbent``: its consistent edges
     carry more ``votes``, and of the edges one answer fits and the other puts far off (beyond ``FAR`` times the
     consistency tolerances) its share carries at least as many.
@@ -356,8 +422,9 @@ def _far(graph: PoseGraph, poses: np.ndarray) -> np.ndarray:
     return (rot > FAR * MAX_DEG) | (trans > FAR * translation_tolerance(graph))
 
 
-def _robust_placement(graph: PoseGraph, poses: np.ndarray,
-                      keep_history: Callable[[IterationRecord], None]) -> tuple[np.ndarray, np.ndarray]:
+def _robust_placement(
+    graph: PoseGraph, poses: np.ndarray, keep_history: Callable[[IterationRecord], None]
+) -> tuple[np.ndarray, np.ndarray]:
     """The robust polish before its LM: consensus re-placement, GNC, consensus; the poses and the (E,)
     mask of edges consistent with them.
 
@@ -368,18 +435,27 @@ def _robust_placement(graph: PoseGraph, poses: np.ndarray,
     Edges negligible from the start (below
     ``irls.NEGLIGIBLE``) stay out, as in IRLS.
     """
-    from ..factor_graph import edge_information, gnc_tls_poses
+    from sghr_gtsam.factor_graph import edge_information, gnc_tls_poses
 
     usable = _usable(graph)
-    steps = (("consensus", lambda P: consensus_placement(usable, P)),
-             ("gnc", lambda P: gnc_tls_poses(usable, P, edge_information(usable, usable.weight), GNC_ITERS)[0]),
-             ("consensus", lambda P: consensus_placement(usable, P)))
+    steps = (
+        ("consensus", lambda P: consensus_placement(usable, P)),
+        ("gnc", lambda P: gnc_tls_poses(usable, P, edge_information(usable, usable.weight), GNC_ITERS)[0]),
+        ("consensus", lambda P: consensus_placement(usable, P)),
+    )
     for k, (stage, step) in enumerate(steps, 1):
         poses = step(poses)
         kept = consistent_edges(usable, poses)
         residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
-        keep_history(IterationRecord(stage=stage, iteration=k, poses=poses, weights=np.where(kept, graph.weight, 0.0),
-                                     residual_deg=np.degrees(residual)))
+        keep_history(
+            IterationRecord(
+                stage=stage,
+                iteration=k,
+                poses=poses,
+                weights=np.where(kept, graph.weight, 0.0),
+                residual_deg=np.degrees(residual),
+            )
+        )
     return poses, kept
 
 
@@ -444,8 +520,10 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
         raise InputError(f"edge {np.flatnonzero(bad)[0]}: T is not a rigid transform")
     far = np.flatnonzero(np.abs(T[:, :3, 3]).max(axis=1) > _SQUARABLE[1])
     if len(far):  # the objective squares them: overflow warnings, then poses of 1e199
-        raise InputError(f"edge {far[0]}: translation {np.abs(T[far[0], :3, 3]).max():.3g} beyond what double "
-                         f"precision can square ({_SQUARABLE[1]:.2g})")
+        raise InputError(
+            f"edge {far[0]}: translation {np.abs(T[far[0], :3, 3]).max():.3g} beyond what double "
+            f"precision can square ({_SQUARABLE[1]:.2g})"
+        )
     info = graph.information
     if info is not None:
         info = np.asarray(info, dtype=float)
@@ -459,9 +537,11 @@ def checked_graph(graph: PoseGraph) -> PoseGraph:
         bad = np.flatnonzero((eigenvalues[:, 0] < low) | (eigenvalues[:, -1] > high))
         if len(bad):
             e = bad[0]
-            raise InputError(f"edge {e}: information's eigenvalues {eigenvalues[e, 0]:.3g} to {eigenvalues[e, -1]:.3g} "
-                             f"leave the range double precision can square ({low:.2g} to {high:.2g}); scale the "
-                             "graph's information")
+            raise InputError(
+                f"edge {e}: information's eigenvalues {eigenvalues[e, 0]:.3g} to {eigenvalues[e, -1]:.3g} "
+                f"leave the range double precision can square ({low:.2g} to {high:.2g}); scale the "
+                "graph's information"
+            )
     T = T.copy()
     T[:, :3, :3] = project_to_so3(R)  # measured rotations can be off-orthonormal by ~1e-4 (3DMatch)
     return replace(graph, n=n, i=i.astype(np.int64), j=j.astype(np.int64), T=T, weight=w, information=info)

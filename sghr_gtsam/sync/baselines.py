@@ -34,12 +34,12 @@ from functools import partial
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import InputError
-from ..se3 import inv_T, make_T, project_to_so3
-from ..types import PoseGraph, SyncResult
-from .irls import solve_poses
-from .rotation import connected_components, rotation_residuals, spectral_rotations, split_components
-from .translation import solve_translations
+from sghr_gtsam.errors import InputError
+from sghr_gtsam.se3 import inv_T, make_T, project_to_so3
+from sghr_gtsam.sync.irls import solve_poses
+from sghr_gtsam.sync.rotation import connected_components, rotation_residuals, spectral_rotations, split_components
+from sghr_gtsam.sync.translation import solve_translations
+from sghr_gtsam.types import PoseGraph, SyncResult
 
 IRLS_ITERS = 50
 """Iteration cap of the IRLS baselines (SGHR's M)."""
@@ -79,8 +79,10 @@ def rotavg(graph: PoseGraph, iters: int = IRLS_ITERS) -> SyncResult:
 def eigse3(graph: PoseGraph, iters: int = IRLS_ITERS) -> SyncResult:
     largest = np.bincount(connected_components(graph.n, graph.i, graph.j, graph.weight > 0)).max()
     if largest > EIGSE3_MAX_NODES:
-        raise InputError(f"eigse3 solves a dense eigenproblem of 4N x 4N: at most {EIGSE3_MAX_NODES:,} poses in a "
-                         f"connected part, got {largest:,} (use another method)")
+        raise InputError(
+            f"eigse3 solves a dense eigenproblem of 4N x 4N: at most {EIGSE3_MAX_NODES:,} poses in a "
+            f"connected part, got {largest:,} (use another method)"
+        )
     w0 = graph.weight
     w = w0.copy()
     for _ in range(iters):
@@ -94,16 +96,17 @@ def eigse3(graph: PoseGraph, iters: int = IRLS_ITERS) -> SyncResult:
 
 
 def gnc_tls(graph: PoseGraph, iters: int = 100) -> SyncResult:
-    from ..factor_graph import edge_information, gnc_tls_poses
+    from sghr_gtsam.factor_graph import edge_information, gnc_tls_poses
 
-    poses, gnc_weights = gnc_tls_poses(graph, solve_poses(graph, graph.weight),
-                                       edge_information(graph, graph.weight), iters)
+    poses, gnc_weights = gnc_tls_poses(
+        graph, solve_poses(graph, graph.weight), edge_information(graph, graph.weight), iters
+    )
     return _result(graph, poses, graph.weight * gnc_weights)
 
 
 def shonan(graph: PoseGraph, iters: int = 10) -> SyncResult:
     """``iters``: the highest rank p of the Riemannian staircase (gtsam's default ``max_p``)."""
-    from ..factor_graph import edge_information, shonan_rotations
+    from sghr_gtsam.factor_graph import edge_information, shonan_rotations
 
     init = spectral_rotations(graph.n, graph.i, graph.j, graph.T[:, :3, :3], graph.weight)
     R = shonan_rotations(graph, init, edge_information(graph, graph.weight), iters)
@@ -113,7 +116,7 @@ def shonan(graph: PoseGraph, iters: int = 10) -> SyncResult:
 
 def oracle(graph: PoseGraph, inliers: np.ndarray, iters: int = 100) -> SyncResult:
     """Levenberg–Marquardt on the edges ``inliers`` marks (the project's polish), from their spectral estimate."""
-    from ..factor_graph import edge_information, polish
+    from sghr_gtsam.factor_graph import edge_information, polish
 
     w = np.where(inliers, graph.weight, 0.0)
     component = connected_components(graph.n, graph.i, graph.j, w > 0)
@@ -128,12 +131,14 @@ def open3d_line_process(graph: PoseGraph, iters: int = 100, odometry: bool = Tru
     import open3d as o3d
     import psutil
 
-    from ..factor_graph import edge_information
+    from sghr_gtsam.factor_graph import edge_information
 
     needed, available = 2 * (6 * graph.n) ** 2 * 8, psutil.virtual_memory().available  # its dense 6N x 6N system
     if needed > available:  # open3d's own std::bad_alloc names no cause
-        raise InputError(f"open3d's global optimization holds a dense system of 6N x 6N: {graph.n:,} poses need about "
-                         f"{needed / 2**30:.1f} GB, {available / 2**30:.1f} GB are available (use another method)")
+        raise InputError(
+            f"open3d's global optimization holds a dense system of 6N x 6N: {graph.n:,} poses need about "
+            f"{needed / 2**30:.1f} GB, {available / 2**30:.1f} GB are available (use another method)"
+        )
     reg = o3d.pipelines.registration
     information = edge_information(graph, graph.weight)  # gtsam's order [rotation, translation] is open3d's too
     pose_graph = reg.PoseGraph()
@@ -144,9 +149,12 @@ def open3d_line_process(graph: PoseGraph, iters: int = 100, odometry: bool = Tru
         # open3d's edge maps its source into its target: T_ij takes scan j (source) into scan i (target).
         uncertain = not (odometry and abs(a - b) == 1)
         pose_graph.edges.append(reg.PoseGraphEdge(b, a, graph.T[e], information[e], uncertain=uncertain))
-    option = reg.GlobalOptimizationOption(max_correspondence_distance=OPEN3D_MAX_CORRESPONDENCE,
-                                          edge_prune_threshold=OPEN3D_PRUNE,
-                                          preference_loop_closure=OPEN3D_PREFERENCE, reference_node=0)
+    option = reg.GlobalOptimizationOption(
+        max_correspondence_distance=OPEN3D_MAX_CORRESPONDENCE,
+        edge_prune_threshold=OPEN3D_PRUNE,
+        preference_loop_closure=OPEN3D_PREFERENCE,
+        reference_node=0,
+    )
     criteria = reg.GlobalOptimizationConvergenceCriteria()
     criteria.max_iteration = iters
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):

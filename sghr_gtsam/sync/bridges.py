@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import breadth_first_order
 
-from .rotation import connected_components
+from sghr_gtsam.sync.rotation import connected_components
 
 
 def bridge_edges(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
@@ -32,8 +32,10 @@ def bridge_edges(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None =
     # One BFS over a virtual root joined to the first node of every part gives a spanning forest.
     label = connected_components(n, ua, ub, np.ones(len(keys), dtype=bool))
     roots = np.unique(label, return_index=True)[1]
-    A = sp.csr_matrix((np.ones(2 * len(keys) + len(roots)),
-                       (np.r_[ua, ub, np.full(len(roots), n)], np.r_[ub, ua, roots])), shape=(n + 1, n + 1))
+    A = sp.csr_matrix(
+        (np.ones(2 * len(keys) + len(roots)), (np.r_[ua, ub, np.full(len(roots), n)], np.r_[ub, ua, roots])),
+        shape=(n + 1, n + 1),
+    )
     order, pred = breadth_first_order(A, n, directed=False, return_predecessors=True)
     order = order[1:]  # without the virtual root
     parent = pred.copy()
@@ -66,11 +68,14 @@ def bridge_edges(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None =
         u, v = np.where(move, up[k][u], u), np.where(move, up[k][v], v)
     lca = np.where(u == v, u, parent[u])
 
-    cover = (np.bincount(ua[~is_tree], minlength=n + 1) + np.bincount(ub[~is_tree], minlength=n + 1)
-             - 2 * np.bincount(lca, minlength=n + 1))
+    cover = (
+        np.bincount(ua[~is_tree], minlength=n + 1)
+        + np.bincount(ub[~is_tree], minlength=n + 1)
+        - 2 * np.bincount(lca, minlength=n + 1)
+    )
     bounds = np.searchsorted(depth[order], np.arange(int(depth.max()) + 2))  # BFS order is by depth
     for d in range(int(depth.max()), 0, -1):  # subtree sums, deepest level first
-        at = order[bounds[d]:bounds[d + 1]]
+        at = order[bounds[d] : bounds[d + 1]]
         np.add.at(cover, parent[at], cover[at])
     bridge_key = np.zeros(len(keys), dtype=bool)
     bridge_key[tree_pos] = (cover[child] == 0) & (count[tree_pos] == 1)

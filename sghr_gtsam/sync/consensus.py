@@ -23,8 +23,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.special import chdtri
 
-from ..se3 import inv_T, rotation_angle
-from ..types import PoseGraph
+from sghr_gtsam.se3 import inv_T, rotation_angle
+from sghr_gtsam.types import PoseGraph
 
 MAX_DEG = 10.0
 """Rotation tolerance (degrees) for an edge to agree with the poses: several times the ~2° error of a good
@@ -54,8 +54,9 @@ def edge_residuals(graph: PoseGraph, poses: np.ndarray) -> tuple[np.ndarray, np.
     return E, np.degrees(rotation_angle(E[:, :3, :3])), np.linalg.norm(E[:, :3, 3], axis=1)
 
 
-def consistent_edges(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
-                     max_trans: float | None = None) -> np.ndarray:
+def consistent_edges(
+    graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None
+) -> np.ndarray:
     """(E,) bool: edges with positive weight whose ``T_ij⁻¹ T_i⁻¹ T_j`` is within ``max_deg`` and
     ``max_trans`` (default ``translation_tolerance``) of the identity, or, with ``graph.information``, within
     the edge's own noise (``within_noise``): the fixed tolerances suit registrations good to a few degrees, and
@@ -86,8 +87,13 @@ def within_noise(E: np.ndarray, information: np.ndarray) -> np.ndarray:
     return mahalanobis(E, information) <= chdtri(6, 1.0 - NOISE_QUANTILE)
 
 
-def consensus_placement(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
-                        max_trans: float | None = None, max_sweeps: int = MAX_SWEEPS) -> np.ndarray:
+def consensus_placement(
+    graph: PoseGraph,
+    poses: np.ndarray,
+    max_deg: float = MAX_DEG,
+    max_trans: float | None = None,
+    max_sweeps: int = MAX_SWEEPS,
+) -> np.ndarray:
     """``poses`` with every scan moved to its best-supported placement (module doc)."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     poses = poses.copy()
@@ -109,8 +115,9 @@ def consensus_placement(graph: PoseGraph, poses: np.ndarray, max_deg: float = MA
     return poses
 
 
-def placement_support(graph: PoseGraph, poses: np.ndarray, s: int, edges: np.ndarray, max_deg: float,
-                      max_trans: float) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+def placement_support(
+    graph: PoseGraph, poses: np.ndarray, s: int, edges: np.ndarray, max_deg: float, max_trans: float
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
     """The placements of scan ``s`` its ``edges`` propose from their partners' ``poses`` (k, 4, 4), the
     support (summed ``w⁰`` of the agreeing proposals) of each, the support of its current pose, which
     proposals agree with the current pose (k,), and how many proposals agree with each (k,)."""
@@ -121,14 +128,14 @@ def placement_support(graph: PoseGraph, poses: np.ndarray, s: int, edges: np.nda
     proposals = poses[partner] @ np.where(as_j[:, None, None], T, inv_T(T))
     candidates = np.concatenate([proposals, poses[s][None]])
     D = inv_T(candidates)[:, None] @ proposals[None]
-    agree = ((np.degrees(rotation_angle(D[..., :3, :3])) <= max_deg)
-             & (np.linalg.norm(candidates[:, None, :3, 3] - proposals[None, :, :3, 3], axis=-1) <= max_trans))
+    agree = (np.degrees(rotation_angle(D[..., :3, :3])) <= max_deg) & (
+        np.linalg.norm(candidates[:, None, :3, 3] - proposals[None, :, :3, 3], axis=-1) <= max_trans
+    )
     support = agree @ graph.weight[edges]
     return proposals, support[:-1], float(support[-1]), agree[-1], agree[:-1].sum(axis=1)
 
 
-def _replace(s: int, edges: np.ndarray, graph: PoseGraph, poses: np.ndarray, max_deg: float,
-             max_trans: float) -> bool:
+def _replace(s: int, edges: np.ndarray, graph: PoseGraph, poses: np.ndarray, max_deg: float, max_trans: float) -> bool:
     """Move scan ``s`` (in place) to the proposal of its ``edges`` with the most support, if that beats the
     support of its current pose by ``MARGIN``."""
     proposals, support, current, _, agreeing = placement_support(graph, poses, s, edges, max_deg, max_trans)

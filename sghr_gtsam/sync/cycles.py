@@ -45,10 +45,9 @@ from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
-from ..se3 import inv_T, rotation_angle
-from ..types import PoseGraph
-from .bridges import blocks as block_labels
-from .consensus import (
+from sghr_gtsam.se3 import inv_T, rotation_angle
+from sghr_gtsam.sync.bridges import blocks as block_labels
+from sghr_gtsam.sync.consensus import (
     MARGIN,
     MAX_DEG,
     consistent_edges,
@@ -57,6 +56,7 @@ from .consensus import (
     translation_tolerance,
     within_noise,
 )
+from sghr_gtsam.types import PoseGraph
 
 
 def triangles(graph: PoseGraph) -> np.ndarray:
@@ -87,8 +87,9 @@ def _directed(graph: PoseGraph, e: np.ndarray, frm: np.ndarray) -> np.ndarray:
     return np.where((graph.i[e] == frm)[:, None, None], T, inv_T(T))
 
 
-def triangle_support(graph: PoseGraph, max_deg: float = MAX_DEG, max_trans: float | None = None,
-                     tri: np.ndarray | None = None) -> np.ndarray:
+def triangle_support(
+    graph: PoseGraph, max_deg: float = MAX_DEG, max_trans: float | None = None, tri: np.ndarray | None = None
+) -> np.ndarray:
     """(E,) number of consistent triangles (module doc) each edge is part of."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     tri = triangles(graph) if tri is None else tri
@@ -101,7 +102,7 @@ def triangle_support(graph: PoseGraph, max_deg: float = MAX_DEG, max_trans: floa
     b = np.maximum(graph.i[e_ab], graph.j[e_ab])
     c = np.maximum(graph.i[e_ca], graph.j[e_ca])
     C = _directed(graph, e_ab, a) @ _directed(graph, e_bc, b) @ _directed(graph, e_ca, c)
-    ok = ((np.degrees(rotation_angle(C[:, :3, :3])) <= max_deg) & (np.linalg.norm(C[:, :3, 3], axis=1) <= max_trans))
+    ok = (np.degrees(rotation_angle(C[:, :3, :3])) <= max_deg) & (np.linalg.norm(C[:, :3, 3], axis=1) <= max_trans)
     for col in tri.T:
         support += np.bincount(col[ok], minlength=graph.num_edges)
     return support
@@ -142,7 +143,9 @@ def inlier_odds(weight: np.ndarray, kept: np.ndarray, bins: int = ODDS_BINS) -> 
     return np.where(used, odds[label], 0.0)
 
 
-def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None) -> np.ndarray:
+def grow(
+    graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None
+) -> np.ndarray:
     """(N, 4, 4) poses grown outward from the most credible edge (module doc); edges with ``cred <= 0`` are
     ignored, and a scan without such edges stays at the identity."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
@@ -165,7 +168,7 @@ def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float
     version = np.zeros(n, dtype=np.int64)
     heap: list[tuple[int, float, int, int]] = []
 
-    max_trans2 = max_trans ** 2
+    max_trans2 = max_trans**2
 
     def evaluate(scans: np.ndarray) -> None:
         """Push each scan of ``scans`` (unplaced, each with a placed partner) with its best placement."""
@@ -185,8 +188,9 @@ def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float
         p = np.repeat(np.arange(len(rows)), span)
         q = np.repeat(first[seg] - (np.cumsum(span) - span), span) + np.arange(len(p))
         # cos of the angle between two proposals: (trace(R_aᵀ R_b) − 1) / 2, the trace as a flat dot product.
-        agree = (((np.einsum("ij,ij->i", R[p], R[q]) - 1.0) / 2.0 >= cos_tol)
-                 & (((t[p] - t[q]) ** 2).sum(axis=-1) <= max_trans2))
+        agree = ((np.einsum("ij,ij->i", R[p], R[q]) - 1.0) / 2.0 >= cos_tol) & (
+            ((t[p] - t[q]) ** 2).sum(axis=-1) <= max_trans2
+        )
         score = np.bincount(p, agree * c_inc[rows][q], len(rows))
         top = np.flatnonzero(score == np.maximum.reduceat(score, first)[seg])
         best = top[np.unique(seg[top], return_index=True)[1]]  # the first best row of each scan
@@ -208,7 +212,7 @@ def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float
     def place(s: int, pose: np.ndarray) -> None:
         poses[s] = pose
         placed[s] = True
-        partners = np.unique(others[start[s]:start[s + 1]])
+        partners = np.unique(others[start[s] : start[s + 1]])
         partners = partners[~placed[partners]]
         if len(partners):
             evaluate(partners)
@@ -231,8 +235,14 @@ def grow(graph: PoseGraph, cred: np.ndarray, support: np.ndarray, max_deg: float
     return poses
 
 
-def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_deg: float = MAX_DEG,
-                   max_trans: float | None = None, max_rounds: int = 10) -> np.ndarray:
+def replace_groups(
+    graph: PoseGraph,
+    poses: np.ndarray,
+    cred: np.ndarray,
+    max_deg: float = MAX_DEG,
+    max_trans: float | None = None,
+    max_rounds: int = 10,
+) -> np.ndarray:
     """``poses`` with whole groups of scans moved where their edges to the other scans agree they belong.
 
     The groups are the blocks of the edges consistent with ``poses`` once the bridges are cut: scans held
@@ -264,8 +274,9 @@ def replace_groups(graph: PoseGraph, poses: np.ndarray, cred: np.ndarray, max_de
             centre = poses[nodes, :3, 3].mean(axis=0)
             moved_centre = M[:, :3, :3] @ centre + M[:, :3, 3]
             R = M[:, :3, :3]
-            agree = (((np.einsum("kab,lab->kl", R, R) - 1.0) / 2.0 >= cos_tol)
-                     & (np.linalg.norm(moved_centre[:, None] - moved_centre[None], axis=-1) <= max_trans))
+            agree = ((np.einsum("kab,lab->kl", R, R) - 1.0) / 2.0 >= cos_tol) & (
+                np.linalg.norm(moved_centre[:, None] - moved_centre[None], axis=-1) <= max_trans
+            )
             support = agree[:, :-1] @ cred[cross]
             best = int(np.argmax(support[:-1]))
             if agree[best, :-1].sum() >= 2 and support[best] > support[-1] and not agree[best, -1]:
@@ -284,9 +295,15 @@ _CAPACITY = 1000
 """Votes become integer capacities (scipy's maximum flow) at this resolution."""
 
 
-def cut_moves(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, max_deg: float = MAX_DEG,
-              max_trans: float | None = None, max_rounds: int = CUT_ROUNDS,
-              families: int = CUT_FAMILIES) -> np.ndarray:
+def cut_moves(
+    graph: PoseGraph,
+    poses: np.ndarray,
+    votes: np.ndarray,
+    max_deg: float = MAX_DEG,
+    max_trans: float | None = None,
+    max_rounds: int = CUT_ROUNDS,
+    families: int = CUT_FAMILIES,
+) -> np.ndarray:
     """``poses`` with one side of a minimum cut moved where the dropped edges across it agree it belongs.
 
     ``replace_groups`` moves blocks hung on one edge; a group held in a wrong place by several consistent
@@ -322,8 +339,15 @@ def cut_moves(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, max_deg: f
     return poses
 
 
-def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.ndarray, max_deg: float,
-              max_trans: float, count: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+def _families(
+    graph: PoseGraph,
+    poses: np.ndarray,
+    votes: np.ndarray,
+    kept: np.ndarray,
+    max_deg: float,
+    max_trans: float,
+    count: int,
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
     """The ``count`` heaviest families of ``cut_moves`` (two edges or more, no shared members): each its fixed
     ends, its moving ends, its correction (that of its heaviest reading) and its votes."""
     dropped = np.flatnonzero((votes > 0) & ~kept)
@@ -339,9 +363,11 @@ def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.n
     # ‖R_a − R_b‖_F = 2√2 sin(θ/2): the rotation test is a radius search, exact up to rounding.
     radius = 2.0 * np.sqrt(2.0) * np.sin(np.radians(max_deg) / 2.0) * (1.0 + 1e-12)
     a, b = cKDTree(R.reshape(-1, 9)).query_pairs(radius, output_type="ndarray").T.astype(np.int64)
-    ok = ((edge[a] != edge[b])
-          & (np.linalg.norm(np.einsum("kab,kb->ka", R[b] - R[a], p[a]) + t[b] - t[a], axis=1) <= max_trans)
-          & (np.linalg.norm(np.einsum("kab,kb->ka", R[a] - R[b], p[b]) + t[a] - t[b], axis=1) <= max_trans))
+    ok = (
+        (edge[a] != edge[b])
+        & (np.linalg.norm(np.einsum("kab,kb->ka", R[b] - R[a], p[a]) + t[b] - t[a], axis=1) <= max_trans)
+        & (np.linalg.norm(np.einsum("kab,kb->ka", R[a] - R[b], p[b]) + t[a] - t[b], axis=1) <= max_trans)
+    )
     x, y = np.r_[a[ok], b[ok]], np.r_[b[ok], a[ok]]
     # An edge whose two readings both agree with x says nothing about which side moves.
     key = x * graph.num_edges + edge[y]
@@ -360,7 +386,7 @@ def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.n
             break
         if taken[r]:
             continue
-        members = np.r_[r, y[start[r]:start[r + 1]]]
+        members = np.r_[r, y[start[r] : start[r + 1]]]
         members = members[~taken[members]]
         taken[members] = True
         # A scan both fixed and moved by the family: the role with fewer votes loses its edges.
@@ -374,8 +400,9 @@ def _families(graph: PoseGraph, poses: np.ndarray, votes: np.ndarray, kept: np.n
     return out
 
 
-def _cut_side(graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.ndarray, moving: np.ndarray,
-              family_votes: float) -> np.ndarray | None:
+def _cut_side(
+    graph: PoseGraph, kept: np.ndarray, votes: np.ndarray, fixed: np.ndarray, moving: np.ndarray, family_votes: float
+) -> np.ndarray | None:
     """The scans on ``moving``'s side of a minimum cut of the ``kept`` edges (capacities: ``votes``) between
     ``fixed`` and ``moving`` (disjoint), if the cut is not empty, ``family_votes`` exceed its votes by
     ``consensus.MARGIN`` (as a single scan's move must) and it leaves two scans or more on each side; else None."""
@@ -412,8 +439,9 @@ at the base tolerances: registration noise larger than those (3DMatch-like: 8 cm
 against a base of ~9 cm, tails to 25 cm) would otherwise drop right edges and cost accuracy at no outliers at all."""
 
 
-def kept_edges_at(graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG,
-                  max_trans: float | None = None) -> np.ndarray:
+def kept_edges_at(
+    graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None
+) -> np.ndarray:
     """(E,) bool: edges consistent with ``poses`` at the base tolerances widened to ``SPREAD`` times the
     median residual of the edges consistent at the base tolerances, or, with ``graph.information``, within
     their own noise (``consensus.within_noise``; gtsam's grid graphs have σ ≈ 15° on every edge)."""
@@ -465,5 +493,14 @@ _CHI2_6_MEDIAN = float(chdtri(6, 0.5))
 _SHOWN_NOISE_ROUNDS = 10  # the factor settles in 2-4 (a truncation at ~6.7× the median barely moves a median)
 
 
-__all__ = ["triangles", "triangle_support", "credibility", "inlier_odds", "grow", "replace_groups", "cut_moves",
-           "kept_edges_at", "within_shown_noise"]
+__all__ = [
+    "triangles",
+    "triangle_support",
+    "credibility",
+    "inlier_odds",
+    "grow",
+    "replace_groups",
+    "cut_moves",
+    "kept_edges_at",
+    "within_shown_noise",
+]

@@ -9,9 +9,9 @@ import numpy as np
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from ..se3 import inv_T
-from ..types import PoseGraph
-from .consensus import MAX_DEG
+from sghr_gtsam.se3 import inv_T
+from sghr_gtsam.sync.consensus import MAX_DEG
+from sghr_gtsam.types import PoseGraph
 
 _CHUNK = 512
 """Candidate moves compared at once (bounds the pairwise arrays' memory)."""
@@ -48,8 +48,9 @@ def linkage_groups(graph: PoseGraph, kept: np.ndarray, main: np.ndarray) -> Iter
         yield group
 
 
-def agreeing_edges(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray,
-                   tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+def agreeing_edges(
+    graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray, tolerance: float
+) -> tuple[np.ndarray, np.ndarray]:
     """The largest-weight subset of ``edges`` (each leaving ``group``) that agree on one rigid move of the group
     in the world: rotations within ``consensus.MAX_DEG`` and the group's centre moved to within ``tolerance``;
     and that move (4, 4), as its heaviest-supported edge measures it (left-multiplies the group's poses)."""
@@ -65,7 +66,7 @@ def agreeing_edges(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges
     cos_half = np.cos(np.radians(MAX_DEG) / 2)
     best, best_support = 0, -1.0
     for s in range(0, len(edges), _CHUNK):
-        agree = (np.abs(q[s:s + _CHUNK] @ q.T) >= cos_half) & (cdist(moved[s:s + _CHUNK], moved) <= tolerance)
+        agree = (np.abs(q[s : s + _CHUNK] @ q.T) >= cos_half) & (cdist(moved[s : s + _CHUNK], moved) <= tolerance)
         support = agree @ weight
         k = int(np.argmax(support))
         if support[k] > best_support:

@@ -35,10 +35,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..se3 import make_T
-from ..types import IterationRecord, PoseGraph
-from .rotation import rotation_residuals, spectral_rotations
-from .translation import solve_translations
+from sghr_gtsam.se3 import make_T
+from sghr_gtsam.sync.rotation import rotation_residuals, spectral_rotations
+from sghr_gtsam.sync.translation import solve_translations
+from sghr_gtsam.types import IterationRecord, PoseGraph
 
 REWEIGHTS = ("paper", "authors")
 ITERATION_TOL = 1e-7
@@ -76,8 +76,14 @@ def kept_edges(w: np.ndarray, min_weight: float, w0: np.ndarray) -> np.ndarray:
     return usable_edges(w) & (w >= min_weight * w0)
 
 
-def solve_poses(graph: PoseGraph, w: np.ndarray, *, w_trans: np.ndarray | None = None,
-                init: np.ndarray | None = None, cache: dict | None = None) -> np.ndarray:
+def solve_poses(
+    graph: PoseGraph,
+    w: np.ndarray,
+    *,
+    w_trans: np.ndarray | None = None,
+    init: np.ndarray | None = None,
+    cache: dict | None = None,
+) -> np.ndarray:
     """One synchronization pass: spectral rotations, then least-squares translations (weights ``w_trans``,
     default ``w``). Edges with zero weight are ignored; every part is anchored at its first node.
     ``init``, ``cache``: speed-ups for the rotations (``spectral_rotations``)."""
@@ -98,9 +104,15 @@ def schedule_weights(M: int, schedule: str) -> np.ndarray:
     raise ValueError(f"unknown schedule {schedule!r}; choose from {SCHEDULES}")
 
 
-def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedule: str = "history",
-         min_weight: float = 1e-3,
-         on_iteration: Callable[[IterationRecord], None] | None = None) -> IrlsResult:
+def irls(
+    graph: PoseGraph,
+    *,
+    iters: int = 50,
+    reweight: str = "authors",
+    schedule: str = "history",
+    min_weight: float = 1e-3,
+    on_iteration: Callable[[IterationRecord], None] | None = None,
+) -> IrlsResult:
     """Run ``iters`` reweighting iterations from the weights ``graph.weight`` (``w⁰``); see the module doc."""
     if reweight not in REWEIGHTS:
         raise ValueError(f"unknown reweight {reweight!r}; choose from {REWEIGHTS}")
@@ -126,8 +138,9 @@ def irls(graph: PoseGraph, *, iters: int = 50, reweight: str = "authors", schedu
         else:
             exponent = exponent + scale * g[m - 1] * to_unit(delta)
         w = w0 * np.exp(-exponent)
-        record = IterationRecord(stage="irls", iteration=m, poses=make_T(R, t), weights=w.copy(),
-                                 residual_deg=np.degrees(delta))
+        record = IterationRecord(
+            stage="irls", iteration=m, poses=make_T(R, t), weights=w.copy(), residual_deg=np.degrees(delta)
+        )
         history.append(record)
         if on_iteration is not None:
             on_iteration(record)

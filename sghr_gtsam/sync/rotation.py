@@ -24,10 +24,11 @@ import warnings
 import numpy as np
 import scipy.linalg
 import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, connected_components as _cc, minimum_spanning_tree
+from scipy.sparse.csgraph import breadth_first_order, minimum_spanning_tree
+from scipy.sparse.csgraph import connected_components as _cc
 from scipy.sparse.linalg import LinearOperator, lobpcg, splu
 
-from ..se3 import project_to_so3
+from sghr_gtsam.se3 import project_to_so3
 
 DENSE_NODES = 128
 """Parts with fewer nodes use a dense eigendecomposition: a 90×90 ``eigh`` takes under a millisecond, while
@@ -84,10 +85,10 @@ def split_components(labels: np.ndarray, i: np.ndarray, j: np.ndarray, keep: np.
     edge_order = kept[np.argsort(labels[i[kept]], kind="stable")]
     edge_bounds = np.searchsorted(labels[i[edge_order]], np.arange(labels.max() + 2))
     for c in range(labels.max() + 1):
-        edges = edge_order[edge_bounds[c]:edge_bounds[c + 1]]
+        edges = edge_order[edge_bounds[c] : edge_bounds[c + 1]]
         if len(edges) == 0:
             continue
-        nodes = node_order[node_bounds[c]:node_bounds[c + 1]]
+        nodes = node_order[node_bounds[c] : node_bounds[c + 1]]
         local[nodes] = np.arange(len(nodes))
         yield nodes, edges, local[i[edges]], local[j[edges]]
 
@@ -101,13 +102,26 @@ def laplacian_map(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, dense: bo
     r = np.repeat(np.arange(3), 3)
     c = np.tile(np.arange(3), 3)
     d = np.arange(3)
-    rows = np.concatenate([((3 * i)[:, None] + r).ravel(), ((3 * j)[:, None] + r).ravel(),
-                           ((3 * i)[:, None] + d).ravel(), ((3 * j)[:, None] + d).ravel()])
-    cols = np.concatenate([((3 * j)[:, None] + c).ravel(), ((3 * i)[:, None] + c).ravel(),
-                           ((3 * i)[:, None] + d).ravel(), ((3 * j)[:, None] + d).ravel()])
+    rows = np.concatenate(
+        [
+            ((3 * i)[:, None] + r).ravel(),
+            ((3 * j)[:, None] + r).ravel(),
+            ((3 * i)[:, None] + d).ravel(),
+            ((3 * j)[:, None] + d).ravel(),
+        ]
+    )
+    cols = np.concatenate(
+        [
+            ((3 * j)[:, None] + c).ravel(),
+            ((3 * i)[:, None] + c).ravel(),
+            ((3 * i)[:, None] + d).ravel(),
+            ((3 * j)[:, None] + d).ravel(),
+        ]
+    )
     vals = np.concatenate([-R.reshape(-1), -np.swapaxes(R, 1, 2).reshape(-1), np.ones(6 * e)])
-    edge = np.concatenate([np.repeat(np.arange(e), 9), np.repeat(np.arange(e), 9),
-                           np.repeat(np.arange(e), 3), np.repeat(np.arange(e), 3)])
+    edge = np.concatenate(
+        [np.repeat(np.arange(e), 9), np.repeat(np.arange(e), 9), np.repeat(np.arange(e), 3), np.repeat(np.arange(e), 3)]
+    )
     flat = rows * (3 * n) + cols
     if dense:
         return sp.csc_matrix((vals, (flat, edge)), shape=(9 * n * n, e))
@@ -116,8 +130,9 @@ def laplacian_map(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, dense: bo
     return K, (keys % (3 * n)).astype(np.int32), np.searchsorted(keys // (3 * n), np.arange(3 * n + 1)).astype(np.int32)
 
 
-def connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                         laplacian=None) -> sp.csc_matrix:
+def connection_laplacian(
+    n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray, laplacian=None
+) -> sp.csc_matrix:
     """Sparse 3n×3n weighted connection Laplacian of edges ``(i, j, R_ij, w)``; ``laplacian``: their
     ``laplacian_map`` if already built."""
     K, indices, indptr = laplacian_map(n, i, j, R) if laplacian is None else laplacian
@@ -154,7 +169,7 @@ def _heavy(A: sp.csc_matrix) -> bool:
     size, entries = A.shape[0], A.nnz
     if _last_judged and _last_judged[0][0] == size and abs(entries - _last_judged[0][1]) <= _SAME_GRAPH * entries:
         return _last_judged[0][2]
-    from .fill import direct_cost
+    from sghr_gtsam.sync.fill import direct_cost
 
     upper = sp.triu(A, 1).tocoo()
     heavy = direct_cost(size, upper.row, upper.col, dof=1) > FACTOR_FLOPS
@@ -190,15 +205,24 @@ def scalar_laplacian(n: int, i: np.ndarray, j: np.ndarray, w: np.ndarray, shift:
     return (sp.diags(degree + shift) - W).tocsc()
 
 
-def dense_connection_laplacian(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                               laplacian=None) -> np.ndarray:
+def dense_connection_laplacian(
+    n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray, laplacian=None
+) -> np.ndarray:
     """``connection_laplacian`` as a dense array (small parts); ``laplacian``: their dense ``laplacian_map``."""
     K = laplacian_map(n, i, j, R, dense=True) if laplacian is None else laplacian
     return (K @ w).reshape(3 * n, 3 * n)
 
 
-def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                       init: np.ndarray | None = None, cache: dict | None = None, tol: float = TOL) -> np.ndarray:
+def spectral_rotations(
+    n: int,
+    i: np.ndarray,
+    j: np.ndarray,
+    R: np.ndarray,
+    w: np.ndarray,
+    init: np.ndarray | None = None,
+    cache: dict | None = None,
+    tol: float = TOL,
+) -> np.ndarray:
     """Absolute rotations ``R_i`` (n, 3, 3) from relative rotations ``R_ij = R_iᵀR_j`` with weights ``w``.
 
     Edges with ``w <= 0`` are ignored; every connected part is solved on its own and its first node is
@@ -227,11 +251,22 @@ def spectral_rotations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: n
         if "map" not in state:
             state["map"] = laplacian_map(m, li, lj, R[edges], dense=m < DENSE_NODES)
         if m < DENSE_NODES:
-            V = _dense_bottom(dense_connection_laplacian(m, li, lj, None, w[edges], state["map"]),
-                              None if init is None else init[nodes], tol)
+            V = _dense_bottom(
+                dense_connection_laplacian(m, li, lj, None, w[edges], state["map"]),
+                None if init is None else init[nodes],
+                tol,
+            )
         else:
-            V = _sparse_bottom(connection_laplacian(m, li, lj, None, w[edges], state["map"]), li, lj, R[edges],
-                               w[edges], None if init is None else init[nodes], state, tol)
+            V = _sparse_bottom(
+                connection_laplacian(m, li, lj, None, w[edges], state["map"]),
+                li,
+                lj,
+                R[edges],
+                w[edges],
+                None if init is None else init[nodes],
+                state,
+                tol,
+            )
         Rs = _blocks_to_rotations(V)
         out[nodes] = Rs[0].T @ Rs
     return out
@@ -245,13 +280,18 @@ def _dense_bottom(L: np.ndarray, init: np.ndarray | None = None, tol: float = TO
         m = len(L)
         degree = L.diagonal()
         A = L.copy()
-        A.flat[::m + 1] += _SHIFT * degree.mean()
+        A.flat[:: m + 1] += _SHIFT * degree.mean()
         # LAPACK directly: scipy's wrappers cost as much as the 180×180 factorization itself. A is symmetric,
         # so its transpose is the column-major array LAPACK factors in place.
         factor, info = scipy.linalg.lapack.dpotrf(A.T, lower=1, clean=0, overwrite_a=1)
         if info == 0:
-            V, done = _inverse_iteration(L, lambda Y: scipy.linalg.lapack.dpotrs(factor, Y, lower=1)[0],
-                                         np.swapaxes(init, 1, 2).reshape(-1, 3), tol * degree.max(), _DENSE_STEPS)
+            V, done = _inverse_iteration(
+                L,
+                lambda Y: scipy.linalg.lapack.dpotrs(factor, Y, lower=1)[0],
+                np.swapaxes(init, 1, 2).reshape(-1, 3),
+                tol * degree.max(),
+                _DENSE_STEPS,
+            )
             if done:
                 return V
     try:
@@ -285,8 +325,16 @@ def _conjugated(factor, est: np.ndarray, Y: np.ndarray) -> np.ndarray:
     return (np.swapaxes(est, 1, 2) @ Z).reshape(3 * n, k)
 
 
-def _sparse_bottom(L: sp.csc_matrix, i: np.ndarray, j: np.ndarray, R: np.ndarray, w: np.ndarray,
-                   init: np.ndarray | None, state: dict, tol: float) -> np.ndarray:
+def _sparse_bottom(
+    L: sp.csc_matrix,
+    i: np.ndarray,
+    j: np.ndarray,
+    R: np.ndarray,
+    w: np.ndarray,
+    init: np.ndarray | None,
+    state: dict,
+    tol: float,
+) -> np.ndarray:
     """Bottom eigenvectors by preconditioned LOBPCG. ``state`` (kept by the caller across IRLS iterations for
     this part) holds the last eigenvectors (``"V"``, the start when ``init`` is given: closer to the new ones
     than ``init``'s rotations) and a factorization that still works (``"factor"``: kind, factor, fewest

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .rotation import connected_components, factor_spd, scalar_laplacian
+from sghr_gtsam.sync.rotation import connected_components, factor_spd, scalar_laplacian
 
 
-def solve_translations(n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, t_ij: np.ndarray,
-                       w: np.ndarray) -> np.ndarray:
+def solve_translations(
+    n: int, i: np.ndarray, j: np.ndarray, R: np.ndarray, t_ij: np.ndarray, w: np.ndarray
+) -> np.ndarray:
     """Translations (n, 3) from absolute rotations ``R`` (n, 3, 3) and measured ``t_ij`` (E, 3).
 
     Edges with ``w <= 0`` are ignored; the first node of every connected part is at the origin.

@@ -23,9 +23,16 @@ import open3d as o3d
 from sghr_gtsam.errors import InputError
 from sghr_gtsam.io.poses import read_poses, write_poses
 from sghr_gtsam.io.scans import write_scan
-
-from .building import make_building
-from .geometry import SyntheticScene, _look_at, _object, _object_sensors, _room, _room_sensors, _scan
+from sghr_gtsam.synthetic.building import make_building
+from sghr_gtsam.synthetic.geometry import (
+    SyntheticScene,
+    _look_at,
+    _object,
+    _object_sensors,
+    _room,
+    _room_sensors,
+    _scan,
+)
 
 KINDS = ("room", "object")
 """The kinds of one mesh scanned from around it; ``SCENE_KINDS`` adds the buildings (``synthetic.building``)."""

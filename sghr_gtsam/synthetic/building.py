@@ -42,8 +42,18 @@ from math import ceil
 import numpy as np
 import open3d as o3d
 
-from .geometry import (
-    DOOR_HEIGHT, ROOM_SIZE, SyntheticScene, _box, _clutter, _look_at, _relief_wall, _room, _rot_z, _scan, _Sensor,
+from sghr_gtsam.synthetic.geometry import (
+    DOOR_HEIGHT,
+    ROOM_SIZE,
+    SyntheticScene,
+    _box,
+    _clutter,
+    _look_at,
+    _relief_wall,
+    _room,
+    _rot_z,
+    _scan,
+    _Sensor,
 )
 
 CORRIDOR = 2.4  # width of the corridors and the spine
@@ -176,8 +186,9 @@ def _plan(n: int) -> tuple[list[int], list[int]]:
     return best[1], best[2]
 
 
-def _rooms(rng: np.random.Generator, count: int, identical: bool) -> list[tuple[tuple[float, float, float],
-                                                                                tuple[float, float]]]:
+def _rooms(
+    rng: np.random.Generator, count: int, identical: bool
+) -> list[tuple[tuple[float, float, float], tuple[float, float]]]:
     """Each room's size (rooms differ, as they do: same-sized shells would line up by their corners and edges
     across rooms) and doorway (x range in its frame); one for all in a hotel."""
     L, W, H = ROOM_SIZE
@@ -203,13 +214,16 @@ def _box_of(frame: np.ndarray, lo: Sequence[float], hi: Sequence[float]) -> tupl
     return world.min(0) - MARGIN, world.max(0) + MARGIN
 
 
-def _room_cell(b: int, c: int, side: int, y: float, size: tuple[float, float, float],
-               door: tuple[float, float]) -> Cell:
+def _room_cell(
+    b: int, c: int, side: int, y: float, size: tuple[float, float, float], door: tuple[float, float]
+) -> Cell:
     """A room of ``size`` on ``side`` of segment c of branch b (at y), in the middle of its place along the
     corridor, its doorway wall on the corridor's."""
     L, W, H = size
-    frame = _frame(0.0 if side > 0 else np.pi,
-                   (c * SEGMENT + GAP + ROOM_SIZE[0] / 2, y + side * (CORRIDOR / 2 + WALL + W / 2), 0.0))
+    frame = _frame(
+        0.0 if side > 0 else np.pi,
+        (c * SEGMENT + GAP + ROOM_SIZE[0] / 2, y + side * (CORRIDOR / 2 + WALL + W / 2), 0.0),
+    )
     lo, hi = _box_of(frame, (-L / 2, -W / 2, 0.0), (L / 2, W / 2, H))
     return Cell("room", b, c, side, frame, lo, hi, door, size)
 
@@ -240,8 +254,9 @@ def _room_views(rng: np.random.Generator, cell: int, room: Cell, count: int, vie
         view(cell, room.frame, eye, np.array([*rng.uniform(-0.3, 0.3, 2), rng.uniform(0.5, 1.0)]), 0.4)
     middle = sum(room.door) / 2
     for direction in (1.0, -1.0):
-        eye = np.array([middle + rng.uniform(-0.1, 0.1), -W / 2 - WALL / 2 + rng.uniform(-0.05, 0.05),
-                        rng.uniform(1.3, 1.6)])
+        eye = np.array(
+            [middle + rng.uniform(-0.1, 0.1), -W / 2 - WALL / 2 + rng.uniform(-0.05, 0.05), rng.uniform(1.3, 1.6)]
+        )
         ahead = np.array([direction * 3.0, 3.0 * np.tan(np.radians(rng.uniform(-15, 15))), rng.uniform(-0.5, -0.2)])
         view(cell, room.frame, eye, eye + ahead, 0.2)
 
@@ -274,8 +289,14 @@ def _quad(corner: np.ndarray, a: np.ndarray, b: np.ndarray) -> o3d.geometry.Tria
     return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]]))
 
 
-def _segment_mesh(rng: np.random.Generator, x0: float, x1: float, openings: dict[int, list[tuple[float, float]]],
-                  doors: dict[int, list[tuple[float, float]]], ends: tuple[bool, bool]) -> o3d.geometry.TriangleMesh:
+def _segment_mesh(
+    rng: np.random.Generator,
+    x0: float,
+    x1: float,
+    openings: dict[int, list[tuple[float, float]]],
+    doors: dict[int, list[tuple[float, float]]],
+    ends: tuple[bool, bool],
+) -> o3d.geometry.TriangleMesh:
     """A corridor segment from x0 to x1 in its own frame: uneven floor, ceiling and walls at y = ±CORRIDOR / 2,
     the walls open over ``openings[side]`` (x ranges, floor to ceiling) and ``doors[side]`` (floor to
     ``DOOR_HEIGHT``, each with its passage through the ``WALL``), end walls where ``ends`` says, and things along
@@ -342,8 +363,9 @@ def _spine_mesh(building: Building, cell: Cell) -> o3d.geometry.TriangleMesh:
     rng = np.random.default_rng([building.seed, _SPINE, cell.branch])
     branches = sum(c.kind == "spine" for c in building.cells)
     w = CORRIDOR / 2
-    return _segment_mesh(rng, cell.start, cell.start + cell.length, {-1: [(-w, w)]}, {},
-                         (cell.branch == 0, cell.branch == branches - 1))
+    return _segment_mesh(
+        rng, cell.start, cell.start + cell.length, {-1: [(-w, w)]}, {}, (cell.branch == 0, cell.branch == branches - 1)
+    )
 
 
 def _arrays(mesh: o3d.geometry.TriangleMesh, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

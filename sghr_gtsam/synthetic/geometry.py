@@ -127,8 +127,9 @@ ROOM_SIZE = (5.0, 4.0, 2.5)
 DOOR_HEIGHT = 2.1
 
 
-def _room(rng: np.random.Generator, door: tuple[float, float] | None = None,
-          size: tuple[float, float, float] = ROOM_SIZE) -> o3d.geometry.TriangleMesh:
+def _room(
+    rng: np.random.Generator, door: tuple[float, float] | None = None, size: tuple[float, float, float] = ROOM_SIZE
+) -> o3d.geometry.TriangleMesh:
     """A 5 x 4 x 2.5 m room (``size``; corners at (+-2.5, +-2, 0..2.5)) with uneven walls, furniture against
     them, a table with things on it in the middle, wall fixtures and clutter on the floor. Sizes,
     shapes, placements and angles are random, so that no local shape repeats exactly.
@@ -142,13 +143,17 @@ def _room(rng: np.random.Generator, door: tuple[float, float] | None = None,
     if door is not None:  # the wall at y = -2 in three pieces around the opening
         ex, ez = x / L, z / H
         lo, hi = door[0] + L / 2, door[1] + L / 2
-        walls[2:3] = [(origin, lo * ex, z), (origin + hi * ex, (L - hi) * ex, z),
-                      (origin + lo * ex + DOOR_HEIGHT * ez, (hi - lo) * ex, (H - DOOR_HEIGHT) * ez)]
+        walls[2:3] = [
+            (origin, lo * ex, z),
+            (origin + hi * ex, (L - hi) * ex, z),
+            (origin + lo * ex + DOOR_HEIGHT * ez, (hi - lo) * ex, (H - DOOR_HEIGHT) * ez),
+        ]
 
     def blocks_door(wall: int, along: float, half_width: float) -> bool:
         """Whether something ``half_width`` either side of ``along`` on ``wall`` stands in the doorway."""
-        return (door is not None and wall == 3
-                and abs(along - sum(door) / 2) < (door[1] - door[0]) / 2 + half_width + 0.3)
+        return (
+            door is not None and wall == 3 and abs(along - sum(door) / 2) < (door[1] - door[0]) / 2 + half_width + 0.3
+        )
 
     for corner, a, b in walls:  # floor, ceiling, four walls
         mesh += _relief_wall(corner, a, b, rng)
