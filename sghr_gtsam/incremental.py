@@ -83,7 +83,7 @@ Gauss-Newton step, and a prior or a loop far from the current poses takes a few.
 RELINEARIZE = 1e-6
 """ISAM2 relinearizes a variable whose update exceeds this (radians / scene units), at every update: the
 default (0.1 every 10th update) stops short of the batch optimum by more than an object scan's registration error."""
-RIGID_TOL = 1e-6
+EDGE_RIGID_TOL = 1e-6
 """An edge's ``T`` is rigid when ``RᵀR`` is the identity and its last row ``0 0 0 1`` to within this (a
 registration's rotation is orthonormal to ~1e-15; a scaled or sheared one is off by far more)."""
 
@@ -738,9 +738,9 @@ def _array(value: object, shape: tuple[int, ...], what: str) -> np.ndarray:
 
 
 def _rigid(value: object, what: str) -> np.ndarray:
-    """``value`` as a rigid 4×4 transform (``RIGID_TOL``): a scale, shear or reflection would reach the poses."""
+    """``value`` as a rigid 4×4 transform (``EDGE_RIGID_TOL``): a scale, shear or reflection would reach the poses."""
     T = _array(value, (4, 4), what)
-    if non_rigid(T, RIGID_TOL, RIGID_TOL):
+    if non_rigid(T, EDGE_RIGID_TOL, EDGE_RIGID_TOL):
         raise InputError(f"{what} is not a rigid transform (rotation orthonormal with det +1, last row 0 0 0 1)")
     return T
 

@@ -227,7 +227,7 @@ VOXEL_DOUBT = 10.0
 (5 voxels) then hold one point each, or a scan is a handful of cells; either way nothing matches."""
 
 
-SPREAD = 3.0
+EXTENT_RATIO = 3.0
 """When no pair registers with the default voxel, the scans whose extent is this many times the median scan's, or
 1/this of it, are named: a majority of scans of noise or of another scene sets the median, and so the voxel (two room
 scans among three small clouds of noise: 1/10 of the rooms' voxel). Real scans (3DMatch, objects) are within 1.3x."""
@@ -248,12 +248,14 @@ def voxel_doubt(voxel: float, scans: list[Scan], given: bool) -> str:
             f"scan's extent"
         )
     ratios = spans / (100 * voxel)
-    far = [f"{s.name} ({ratio:.2g}x)" for s, ratio in zip(scans, ratios) if not 1 / SPREAD <= ratio <= SPREAD]
+    far = [
+        f"{s.name} ({ratio:.2g}x)" for s, ratio in zip(scans, ratios) if not 1 / EXTENT_RATIO <= ratio <= EXTENT_RATIO
+    ]
     if not far:
         return ""
     named = ", ".join(far[:3]) + (f" and {len(far) - 3} more" if len(far) > 3 else "")
     return (
         f" is the voxel {voxel:.3g} right? it is 1/100 of the median scan's extent ({100 * voxel:.3g}), and "
-        f"{named} differ{'s' if len(far) == 1 else ''} from it by more than {SPREAD:g}x: scans of noise or of "
+        f"{named} differ{'s' if len(far) == 1 else ''} from it by more than {EXTENT_RATIO:g}x: scans of noise or of "
         f"another scene may have set the median (leave them out, or set --voxel)"
     )

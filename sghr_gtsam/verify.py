@@ -50,7 +50,7 @@ import networkx as nx
 import numpy as np
 from scipy.special import chdtri
 
-from sghr_gtsam.sync.consensus import consistent_edges, translation_tolerance
+from sghr_gtsam.sync.consensus import MIN_AGREEING, consistent_edges, translation_tolerance
 from sghr_gtsam.sync.disputes import agreeing_edges, linkage_groups
 from sghr_gtsam.sync.rotation import connected_components
 from sghr_gtsam.types import PoseGraph
@@ -58,8 +58,6 @@ from sghr_gtsam.types import PoseGraph
 STIFFEN = 100.0
 """How much stiffer the free directions' bounds are made to tell a spread they set from a measured one: one they
 set shrinks by √STIFFEN = 10, one the measurements set does not move."""
-MIN_AGREEING = 2
-"""Dropped registrations that must agree on another placement before it competes: as many as verify a placement."""
 _CHI2_6_MEDIAN = float(chdtri(6, 0.5))  # scipy.special: scipy.stats costs a second to import
 REASONS = {
     "single registration": "held by one registration, or through one scan, that no loop checks",

@@ -433,7 +433,7 @@ def _cut_side(
     return side if min(len(side), int(np.sum(held < n))) >= 2 else None
 
 
-SPREAD = 4.0
+RESIDUAL_SPREAD = 4.0
 """The kept edges' tolerance is at least this many times the median residual of the edges consistent
 at the base tolerances: registration noise larger than those (3DMatch-like: 8 cm at a scan's origin
 against a base of ~9 cm, tails to 25 cm) would otherwise drop right edges and cost accuracy at no outliers at all."""
@@ -442,15 +442,15 @@ against a base of ~9 cm, tails to 25 cm) would otherwise drop right edges and co
 def kept_edges_at(
     graph: PoseGraph, poses: np.ndarray, max_deg: float = MAX_DEG, max_trans: float | None = None
 ) -> np.ndarray:
-    """(E,) bool: edges consistent with ``poses`` at the base tolerances widened to ``SPREAD`` times the
+    """(E,) bool: edges consistent with ``poses`` at the base tolerances widened to ``RESIDUAL_SPREAD`` times the
     median residual of the edges consistent at the base tolerances, or, with ``graph.information``, within
     their own noise (``consensus.within_noise``; gtsam's grid graphs have σ ≈ 15° on every edge)."""
     max_trans = translation_tolerance(graph, max_deg) if max_trans is None else max_trans
     E, rot, trans = edge_residuals(graph, poses)
     base = (graph.weight > 0) & (rot <= max_deg) & (trans <= max_trans)
     if base.any():
-        max_deg = max(max_deg, SPREAD * float(np.median(rot[base])))
-        max_trans = max(max_trans, SPREAD * float(np.median(trans[base])))
+        max_deg = max(max_deg, RESIDUAL_SPREAD * float(np.median(rot[base])))
+        max_trans = max(max_trans, RESIDUAL_SPREAD * float(np.median(trans[base])))
     close = (rot <= max_deg) & (trans <= max_trans)
     if graph.information is not None:
         close |= within_noise(E, graph.information)
