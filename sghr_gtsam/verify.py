@@ -241,12 +241,13 @@ def _join(
     j: np.ndarray,
     kept: np.ndarray,
     passed: np.ndarray,
-    disputed: np.ndarray,
+    outweighed: np.ndarray,
     alike: np.ndarray,
     weight: np.ndarray,
     names: Sequence[str],
 ) -> Join | None:
-    """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none)."""
+    """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none);
+    ``outweighed`` and ``alike``: (N,) the scans of the groups whose place a competing one disputes."""
     a, b = label[i], label[j]
     out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
     if not out.any():
@@ -255,9 +256,10 @@ def _join(
     best = e[np.argmax(weight[e])]
     to = int(b[best] if a[best] == part else a[best])
     good = e[passed[e]]
-    if alike[e].any():
+    members = label == part
+    if alike[members].any():
         why = "dropped registrations agree on another placement of it that the free space cannot rule out"
-    elif disputed[e].any():
+    elif outweighed[members].any():
         why = "dropped registrations agree on another placement of it and outweigh these"
     elif len(good) == 0:
         why = "its registrations to the rest do not close their loops within their noise"
@@ -301,12 +303,13 @@ def verify(
     their joins to the rest are disputed."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
-    passed = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
-    disputed = _disputed(graph, kept, placed, poses)
-    alike = np.zeros(graph.num_edges, dtype=bool)
-    for group in look_alike:
-        alike |= kept & (group[graph.i] != group[graph.j])
-    disputed |= alike
+    consistent = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
+    passed = consistent.copy()
+    competing = _disputed(graph, kept, placed, poses)
+    outweighed, alike = _union(competing, n), _union(look_alike, n)
+    disputed = np.zeros(graph.num_edges, dtype=bool)
+    for group in [*competing, *look_alike]:
+        disputed |= kept & (group[graph.i] != group[graph.j])
     passed &= ~disputed
     if dependent is not None:
         passed &= ~dependent
@@ -314,7 +317,7 @@ def verify(
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
-        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputed, alike, graph.weight, names)
+        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, outweighed, alike, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
     failing = np.zeros(n, dtype=bool)
@@ -350,7 +353,7 @@ def verify(
             status[name] = "unplaced"
             continue
         reason = (
-            _alone_reason(k, graph, kept, passed, disputed)
+            _alone_reason(k, graph, kept & ~consistent, passed, outweighed | alike)
             if alone[k]
             else "free space"
             if contradicted[k]
@@ -411,25 +414,34 @@ def _part_spreads(
     spreads[nodes], axes[nodes] = (a[nodes] for a in loosest(covariances, points, nodes))
 
 
-def _alone_reason(k: int, graph: PoseGraph, kept: np.ndarray, passed: np.ndarray, disputed: np.ndarray) -> str:
-    """Why scan k is in no part of three: its join disputed, its registrations failing, or too few of them."""
+def _alone_reason(k: int, graph: PoseGraph, failing: np.ndarray, passed: np.ndarray, contested: np.ndarray) -> str:
+    """Why scan k is in no part of three: a competing placement of it (``contested``: (N,) the scans of the disputed
+    groups), its kept registrations ``failing`` the consistency test, or too few that pass."""
     own = (graph.i == k) | (graph.j == k)
-    if (own & disputed).any():
+    if contested[k]:
         return "competing placement"
-    if (own & kept & ~passed).any() and int(np.sum(own & passed)) < 2:
+    if (own & failing).any() and int(np.sum(own & passed)) < 2:
         return "loop error"
     return "single registration"
 
 
-def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """(E,) bool: the kept registrations that hold a scan, or a linkage group, where two or more dropped ones that
-    agree on another placement of it outweigh them (module doc, test 3). Of nested disputed groups, the largest
-    is cut off: the same dropped registrations move any of its subgroups as well, which says nothing of the
-    registrations inside it."""
+def _union(groups: Sequence[np.ndarray], n: int) -> np.ndarray:
+    """(N,) bool: the scans of any of ``groups``."""
+    out = np.zeros(n, dtype=bool)
+    for group in groups:
+        out |= group
+    return out
+
+
+def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[np.ndarray]:
+    """(N,) bool masks: the scans, and linkage groups, held where two or more dropped registrations that agree on
+    another placement of them outweigh what holds them (module doc, test 3). Of nested disputed groups, the largest
+    only: the same dropped registrations move any of its subgroups as well, which says nothing of the registrations
+    inside it."""
     i, j, w = graph.i, graph.j, graph.weight
     inside = (w > 0) & placed[i] & placed[j]
     tolerance = translation_tolerance(graph)
-    disputed: list[tuple[np.ndarray, np.ndarray]] = []
+    disputed: list[np.ndarray] = []
     singles = (np.arange(graph.n) == k for k in np.flatnonzero(placed))
     for group in chain(singles, linkage_groups(graph, kept, placed)):
         leaving = inside & (group[i] != group[j])
@@ -444,12 +456,8 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         accused = np.zeros(graph.n, dtype=bool)
         accused[np.where(group[i[agreeing]], j[agreeing], i[agreeing])] = True
         if w[inside & kept & (accused[i] != accused[j])].sum() >= held:  # else they accuse their far ends
-            disputed.append((group, holding))
-    out = np.zeros(graph.num_edges, dtype=bool)
-    for group, holding in disputed:
-        if not any(other.sum() > group.sum() and np.all(other[group]) for other, _ in disputed):
-            out |= holding
-    return out
+            disputed.append(group)
+    return [g for g in disputed if not any(o.sum() > g.sum() and np.all(o[g]) for o in disputed)]
 
 
 __all__ = [

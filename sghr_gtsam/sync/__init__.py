@@ -352,16 +352,7 @@ def _loop_placement(
     cred = credibility(usable)
 
     def record(stage: str, k: int, P: np.ndarray, kept: np.ndarray) -> None:
-        residual = rotation_residuals(P[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
-        keep_history(
-            IterationRecord(
-                stage=stage,
-                iteration=k,
-                poses=P,
-                weights=np.where(kept, graph.weight, 0.0),
-                residual_deg=np.degrees(residual),
-            )
-        )
+        keep_history(_record(graph, stage, k, P, kept))
 
     def place(P: np.ndarray, votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kept = consistent_edges(usable, P)
@@ -446,17 +437,20 @@ def _robust_placement(
     for k, (stage, step) in enumerate(steps, 1):
         poses = step(poses)
         kept = consistent_edges(usable, poses)
-        residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
-        keep_history(
-            IterationRecord(
-                stage=stage,
-                iteration=k,
-                poses=poses,
-                weights=np.where(kept, graph.weight, 0.0),
-                residual_deg=np.degrees(residual),
-            )
-        )
+        keep_history(_record(graph, stage, k, poses, kept))
     return poses, kept
+
+
+def _record(graph: PoseGraph, stage: str, k: int, poses: np.ndarray, kept: np.ndarray) -> IterationRecord:
+    """A polish step's record: its poses, the weights of the edges it keeps, every edge's rotation residual."""
+    residual = rotation_residuals(poses[:, :3, :3], graph.i, graph.j, graph.T[:, :3, :3])
+    return IterationRecord(
+        stage=stage,
+        iteration=k,
+        poses=poses,
+        weights=np.where(kept, graph.weight, 0.0),
+        residual_deg=np.degrees(residual),
+    )
 
 
 def unverified(graph: PoseGraph, result: SyncResult, one_scan: bool = True) -> np.ndarray:
