@@ -28,12 +28,11 @@ standard one:
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
 that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
-from the passing registrations' measured information scaled by the a posteriori variance factor ``σ̂₀²`` (the median
-``χ²`` over the median of ``χ²₆``: robust, never below 1), plus the bounds as they are. Its spread is set by those
-bounds, not by measurements, when
-it shrinks by more than ``STIFFEN^¼`` (the geometric middle of no change and ``√STIFFEN``) with every bound
-``STIFFEN`` times stiffer; such a scan is reported loose with the direction and σ, and doubted only where σ
-exceeds ``Verification.max_sigma``.
+from the passing registrations' measured information scaled by the a posteriori variance factor ``σ̂₀²``
+(``sync.consensus.shown_variance_factor``: robust, never below 1), plus the bounds as they are. Its spread is set
+by those bounds, not by measurements, when it shrinks by more than ``STIFFEN^¼`` (the geometric middle of no change
+and ``√STIFFEN``) with every bound ``STIFFEN`` times stiffer; such a scan is reported loose with the direction and
+σ, and doubted only where σ exceeds ``Verification.max_sigma``.
 
 Parts are ordered largest first; part 0 holds the world scan when it is the largest. A part whose join failed is
 placed where its best join puts it, and marked so (``Part.join``).
@@ -48,9 +47,15 @@ from itertools import chain
 import gtsam
 import networkx as nx
 import numpy as np
-from scipy.special import chdtri
 
-from sghr_gtsam.sync.consensus import MIN_AGREEING, consistent_edges, translation_tolerance
+from sghr_gtsam.sync.consensus import (
+    MIN_AGREEING,
+    consistent_edges,
+    edge_residuals,
+    mahalanobis,
+    shown_variance_factor,
+    translation_tolerance,
+)
 from sghr_gtsam.sync.disputes import agreeing_edges, linkage_groups
 from sghr_gtsam.sync.rotation import connected_components
 from sghr_gtsam.types import PoseGraph
@@ -58,7 +63,6 @@ from sghr_gtsam.types import PoseGraph
 STIFFEN = 100.0
 """How much stiffer the free directions' bounds are made to tell a spread they set from a measured one: one they
 set shrinks by √STIFFEN = 10, one the measurements set does not move."""
-_CHI2_6_MEDIAN = float(chdtri(6, 0.5))  # scipy.special: scipy.stats costs a second to import
 REASONS = {
     "single registration": "held by one registration, or through one scan, that no loop checks",
     "loop error": "its registrations do not close their loops within their noise",
@@ -192,27 +196,6 @@ def _listed(names: list[str], doubts: dict[str, str]) -> str:
     return "; ".join(f"{reason}: {_names(found)}" for reason, found in by_reason.items())
 
 
-def edge_chi2(graph: PoseGraph, poses: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """(E,) ``rᵀ Ω r`` of each of ``edges`` (bool mask) at ``poses`` (NaN elsewhere); ``r`` in gtsam's tangent
-    order, ``Ω`` the graph's information (identity without one)."""
-    out = np.full(graph.num_edges, np.nan)
-    for e in np.flatnonzero(edges):
-        i, j = int(graph.i[e]), int(graph.j[e])
-        predicted = gtsam.Pose3(poses[i]).between(gtsam.Pose3(poses[j]))
-        r = gtsam.Pose3.Logmap(gtsam.Pose3(graph.T[e]).between(predicted))
-        omega = np.eye(6) if graph.information is None else graph.information[e]
-        out[e] = float(r @ omega @ r)
-    return out
-
-
-def robust_variance_factor(chi2_values: np.ndarray) -> float:
-    """σ̂₀² from the median of 6-dof χ² values (a few wrong edges do not move it), at least 1; 1 for none."""
-    values = chi2_values[np.isfinite(chi2_values)]
-    if len(values) == 0:
-        return 1.0
-    return max(1.0, float(np.median(values) / _CHI2_6_MEDIAN))
-
-
 def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, placed: np.ndarray) -> np.ndarray:
     """(N,) part label of each scan (−1 unplaced): the biconnected components of three or more scans of the
     ``verified`` edges, largest first (ties: the one with the smallest scan); an articulation point goes to the
@@ -303,7 +286,8 @@ def verify(
     their joins to the rest are disputed."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
-    consistent = consistent_edges(replace(graph, weight=kept.astype(float)), poses)
+    kept_graph = replace(graph, weight=kept.astype(float))
+    consistent = consistent_edges(kept_graph, poses)
     passed = consistent.copy()
     competing = _disputed(graph, kept, placed, poses)
     outweighed, alike = _union(competing, n), _union(look_alike, n)
@@ -313,22 +297,17 @@ def verify(
     passed &= ~disputed
     if dependent is not None:
         passed &= ~dependent
-    factor = robust_variance_factor(edge_chi2(graph, poses, passed))
+    factor = 1.0
+    if graph.information is not None:  # the a posteriori variance factor of the passing registrations
+        factor = shown_variance_factor(mahalanobis(edge_residuals(graph, poses)[0][passed], graph.information[passed]))
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
         p.join = _join(p.id, label, graph.i, graph.j, kept, passed, outweighed, alike, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
-    failing = np.zeros(n, dtype=bool)
-    for ends in (graph.i, graph.j):
-        np.logical_or.at(failing, ends[kept & ~passed], True)
     contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
-    max_sigma = (
-        translation_tolerance(replace(graph, weight=kept.astype(float)))
-        if params.max_sigma is None
-        else params.max_sigma
-    )
+    max_sigma = translation_tolerance(kept_graph) if params.max_sigma is None else params.max_sigma
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
     if points is not None and information is not None and free is not None:
@@ -468,7 +447,5 @@ __all__ = [
     "REASONS",
     "STATUSES",
     "verify",
-    "edge_chi2",
-    "robust_variance_factor",
     "rigid_parts",
 ]

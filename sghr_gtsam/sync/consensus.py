@@ -81,6 +81,15 @@ def mahalanobis(E: np.ndarray, information: np.ndarray) -> np.ndarray:
     return np.einsum("ea,eab,eb->e", xi, information, xi)
 
 
+def shown_variance_factor(chi2: np.ndarray) -> float:
+    """The variance factor ``s² ≥ 1`` that ``ξᵀΩξ`` values (``mahalanobis``) show: their median over χ²₆'s median,
+    which a few outliers far off do not move; 1 for none."""
+    return max(1.0, float(np.median(chi2)) / _CHI2_6_MEDIAN) if len(chi2) else 1.0
+
+
+_CHI2_6_MEDIAN = float(chdtri(6, 0.5))
+
+
 def within_noise(E: np.ndarray, information: np.ndarray) -> np.ndarray:
     """(E,) bool: residual transforms ``E`` (E, 4, 4) with ``ξᵀ Ω ξ ≤ χ²₆(NOISE_QUANTILE)`` (``mahalanobis``)."""
     # χ²₆ quantile from scipy.special: scipy.stats costs about 1 s to import and nothing else on a run needs it.

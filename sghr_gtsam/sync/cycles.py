@@ -53,6 +53,7 @@ from sghr_gtsam.sync.consensus import (
     consistent_edges,
     edge_residuals,
     mahalanobis,
+    shown_variance_factor,
     translation_tolerance,
     within_noise,
 )
@@ -482,14 +483,13 @@ def within_shown_noise(graph: PoseGraph, poses: np.ndarray, consistent: np.ndarr
     limit = chdtri(6, FAMILY_ALPHA / int(used.sum()))
     factor = None
     for _ in range(_SHOWN_NOISE_ROUNDS):
-        previous, factor = factor, max(1.0, float(np.median(chi2[kept])) / _CHI2_6_MEDIAN)
+        previous, factor = factor, shown_variance_factor(chi2[kept])
         if factor == previous:
             break
         kept = consistent & used | used & (chi2 <= factor * limit)
     return kept
 
 
-_CHI2_6_MEDIAN = float(chdtri(6, 0.5))
 _SHOWN_NOISE_ROUNDS = 10  # the factor settles in 2-4 (a truncation at ~6.7× the median barely moves a median)
 
 
