@@ -32,8 +32,9 @@ COV_NEIGHBORS = 20
 # keypoints in another frame or unit lie metres away.
 KEYPOINT_MAX_DISTANCE = 2.0
 # Memory per point of the search structures (measured: 200k points): a GICP cloud with its covariances (and
-# normals) and its k-d tree; a scipy k-d tree on D-d descriptors copies them as float64 (8·D) and adds this.
-GICP_BYTES = 230
+# normals), its k-d tree and scipy's on the points (22 bytes); a scipy k-d tree on D-d descriptors copies them as
+# float64 (8·D) and adds this.
+GICP_BYTES = 252
 TREE_BYTES = 35
 # Voxels a scan may span along an axis: open3d's voxel grid indexes its cells by int32.
 MAX_CELLS = int(np.iinfo(np.int32).max)
@@ -49,7 +50,7 @@ class ScanFeatures:
     (then ``fpfh`` is None: not computed). Search structures, built from the arrays on first use in whichever
     process uses them (they are neither stored nor pickled: a task that only reads the points builds none):
     ``descriptor_tree`` (k-d tree on ``descriptors``), ``cloud`` (``points`` with GICP covariances,
-    small_gicp) and its k-d tree ``cloud_tree``.
+    small_gicp), its k-d tree ``cloud_tree`` and scipy's ``point_tree`` (``registration.icp``).
     """
 
     points: np.ndarray
@@ -61,7 +62,7 @@ class ScanFeatures:
 
     def __post_init__(self) -> None:
         self._tree: cKDTree | None = None
-        self._gicp: tuple[small_gicp.PointCloud, small_gicp.KdTree] | None = None
+        self._gicp: tuple[small_gicp.PointCloud, small_gicp.KdTree, cKDTree] | None = None
 
     def __len__(self) -> int:
         return len(self.points)
@@ -80,7 +81,11 @@ class ScanFeatures:
     def cloud_tree(self) -> small_gicp.KdTree:
         return self._built_gicp()[1]
 
-    def _built_gicp(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+    @property
+    def point_tree(self) -> cKDTree:
+        return self._built_gicp()[2]
+
+    def _built_gicp(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree, cKDTree]:
         if self._gicp is None:
             self._gicp = _gicp_cloud(self.points)
         return self._gicp
@@ -137,11 +142,11 @@ def query_threads() -> int:
     return len(os.sched_getaffinity(0))
 
 
-def _gicp_cloud(grid: np.ndarray) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+def _gicp_cloud(grid: np.ndarray) -> tuple[small_gicp.PointCloud, small_gicp.KdTree, cKDTree]:
     cloud = small_gicp.PointCloud(grid)
     cloud_tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
     small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
-    return cloud, cloud_tree
+    return cloud, cloud_tree, cKDTree(grid)
 
 
 def compute_features(

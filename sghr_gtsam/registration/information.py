@@ -39,9 +39,11 @@ import gtsam
 import numpy as np
 import small_gicp
 from scipy.linalg import eigh
+from scipy.spatial import cKDTree
 
 from sghr_gtsam.cells import unique_cells
 from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_THREADS
+from sghr_gtsam.registration.icp import nearest_within
 
 MIN_PAIRS = 7
 """Fewer close pairs than this leave σ̂² without a degree of freedom: no information."""
@@ -65,12 +67,13 @@ displacement of the points): gtsam's Cholesky calls a pose block whose informati
 
 class Grid(Protocol):
     """A scan's points on one grid, in its own frame, with unit ``normals`` (sign free: the information does
-    not depend on it) and a k-d tree ``cloud_tree`` over ``points``: a ``ScanFeatures`` (the matching grid)
-    or a ``refine.Pyramid`` level."""
+    not depend on it) and k-d trees over ``points`` (small_gicp's ``cloud_tree``, scipy's ``point_tree``): a
+    ``ScanFeatures`` (the matching grid) or a ``refine.Pyramid`` level."""
 
     points: np.ndarray
     normals: np.ndarray
     cloud_tree: small_gicp.KdTree
+    point_tree: cKDTree
 
 
 def plane_information(
@@ -133,7 +136,7 @@ def displacement_metric(points: np.ndarray) -> np.ndarray:
 def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
     """Mean squared point-to-plane residual of ``q`` under ``T``, each point against its nearest target point."""
     moved = q @ T[:3, :3].T + T[:3, 3]
-    nearest, _ = nearest_points(target_i, moved)
+    nearest = np.asarray(target_i.cloud_tree.batch_nearest_neighbor_search(moved, GICP_THREADS)[0])
     r = np.einsum("mk,mk->m", moved - target_i.points[nearest], target_i.normals[nearest])
     return float(r @ r) / len(r)
 
@@ -216,11 +219,12 @@ def registration_information(
     scan j that ``T`` brings within ``max_distance`` of scan i; None with fewer than ``MIN_PAIRS``. Both grids
     must be those ``T`` was aligned on: its residuals there are what σ̂ and the sum measure. The directions
     free under a move of ``max_distance`` (``free_directions``) are counted and bounded only by the overlap.
-    ``search``: ``nearest_points`` of ``source_j``'s points moved by ``T``, when the caller has it."""
+    ``search``: ``icp.nearest_within`` of ``source_j``'s points moved by ``T`` (to at least ``max_distance``), when
+    the caller has it."""
     q = source_j.points
     R, t = T[:3, :3], T[:3, 3]
     moved = q @ R.T + t
-    nearest, sq_dist = nearest_points(target_i, moved) if search is None else search
+    nearest, sq_dist = nearest_within(target_i, moved, max_distance) if search is None else search
     close = sq_dist < max_distance**2
     if np.count_nonzero(close) < MIN_PAIRS:
         return None
@@ -232,14 +236,6 @@ def registration_information(
     return free_directions(
         target_i, q[close], T, information, max_distance, float(residuals @ residuals) / len(residuals)
     )
-
-
-def nearest_points(target_i: Grid, moved: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For each of ``moved`` (m, 3, in scan i's frame), the index of its nearest point of ``target_i`` and their
-    squared distance: what ``registration_information`` and ``pairwise.score_pair`` both search (once, when the
-    caller passes it on)."""
-    nearest, sq_dist = target_i.cloud_tree.batch_nearest_neighbor_search(moved, GICP_THREADS)
-    return np.asarray(nearest), np.asarray(sq_dist)
 
 
 def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:

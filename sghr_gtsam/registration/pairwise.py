@@ -11,14 +11,14 @@ from dataclasses import dataclass, field
 import kiss_matcher
 import numpy as np
 import open3d as o3d
-import small_gicp
 
 from sghr_gtsam.cache import Kind
 from sghr_gtsam.cells import unique_cells
 from sghr_gtsam.config import MATCHERS
-from sghr_gtsam.features.local import GICP_THREADS, ScanFeatures, query_threads
+from sghr_gtsam.features.local import ScanFeatures, query_threads
 from sghr_gtsam.registration.estimators import sc2_estimate
-from sghr_gtsam.registration.information import Information, nearest_points, registration_information
+from sghr_gtsam.registration.icp import gicp, nearest_within
+from sghr_gtsam.registration.information import Information, registration_information
 from sghr_gtsam.se3 import non_rigid
 from sghr_gtsam.types import InputError
 
@@ -192,15 +192,11 @@ def register_pair(
     # from ground truth; a 2x finer grid gained 0.02 deg for 7x the time. Started at ground truth,
     # open3d's point-to-plane ICP drifted 1.4-4 deg on object pairs of overlap 0.3-0.55 where GICP
     # stayed within 0.2-0.7 deg, and took 9x longer.
-    max_distance = icp_distance * voxel
-    T = small_gicp.align(
-        target_i.cloud,
-        source_j.cloud,
-        target_i.cloud_tree,
-        init_T_target_source=T,
-        registration_type="GICP",
-        max_correspondence_distance=max_distance,
-        num_threads=GICP_THREADS,
+    T = gicp(
+        target_i,
+        source_j,
+        T,
+        icp_distance * voxel,
         max_iterations=GICP_MAX_ITERATIONS,
         rotation_epsilon=GICP_ROTATION_EPS,
         translation_epsilon=GICP_TRANSLATION_EPS * voxel,
@@ -219,7 +215,7 @@ def agreeing_matches(
     close can be one, so only those are looked up in descriptor space, and only their partners looked back
     (``score_pair`` in 0.55× the time on 3DMatch pairs).
     A k-d query's answer for one point does not depend on the others queried with it, so the pairs are exactly
-    those of ``mutual_matches`` that agree. ``search``: ``information.nearest_points`` of scan j's points moved by
+    those of ``mutual_matches`` that agree. ``search``: ``icp.nearest_within`` of scan j's points moved by
     ``T``."""
     threads = query_threads()
     # Slack on the bound: a pair whose residual rounds the other way is judged below, as score_pair judges it.
@@ -256,11 +252,14 @@ def scored(
     icp_distance: float,
     matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[PairResult, tuple[np.ndarray, np.ndarray]]:
-    """``score_pair`` without the information (None), and the ``information.nearest_points`` of scan j's points
+    """``score_pair`` without the information (None), and the ``icp.nearest_within`` of scan j's points
     moved by ``T`` that it searched (``registration_information`` takes it)."""
     max_distance = icp_distance * voxel
     q = source_j.points
-    search = nearest_points(target_i, q @ T[:3, :3].T + T[:3, 3])
+    # Slack as agreeing_matches allows it.
+    search = nearest_within(
+        target_i, q @ T[:3, :3].T + T[:3, 3], max(max_distance, INLIER_DISTANCE * voxel) * (1 + 1e-6)
+    )
     if matches is None and source_j.keypoints is q and target_i.keypoints is target_i.points:
         a, b = agreeing_matches(target_i, source_j, T, voxel, search)
     else:

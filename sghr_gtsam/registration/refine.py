@@ -26,10 +26,12 @@ import gtsam
 import numpy as np
 import open3d as o3d
 import small_gicp
+from scipy.spatial import cKDTree
 
 from sghr_gtsam.cache import Cache, Kind, refined_key
 from sghr_gtsam.config import Config
 from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_BYTES, GICP_THREADS, ScanFeatures
+from sghr_gtsam.registration.icp import gicp
 from sghr_gtsam.registration.information import registration_information
 from sghr_gtsam.registration.pairwise import PAIRS, PairResult, informed, scored
 from sghr_gtsam.se3 import inv_T, rotation_angle
@@ -69,6 +71,7 @@ class Level:
     normals: np.ndarray
     cloud: small_gicp.PointCloud
     cloud_tree: small_gicp.KdTree
+    point_tree: cKDTree
 
 
 @dataclass
@@ -100,7 +103,8 @@ class Pyramid:
             tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
             # The same covariances as estimate_covariances, and the normals from the same neighbourhoods.
             small_gicp.estimate_normals_covariances(cloud, tree, COV_NEIGHBORS, GICP_THREADS)
-            self._levels[k] = Level(self.grids[k], np.asarray(cloud.normals())[:, :3], cloud, tree)
+            normals = np.asarray(cloud.normals())[:, :3]
+            self._levels[k] = Level(self.grids[k], normals, cloud, tree, cKDTree(self.grids[k]))
         return self._levels[k]
 
 
@@ -165,15 +169,11 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
     T, converged = np.asarray(T_init, dtype=float), False
     for k in range(_levels(target_i, source_j)):
         coarser = T
-        target, source = target_i.level(k), source_j.level(k)
-        result = small_gicp.align(
-            target.cloud,
-            source.cloud,
-            target.cloud_tree,
-            init_T_target_source=T,
-            registration_type="GICP",
-            max_correspondence_distance=_distance(target_i, k),
-            num_threads=GICP_THREADS,
+        result = gicp(
+            target_i.level(k),
+            source_j.level(k),
+            T,
+            _distance(target_i, k),
             max_iterations=LEVEL_ITERATIONS[k],
             translation_epsilon=STEP_VOXELS * target_i.voxels[0],
         )

@@ -1,0 +1,175 @@
+"""Where a scene's run spends its time, stage by stage, for this checkout and an earlier one side by side, and
+whether the two give the same answer.
+
+    python benchmarks/bench_stages.py [--data ../shared/data] [--scenes home_at hotel_uc] [--runs 3]
+        [--before DIR] [--profile SCENE]
+
+Each run is ``python -m sghr_gtsam run SCENE --out OUT --no-cache --quiet`` in its own process, in the checkout's
+folder (``--before``: another checkout, e.g. ``git worktree add ../before HEAD~3``), the runs of the two checkouts
+alternating so that both see the same load. Per stage the median over ``--runs`` of the run's own timer
+(report.json ``seconds``), and the median wall time with imports. The answers compared: the largest difference of a
+pose matrix entry between the two checkouts' first runs, and each one's parts and doubts.
+``--profile SCENE``: one run of this checkout in one process (``workers=1``) under cProfile, its CPU seconds split
+by component (the cumulative time of the functions named in ``COMPONENTS``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks._results import save  # noqa: E402
+from data_tools.scene_gt import data_root  # noqa: E402
+
+SCENES = {"home_at": "3dmatch-scenes/home_at", "hotel_uc": "3dmatch-scenes/hotel_uc", "kitchen": "kitchen"}
+COMPONENTS = {
+    "local features (FPFH)": ("local.py", "scan_features"),
+    "descriptor matching": ("pairwise.py", "mutual_matches"),
+    "robust estimate (SC²)": ("estimators.py", "sc2_estimate"),
+    "GICP": ("icp.py", "gicp"),
+    "scoring and information": ("pairwise.py", "score_pair"),
+    "refinement and loop closures": ("refine.py", "register_from_guesses"),
+    "free space": ("visibility.py", "contradicted_placements"),
+    "synchronization": ("sync/__init__.py", "synchronize"),
+}
+"""Component -> (file, function) whose cumulative time it is; the components overlap (GICP runs inside the
+refinement too)."""
+
+
+def _run(checkout: Path, scene: Path, out: Path) -> tuple[float, dict]:
+    env = dict(os.environ, PYTHONPATH=str(checkout))
+    start = time.perf_counter()
+    subprocess.run(
+        [sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out), "--no-cache", "--quiet"],
+        cwd=checkout,
+        env=env,
+        check=True,
+        capture_output=True,
+    )
+    wall = time.perf_counter() - start
+    report = json.loads((out / "report.json").read_text())
+    return wall, {"seconds": report["seconds"], "parts": len(report["parts"]), "doubts": report["doubts"]}
+
+
+def _poses(path: Path) -> np.ndarray:
+    rows = [line.split() for line in path.read_text().splitlines() if not line.startswith("#")]
+    return np.array([[float(x) for x in row] for row in rows if len(row) == 4])
+
+
+def _profile(scene: Path) -> list[list]:
+    import sghr_gtsam as sg
+
+    with tempfile.TemporaryDirectory() as tmp:
+        profile = cProfile.Profile()
+        profile.runcall(sg.run, str(scene), str(Path(tmp) / "out"), sg.Config(workers=1, record=False, cache=False))
+    stats = pstats.Stats(profile).stats
+    total = max(cumulative for (_, _, cumulative, _, _) in stats.values())
+    rows = []
+    for name, (file, function) in COMPONENTS.items():
+        seconds = sum(
+            cumulative
+            for (path, _, fn), (_, _, _, cumulative, _) in stats.items()
+            if path.endswith(file) and fn == function
+        )
+        rows.append([name, round(seconds, 1), round(100 * seconds / total)])
+    return rows + [["whole run", round(total, 1), 100]]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=data_root())
+    parser.add_argument("--scenes", nargs="+", default=["home_at", "hotel_uc"], choices=sorted(SCENES))
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--before", type=Path, default=None, help="another checkout to compare against")
+    parser.add_argument("--profile", choices=sorted(SCENES), default=None)
+    args = parser.parse_args(argv)
+    data = args.data
+    checkouts = {"now": ROOT} | ({"before": args.before.resolve()} if args.before else {})
+    rows, answers = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenes:
+            scene = data / SCENES[name]
+            runs: dict[str, list] = {c: [] for c in checkouts}
+            for k in range(args.runs):
+                for c, checkout in checkouts.items():
+                    out = Path(tmp) / f"{name}-{c}-{k}"
+                    wall, result = _run(checkout, scene, out)
+                    result["T"] = _poses(out / "poses.txt")  # every placed scan's, in the scans' order
+                    runs[c].append((wall, result))
+                    shutil.rmtree(out)
+                    print(f"{name} {c} run {k + 1}: {wall:.1f} s", flush=True)
+            stages = list(runs["now"][0][1]["seconds"])
+            for stage in [*stages, "wall (imports included)"]:
+                cells = {}
+                for c in checkouts:
+                    values = [w if stage.startswith("wall") else r["seconds"].get(stage, 0.0) for w, r in runs[c]]
+                    cells[c] = float(np.median(values))
+                before = cells.get("before")
+                ratio = round(cells["now"] / before, 2) if before else None
+                rows.append([name, stage, None if before is None else round(before, 1), round(cells["now"], 1), ratio])
+            now = runs["now"][0][1]
+            if "before" in runs:
+                then = runs["before"][0][1]
+                same = now["T"].shape == then["T"].shape
+                diff = float(np.abs(now["T"] - then["T"]).max()) if same else None
+                answers.append(
+                    [
+                        name,
+                        diff,
+                        then["parts"],
+                        now["parts"],
+                        ", ".join(sorted(then["doubts"])) or "–",
+                        ", ".join(sorted(now["doubts"])) or "–",
+                    ]
+                )
+    command = "python " + " ".join(["benchmarks/bench_stages.py", *(argv if argv is not None else sys.argv[1:])])
+    save(
+        "stages",
+        rows,
+        ["scene", "stage", "before s", "now s", "now / before"],
+        command,
+        f"Medians of {args.runs} runs a checkout, alternating, 2 cores; the run's own stage timer (report.json).",
+        section="Scale and speed",
+        title="Where a run's time goes, stage by stage",
+    )
+    if answers:
+        save(
+            "stages_answers",
+            answers,
+            ["scene", "max |Δ| of a pose entry", "parts before", "parts now", "doubts before", "doubts now"],
+            command,
+            "The first run of each checkout.",
+            section="Scale and speed",
+            title="The same answers? (bench_stages)",
+        )
+    if args.profile:
+        save(
+            "stages_profile",
+            _profile(data / SCENES[args.profile]),
+            ["component", "CPU s (one process)", "% of the run"],
+            command,
+            f"{args.profile}, workers=1, cProfile; cumulative times, which overlap (GICP also runs in refinement).",
+            section="Scale and speed",
+            title="Inside a run, by component",
+        )
+    for row in rows:
+        print(*row, sep="\t")
+    for row in answers:
+        print(*row, sep="\t")
+
+
+if __name__ == "__main__":
+    main()
