@@ -31,7 +31,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from benchmarks._results import save  # noqa: E402
+from benchmarks._results import commit, save  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 
 SCENES = {"home_at": "3dmatch-scenes/home_at", "hotel_uc": "3dmatch-scenes/hotel_uc", "kitchen": "kitchen"}
@@ -46,6 +46,16 @@ COMPONENTS = {
     "synchronization": ("sync/__init__.py", "synchronize", None),
 }
 """Component -> (file, function, calling function or None for every caller) whose cumulative time it is."""
+COLUMNS = {
+    "features": ("features",),
+    "pairwise": ("pairwise",),
+    "refine": ("refine",),
+    "loops": ("loops",),
+    "retry + groups": ("retry", "groups"),
+    "other": ("load", "global_graph", "free_space", "sync", "pyramids", "covariances", "verify", "write"),
+    "total": ("total",),
+}
+"""Table column -> the run's timed stages (report.json ``seconds``) it sums."""
 
 
 def _run(checkout: Path, scene: Path, out: Path) -> tuple[float, dict]:
@@ -96,6 +106,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     data = args.data
     checkouts = {"now": ROOT} | ({"before": args.before.resolve()} if args.before else {})
+    labels = {c: commit(checkout) for c, checkout in checkouts.items()}
     rows, answers = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes if args.runs > 0 else []:
@@ -109,15 +120,13 @@ def main(argv: list[str] | None = None) -> None:
                     runs[c].append((wall, result))
                     shutil.rmtree(out)
                     print(f"{name} {c} run {k + 1}: {wall:.1f} s", flush=True)
-            stages = list(runs["now"][0][1]["seconds"])
-            for stage in [*stages, "wall (imports included)"]:
-                cells = {}
-                for c in checkouts:
-                    values = [w if stage.startswith("wall") else r["seconds"].get(stage, 0.0) for w, r in runs[c]]
-                    cells[c] = float(np.median(values))
-                before = cells.get("before")
-                ratio = round(cells["now"] / before, 2) if before else None
-                rows.append([name, stage, None if before is None else round(before, 1), round(cells["now"], 1), ratio])
+            for c in checkouts:
+                seconds = [r["seconds"] for _, r in runs[c]]
+                cells = [
+                    float(np.median([sum(t.get(s, 0.0) for s in group) for t in seconds])) for group in COLUMNS.values()
+                ]
+                wall = float(np.median([w for w, _ in runs[c]]))
+                rows.append([name, labels[c], *(round(x, 1) for x in cells), round(wall, 1)])
             now = runs["now"][0][1]
             if "before" in runs:
                 then = runs["before"][0][1]
@@ -138,9 +147,11 @@ def main(argv: list[str] | None = None) -> None:
         save(
             "stages",
             rows,
-            ["scene", "stage", "before s", "now s", "now / before"],
+            ["scene", "commit", *COLUMNS, "wall s (imports included)"],
             command,
-            f"Medians of {args.runs} runs a checkout, alternating, 2 cores; the run's own stage timer (report.json).",
+            f"Seconds, medians of {args.runs} runs a checkout, alternating; each stage by the run's own timer "
+            "(report.json), 'other' the sum of the rest (loading, global graph, free space, synchronization, pyramids, "
+            "covariances, verification, writing).",
             section="Scale and speed",
             title="Where a run's time goes, stage by stage",
         )
@@ -150,7 +161,7 @@ def main(argv: list[str] | None = None) -> None:
             answers,
             ["scene", "max |Δ| of a pose entry", "parts before", "parts now", "doubts before", "doubts now"],
             command,
-            "The first run of each checkout.",
+            f"The first run of each checkout: {labels.get('before')} (before) and {labels['now']} (now).",
             section="Scale and speed",
             title="The same answers? (bench_stages)",
         )

@@ -13,7 +13,15 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.registration.edges import EdgeSet
-from sghr_gtsam.registration.overrule import MAX_FALSE_ALARMS, Viewpoints, look_alikes, overruled_edges
+from sghr_gtsam.registration.overrule import (
+    MAX_FALSE_ALARMS,
+    MIN_GAIN,
+    Viewpoints,
+    _clearer,
+    _Trial,
+    look_alikes,
+    overruled_edges,
+)
 from sghr_gtsam.registration.pairwise import PairResult
 from sghr_gtsam.registration.visibility import CONFLICT
 from sghr_gtsam.se3 import inv_T, make_T, transform_points
@@ -258,3 +266,39 @@ def test_scans_are_vouched_for_only_where_enough_loops_check_their_frames(kitche
     assert not Viewpoints.vouch(*_views_at_truth(kitchen, chain + [(0, n - 1)])[:3])
     views, graph, result, _ = _views_at_truth(kitchen, _all_pairs(n - 1) + [(n - 2, n - 1)])
     assert views.vouch(graph, result) and len(views.images) == n
+
+
+def _trial(before: int, seen_before: int, after: int, seen_after: int) -> _Trial:
+    return _Trial(np.zeros(1, bool), np.zeros(1, bool), 2, 1.0, before, after, seen_before, seen_after)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(1, 40), st.integers(0, 40), st.integers(1, 30), st.integers(1, 30))
+def test_a_move_that_only_judges_fewer_pairs_is_not_clearer(q, p, m_before, m_after):
+    """The same share of pairs in conflict at the move, however many fewer pairs are judged there, is no evidence."""
+    p = min(p, q)
+    assert not _clearer(_trial(p * m_before, q * m_before, p * m_after, q * m_after))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(MIN_GAIN, 400), st.integers(0, 2000))
+def test_a_move_that_clears_every_conflict_among_as_many_pairs_is_clearer(conflicts, more):
+    """No conflict left among as many pairs judged: z = √c / √(1 − c/2n) ≥ √MIN_GAIN, above the 0.999 quantile."""
+    seen = conflicts + more
+    assert _clearer(_trial(conflicts, seen, 0, seen))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(1, 300), st.integers(0, 300), st.integers(1, 300), st.integers(0, 300))
+def test_fewer_conflicts_at_the_move_never_make_it_less_clear(seen_before, before, seen_after, after):
+    before, after = min(before, seen_before), min(after, seen_after)
+    assume(after > 0)
+    assert _clearer(_trial(before, seen_before, after - 1, seen_after)) or not _clearer(
+        _trial(before, seen_before, after, seen_after)
+    )
+
+
+def test_a_move_to_a_place_fewer_scans_see_is_told_from_one_off_repeated_furniture():
+    """Counts halved at a similar rate (30 % -> 21 % of the pairs) against a rate cut to a third (52 % -> 16 %)."""
+    assert not _clearer(_trial(114, 384, 36, 173))
+    assert _clearer(_trial(157, 302, 12, 75))
