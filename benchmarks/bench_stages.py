@@ -9,8 +9,8 @@ folder (``--before``: another checkout, e.g. ``git worktree add ../before HEAD~3
 alternating so that both see the same load. Per stage the median over ``--runs`` of the run's own timer
 (report.json ``seconds``), and the median wall time with imports. The answers compared: the largest difference of a
 pose matrix entry between the two checkouts' first runs, and each one's parts and doubts.
-``--profile SCENE``: one run of this checkout in one process (``workers=1``) under cProfile, its CPU seconds split
-by component (the cumulative time of the functions named in ``COMPONENTS``).
+``--runs 0`` skips the timed runs. ``--profile SCENE``: one run of this checkout in one process (``workers=1``) under
+cProfile, its CPU seconds split by component (the cumulative time of the functions named in ``COMPONENTS``).
 """
 
 from __future__ import annotations
@@ -36,17 +36,16 @@ from data_tools.scene_gt import data_root  # noqa: E402
 
 SCENES = {"home_at": "3dmatch-scenes/home_at", "hotel_uc": "3dmatch-scenes/hotel_uc", "kitchen": "kitchen"}
 COMPONENTS = {
-    "local features (FPFH)": ("local.py", "scan_features"),
-    "descriptor matching": ("pairwise.py", "mutual_matches"),
-    "robust estimate (SC²)": ("estimators.py", "sc2_estimate"),
-    "GICP": ("icp.py", "gicp"),
-    "scoring and information": ("pairwise.py", "score_pair"),
-    "refinement and loop closures": ("refine.py", "register_from_guesses"),
-    "free space": ("visibility.py", "contradicted_placements"),
-    "synchronization": ("sync/__init__.py", "synchronize"),
+    "local features (FPFH)": ("local.py", "scan_features", None),
+    "descriptor matching": ("pairwise.py", "mutual_matches", None),
+    "robust estimate (SC²)": ("estimators.py", "sc2_estimate", None),
+    "GICP of global registrations": ("icp.py", "gicp", "register_pair"),
+    "GICP of refinements and loop closures": ("icp.py", "gicp", "multiscale_icp"),
+    "scoring and information": ("pairwise.py", "scored", None),
+    "information of refinements and loop closures": ("information.py", "registration_information", "refine_pair"),
+    "synchronization": ("sync/__init__.py", "synchronize", None),
 }
-"""Component -> (file, function) whose cumulative time it is; the components overlap (GICP runs inside the
-refinement too)."""
+"""Component -> (file, function, calling function or None for every caller) whose cumulative time it is."""
 
 
 def _run(checkout: Path, scene: Path, out: Path) -> tuple[float, dict]:
@@ -75,15 +74,14 @@ def _profile(scene: Path) -> list[list]:
     with tempfile.TemporaryDirectory() as tmp:
         profile = cProfile.Profile()
         profile.runcall(sg.run, str(scene), str(Path(tmp) / "out"), sg.Config(workers=1, record=False, cache=False))
-    stats = pstats.Stats(profile).stats
-    total = max(cumulative for (_, _, cumulative, _, _) in stats.values())
+    stats = pstats.Stats(profile)
+    total = stats.total_tt
     rows = []
-    for name, (file, function) in COMPONENTS.items():
-        seconds = sum(
-            cumulative
-            for (path, _, fn), (_, _, _, cumulative, _) in stats.items()
-            if path.endswith(file) and fn == function
-        )
+    for name, (file, function, caller) in COMPONENTS.items():
+        seconds = 0.0
+        for (path, _, fn), (_, _, _, cumulative, callers) in stats.stats.items():
+            if path.endswith(file) and fn == function:
+                seconds += cumulative if caller is None else sum(c[3] for f, c in callers.items() if f[2] == caller)
         rows.append([name, round(seconds, 1), round(100 * seconds / total)])
     return rows + [["whole run", round(total, 1), 100]]
 
@@ -100,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     checkouts = {"now": ROOT} | ({"before": args.before.resolve()} if args.before else {})
     rows, answers = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        for name in args.scenes:
+        for name in args.scenes if args.runs > 0 else []:
             scene = data / SCENES[name]
             runs: dict[str, list] = {c: [] for c in checkouts}
             for k in range(args.runs):
@@ -136,15 +134,16 @@ def main(argv: list[str] | None = None) -> None:
                     ]
                 )
     command = "python " + " ".join(["benchmarks/bench_stages.py", *(argv if argv is not None else sys.argv[1:])])
-    save(
-        "stages",
-        rows,
-        ["scene", "stage", "before s", "now s", "now / before"],
-        command,
-        f"Medians of {args.runs} runs a checkout, alternating, 2 cores; the run's own stage timer (report.json).",
-        section="Scale and speed",
-        title="Where a run's time goes, stage by stage",
-    )
+    if rows:
+        save(
+            "stages",
+            rows,
+            ["scene", "stage", "before s", "now s", "now / before"],
+            command,
+            f"Medians of {args.runs} runs a checkout, alternating, 2 cores; the run's own stage timer (report.json).",
+            section="Scale and speed",
+            title="Where a run's time goes, stage by stage",
+        )
     if answers:
         save(
             "stages_answers",
@@ -161,7 +160,8 @@ def main(argv: list[str] | None = None) -> None:
             _profile(data / SCENES[args.profile]),
             ["component", "CPU s (one process)", "% of the run"],
             command,
-            f"{args.profile}, workers=1, cProfile; cumulative times, which overlap (GICP also runs in refinement).",
+            f"{args.profile}, workers=1, cProfile: each component's cumulative time (scoring and information includes"
+            " the information of global registrations).",
             section="Scale and speed",
             title="Inside a run, by component",
         )
