@@ -1,0 +1,154 @@
+"""Does the answer about trust survive changes that should not matter?
+
+    python benchmarks/bench_stability.py [--data ../shared/data] [--scenes home_at hotel_uc studyroom kitchen]
+
+Each scene runs with defaults as given, then twice more with a change that no scan or registration should notice:
+its scans listed in reverse order (links named so that they sort the other way: the run numbers them anew), and the
+ICP correspondence distance 0.1 % longer (``Config.icp_distance`` 1.5 -> 1.5015 voxels, well below any
+registration's noise). Per variant: the parts' sizes, the scans doubted, and how far the scans' poses relative to the
+first scan moved against the run as given (largest rotation and translation over the scans the two runs placed).
+A verdict that changes here changes on any scene for reasons that have nothing to do with the scans.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks._results import save  # noqa: E402
+from data_tools.scene_gt import data_root  # noqa: E402
+
+SCENES = {
+    "home_at": "3dmatch-scenes/home_at",
+    "hotel_uc": "3dmatch-scenes/hotel_uc",
+    "studyroom": "3dmatch-scenes/studyroom",
+    "kitchen": "kitchen",
+}
+SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
+
+
+def _reversed(scene: Path, folder: Path) -> dict[str, str]:
+    """Links to the scene's scans in ``folder`` that sort in reverse order; the link name -> the scan's name."""
+    scans = sorted(
+        (p for p in scene.iterdir() if p.suffix in SCAN_SUFFIXES and p.stem != "gt_poses"),
+        key=lambda p: [int(t) if t.isdigit() else t for t in _tokens(p.name)],
+    )
+    folder.mkdir()
+    names = {}
+    for k, path in enumerate(reversed(scans)):
+        link = folder / f"s{k:05d}_{path.name}"
+        link.symlink_to(path.resolve())
+        names[link.name] = path.name
+    return names
+
+
+def _tokens(name: str) -> list[str]:
+    out, digits = [], ""
+    for ch in name:
+        if ch.isdigit():
+            digits += ch
+            continue
+        if digits:
+            out.append(digits)
+            digits = ""
+        out.append(ch)
+    return out + ([digits] if digits else [])
+
+
+def _run(scene: Path, out: Path, config: dict | None = None) -> None:
+    command = [sys.executable, "-m", "sghr_gtsam", "run", str(scene), "--out", str(out), "--no-cache", "--quiet"]
+    if config:
+        path = out.with_suffix(".json")
+        path.write_text(json.dumps(config))
+        command += ["--config", str(path)]
+    subprocess.run(command, cwd=ROOT, check=True, capture_output=True)
+
+
+def _read(out: Path, names: dict[str, str] | None = None) -> dict:
+    """Parts' sizes, doubts and poses by the scans' own names."""
+    rename = (lambda n: names.get(n, n)) if names else (lambda n: n)
+    report = json.loads((out / "report.json").read_text())
+    poses, name = {}, None
+    for line in (out / "poses.txt").read_text().splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        cells = line.split()
+        if len(cells) == 1:
+            name, rows = rename(cells[0]), []
+        else:
+            rows.append([float(x) for x in cells])
+            if len(rows) == 4:
+                poses[name] = np.array(rows)
+    return {
+        "parts": sorted((len(p["scans"]) for p in report["parts"]), reverse=True),
+        "doubts": sorted(rename(n) for n in report["doubts"]),
+        "poses": poses,
+    }
+
+
+def _moved(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> tuple[float, float]:
+    """Largest rotation (degrees) and translation between the two runs' poses relative to their first common scan."""
+    common = sorted(set(a) & set(b), key=lambda n: [int(t) if t.isdigit() else t for t in _tokens(n)])
+    ref = common[0]
+    worst = (0.0, 0.0)
+    for n in common:
+        A = np.linalg.solve(a[ref], a[n])
+        B = np.linalg.solve(b[ref], b[n])
+        D = np.linalg.solve(A, B)
+        angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0)))
+        worst = (max(worst[0], float(angle)), max(worst[1], float(np.linalg.norm(D[:3, 3]))))
+    return worst
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, default=data_root())
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted(SCENES))
+    args = parser.parse_args(argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.scenes:
+            scene = args.data / SCENES[name]
+            given = Path(tmp) / f"{name}-given"
+            _run(scene, given)
+            base = _read(given)
+            variants = {"as given": base}
+            names = _reversed(scene, Path(tmp) / f"{name}-reversed-scans")
+            _run(Path(tmp) / f"{name}-reversed-scans", Path(tmp) / f"{name}-reversed")
+            variants["scans in reverse order"] = _read(Path(tmp) / f"{name}-reversed", names)
+            _run(scene, Path(tmp) / f"{name}-icp", {"icp_distance": 1.5015})
+            variants["ICP distance +0.1 %"] = _read(Path(tmp) / f"{name}-icp")
+            for variant, result in variants.items():
+                degrees, metres = _moved(base["poses"], result["poses"])
+                rows.append(
+                    [
+                        name,
+                        variant,
+                        "+".join(str(s) for s in result["parts"]),
+                        len(result["doubts"]),
+                        ", ".join(n.rsplit(".", 1)[0] for n in result["doubts"]) or "–",
+                        round(degrees, 3),
+                        round(metres, 4),
+                    ]
+                )
+                print(*rows[-1], sep="\t", flush=True)
+    save(
+        "stability",
+        rows,
+        ["scene", "variant", "parts", "doubted", "doubted scans", "max Δ rotation °", "max Δ translation"],
+        notes="Poses compared relative to the first scan both runs placed; one run a variant, 2 cores.",
+        section="3DMatch end to end",
+        title="The verdict under changes that should not matter",
+    )
+
+
+if __name__ == "__main__":
+    main()
