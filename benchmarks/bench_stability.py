@@ -6,7 +6,8 @@ Each scene runs with defaults as given, then twice more with a change that no sc
 its scans listed in reverse order (links named so that they sort the other way: the run numbers them anew), and the
 ICP correspondence distance 0.1 % longer (``Config.icp_distance`` 1.5 -> 1.5015 voxels, well below any
 registration's noise). Per variant: the parts' sizes, the scans doubted, and how far the scans' poses relative to the
-first scan moved against the run as given (largest rotation and translation over the scans the two runs placed).
+first scan moved against the run as given (largest rotation and translation over the scans the two runs placed), and
+the registration recall of the placed scans on the scene's 3DMatch and 3DLoMatch pairs.
 A verdict that changes here changes on any scene for reasons that have nothing to do with the scans.
 """
 
@@ -24,6 +25,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from benchmarks._results import save  # noqa: E402
+from benchmarks.bench_3dmatch import SCENES as GT_SCENES  # noqa: E402
+from benchmarks.bench_3dmatch import lo_gt, scene_gt  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 
 SCENES = {
@@ -32,6 +35,26 @@ SCENES = {
     "studyroom": "3dmatch-scenes/studyroom",
     "kitchen": "kitchen",
 }
+
+
+def _recalls(data: Path, name: str, poses: dict[str, np.ndarray]) -> tuple[float | None, float | None]:
+    """Registration recall of the placed scans by the paper's protocol on the scene's 3DMatch and 3DLoMatch pairs
+    (``evaluate.registration_recall_counting_unplaced``; a pair with an unplaced scan fails)."""
+    from sghr_gtsam.evaluate import fragment_id, registration_recall_counting_unplaced
+
+    scene = GT_SCENES[name]
+    gt = scene_gt(data, scene)
+    if "gt_log" not in gt:
+        return None, None
+    names = list(poses)
+    ids, T = [fragment_id(n) for n in names], np.stack([poses[n] for n in names])
+    every = [fragment_id(n) for n in gt["gt_names"]]
+    out = []
+    for log, info in [(gt["gt_log"], gt["gt_info"]), lo_gt(data, scene) or (None, None)]:
+        out.append(None if log is None else registration_recall_counting_unplaced(ids, T, log, info, every).recall)
+    return out[0], out[1]
+
+
 SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
 
 
@@ -128,10 +151,13 @@ def main(argv: list[str] | None = None) -> None:
             variants["ICP distance +0.1 %"] = _read(Path(tmp) / f"{name}-icp")
             for variant, result in variants.items():
                 degrees, metres = _moved(base["poses"], result["poses"])
+                rr, lo = _recalls(args.data, name, result["poses"])
                 rows.append(
                     [
                         name,
                         variant,
+                        None if rr is None else round(rr, 3),
+                        None if lo is None else round(lo, 3),
                         "+".join(str(s) for s in result["parts"]),
                         len(result["doubts"]),
                         ", ".join(n.rsplit(".", 1)[0] for n in result["doubts"]) or "–",
@@ -143,7 +169,17 @@ def main(argv: list[str] | None = None) -> None:
     save(
         "stability",
         rows,
-        ["scene", "variant", "parts", "doubted", "doubted scans", "max Δ rotation °", "max Δ translation"],
+        [
+            "scene",
+            "variant",
+            "RR",
+            "3DLoMatch RR",
+            "parts",
+            "doubted",
+            "doubted scans",
+            "max Δ rotation °",
+            "max Δ translation",
+        ],
         notes="Poses compared relative to the first scan both runs placed; one run a variant, 2 cores.",
         section="3DMatch end to end",
         title="The verdict under changes that should not matter",
