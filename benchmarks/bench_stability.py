@@ -28,20 +28,18 @@ from benchmarks._results import save  # noqa: E402
 from benchmarks.bench_3dmatch import SCENES as GT_SCENES  # noqa: E402
 from benchmarks.bench_3dmatch import lo_gt, scene_gt  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
+from sghr_gtsam.evaluate import fragment_id, registration_recall_counting_unplaced  # noqa: E402
+from sghr_gtsam.io.poses import read_poses  # noqa: E402
+from sghr_gtsam.io.scans import list_scans  # noqa: E402
+from sghr_gtsam.se3 import inv_T, rotation_angle  # noqa: E402
 
-SCENES = {
-    "home_at": "3dmatch-scenes/home_at",
-    "hotel_uc": "3dmatch-scenes/hotel_uc",
-    "studyroom": "3dmatch-scenes/studyroom",
-    "kitchen": "kitchen",
-}
+SCENES = ("home_at", "hotel_uc", "studyroom", "kitchen")
+"""Scenes of ``bench_3dmatch.SCENES`` run here."""
 
 
 def _recalls(data: Path, name: str, poses: dict[str, np.ndarray]) -> tuple[float | None, float | None]:
     """Registration recall of the placed scans by the paper's protocol on the scene's 3DMatch and 3DLoMatch pairs
     (``evaluate.registration_recall_counting_unplaced``; a pair with an unplaced scan fails)."""
-    from sghr_gtsam.evaluate import fragment_id, registration_recall_counting_unplaced
-
     scene = GT_SCENES[name]
     gt = scene_gt(data, scene)
     if "gt_log" not in gt:
@@ -55,35 +53,16 @@ def _recalls(data: Path, name: str, poses: dict[str, np.ndarray]) -> tuple[float
     return out[0], out[1]
 
 
-SCAN_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".npy", ".npz", ".las", ".laz", ".e57")
-
-
 def _reversed(scene: Path, folder: Path) -> dict[str, str]:
-    """Links to the scene's scans in ``folder`` that sort in reverse order; the link name -> the scan's name."""
-    scans = sorted(
-        (p for p in scene.iterdir() if p.suffix in SCAN_SUFFIXES and p.stem != "gt_poses"),
-        key=lambda p: [int(t) if t.isdigit() else t for t in _tokens(p.name)],
-    )
+    """Links to the scene's scans (``io.scans.list_scans``) in ``folder`` that sort in reverse order; the link name ->
+    the scan's name."""
     folder.mkdir()
     names = {}
-    for k, path in enumerate(reversed(scans)):
+    for k, path in enumerate(reversed(list_scans(scene))):
         link = folder / f"s{k:05d}_{path.name}"
         link.symlink_to(path.resolve())
         names[link.name] = path.name
     return names
-
-
-def _tokens(name: str) -> list[str]:
-    out, digits = [], ""
-    for ch in name:
-        if ch.isdigit():
-            digits += ch
-            continue
-        if digits:
-            out.append(digits)
-            digits = ""
-        out.append(ch)
-    return out + ([digits] if digits else [])
 
 
 def _run(scene: Path, out: Path, config: dict | None = None) -> None:
@@ -96,50 +75,41 @@ def _run(scene: Path, out: Path, config: dict | None = None) -> None:
 
 
 def _read(out: Path, names: dict[str, str] | None = None) -> dict:
-    """Parts' sizes, doubts and poses by the scans' own names."""
+    """Parts' sizes, doubts and poses (in the run's order) by the scans' own names."""
     rename = (lambda n: names.get(n, n)) if names else (lambda n: n)
     report = json.loads((out / "report.json").read_text())
-    poses, name = {}, None
-    for line in (out / "poses.txt").read_text().splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        cells = line.split()
-        if len(cells) == 1:
-            name, rows = rename(cells[0]), []
-        else:
-            rows.append([float(x) for x in cells])
-            if len(rows) == 4:
-                poses[name] = np.array(rows)
+    placed, T = read_poses(out / "poses.txt")
     return {
         "parts": sorted((len(p["scans"]) for p in report["parts"]), reverse=True),
         "doubts": sorted(rename(n) for n in report["doubts"]),
-        "poses": poses,
+        "poses": {rename(n): pose for n, pose in zip(placed, T)},
     }
 
 
 def _moved(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> tuple[float, float]:
-    """Largest rotation (degrees) and translation between the two runs' poses relative to their first common scan."""
-    common = sorted(set(a) & set(b), key=lambda n: [int(t) if t.isdigit() else t for t in _tokens(n)])
+    """Largest rotation (degrees) and translation between the runs' poses relative to the first scan of ``a`` that
+    ``b`` placed too."""
+    common = [n for n in a if n in b]
     ref = common[0]
     worst = (0.0, 0.0)
     for n in common:
-        A = np.linalg.solve(a[ref], a[n])
-        B = np.linalg.solve(b[ref], b[n])
-        D = np.linalg.solve(A, B)
-        angle = np.degrees(np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0)))
-        worst = (max(worst[0], float(angle)), max(worst[1], float(np.linalg.norm(D[:3, 3]))))
+        D = inv_T(inv_T(a[ref]) @ a[n]) @ inv_T(b[ref]) @ b[n]
+        worst = (
+            max(worst[0], float(np.degrees(rotation_angle(D[:3, :3])))),
+            max(worst[1], float(np.linalg.norm(D[:3, 3]))),
+        )
     return worst
 
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=data_root())
-    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=sorted(SCENES))
+    parser.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     args = parser.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes:
-            scene = args.data / SCENES[name]
+            scene = args.data / GT_SCENES[name].folder
             given = Path(tmp) / f"{name}-given"
             _run(scene, given)
             base = _read(given)

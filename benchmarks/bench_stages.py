@@ -32,9 +32,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from benchmarks._results import commit, save  # noqa: E402
+from benchmarks.bench_3dmatch import SCENES as GT_SCENES  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
+from sghr_gtsam.io.poses import read_poses  # noqa: E402
 
-SCENES = {"home_at": "3dmatch-scenes/home_at", "hotel_uc": "3dmatch-scenes/hotel_uc", "kitchen": "kitchen"}
+SCENES = ("home_at", "hotel_uc", "kitchen")
+"""Scenes of ``bench_3dmatch.SCENES`` run here."""
 COMPONENTS = {
     "local features (FPFH)": ("local.py", "scan_features", None),
     "descriptor matching": ("pairwise.py", "mutual_matches", None),
@@ -73,11 +76,6 @@ def _run(checkout: Path, scene: Path, out: Path) -> tuple[float, dict]:
     return wall, {"seconds": report["seconds"], "parts": len(report["parts"]), "doubts": report["doubts"]}
 
 
-def _poses(path: Path) -> np.ndarray:
-    rows = [line.split() for line in path.read_text().splitlines() if not line.startswith("#")]
-    return np.array([[float(x) for x in row] for row in rows if len(row) == 4])
-
-
 def _profile(scene: Path) -> list[list]:
     import sghr_gtsam as sg
 
@@ -99,10 +97,10 @@ def _profile(scene: Path) -> list[list]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=data_root())
-    parser.add_argument("--scenes", nargs="+", default=["home_at", "hotel_uc"], choices=sorted(SCENES))
+    parser.add_argument("--scenes", nargs="+", default=["home_at", "hotel_uc"], choices=SCENES)
     parser.add_argument("--runs", type=int, default=3)
     parser.add_argument("--before", type=Path, default=None, help="another checkout to compare against")
-    parser.add_argument("--profile", choices=sorted(SCENES), default=None)
+    parser.add_argument("--profile", choices=SCENES, default=None)
     args = parser.parse_args(argv)
     data = args.data
     checkouts = {"now": ROOT} | ({"before": args.before.resolve()} if args.before else {})
@@ -110,13 +108,13 @@ def main(argv: list[str] | None = None) -> None:
     rows, answers = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for name in args.scenes if args.runs > 0 else []:
-            scene = data / SCENES[name]
+            scene = data / GT_SCENES[name].folder
             runs: dict[str, list] = {c: [] for c in checkouts}
             for k in range(args.runs):
                 for c, checkout in checkouts.items():
                     out = Path(tmp) / f"{name}-{c}-{k}"
                     wall, result = _run(checkout, scene, out)
-                    result["T"] = _poses(out / "poses.txt")  # every placed scan's, in the scans' order
+                    result["T"] = read_poses(out / "poses.txt")[1]  # every placed scan's, in the scans' order
                     runs[c].append((wall, result))
                     shutil.rmtree(out)
                     print(f"{name} {c} run {k + 1}: {wall:.1f} s", flush=True)
@@ -168,7 +166,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.profile:
         save(
             "stages_profile",
-            _profile(data / SCENES[args.profile]),
+            _profile(data / GT_SCENES[args.profile].folder),
             ["component", "CPU s (one process)", "% of the run"],
             command,
             f"{args.profile}, workers=1, cProfile: each component's cumulative time (scoring and information includes"

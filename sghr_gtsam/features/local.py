@@ -87,7 +87,7 @@ class ScanFeatures:
 
     def _built_gicp(self) -> tuple[small_gicp.PointCloud, small_gicp.KdTree, cKDTree]:
         if self._gicp is None:
-            self._gicp = _gicp_cloud(self.points)
+            self._gicp = search_structures(self.points)
         return self._gicp
 
     @property
@@ -142,10 +142,16 @@ def query_threads() -> int:
     return len(os.sched_getaffinity(0))
 
 
-def _gicp_cloud(grid: np.ndarray) -> tuple[small_gicp.PointCloud, small_gicp.KdTree, cKDTree]:
+def search_structures(
+    grid: np.ndarray, with_normals: bool = False
+) -> tuple[small_gicp.PointCloud, small_gicp.KdTree, cKDTree]:
+    """What GICP and the nearest-point searches of a grid (m, 3) need: small_gicp's cloud with the covariances of each
+    point's ``COV_NEIGHBORS`` (and the normals of the same neighbourhoods ``with_normals``), small_gicp's k-d tree and
+    scipy's (``registration.icp``)."""
     cloud = small_gicp.PointCloud(grid)
     cloud_tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
-    small_gicp.estimate_covariances(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
+    estimate = small_gicp.estimate_normals_covariances if with_normals else small_gicp.estimate_covariances
+    estimate(cloud, cloud_tree, COV_NEIGHBORS, GICP_THREADS)
     return cloud, cloud_tree, cKDTree(grid)
 
 

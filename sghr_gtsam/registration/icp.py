@@ -2,8 +2,9 @@
 
 A point of scan j farther than the correspondence distance from scan i adds nothing to a registration's score or its
 information, yet a k-d tree's search for its nearest neighbour costs the most there: the ball around a far query
-meets many cells before the search can stop. ``nearest_within`` stops at the distance that matters; on 3DMatch
-pairs it takes a quarter of the time of the unbounded search and finds the same pairs (``benchmarks/bench_stages.py``).
+meets many cells before the search can stop. ``nearest_within`` stops at the distance that matters: on 3DMatch
+fragment pairs at their robust estimates 2.0 ms a pair against 7.6 ms for small_gicp's unbounded search, the same pairs
+(one core); the runs' poses stay identical (``benchmarks/bench_stages.py``).
 """
 
 from __future__ import annotations

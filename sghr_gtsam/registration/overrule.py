@@ -316,7 +316,7 @@ def _clearer(t: _Trial) -> bool:
     of the pairs judged: a one-sided two-proportion z-test at synchronization's ``NOISE_QUANTILE``. A move to a place
     that fewer scans see leaves fewer conflicts at the same rate: on fused 3DMatch fragments, where 30 % of the pairs
     a group's scans make read as conflicts wherever it is, moves that halved the count scored z ≤ 2.2, moves off
-    repeated furniture z ≥ 5.3 (docs/benchmarks.md, free space)."""
+    repeated furniture z ≥ 5.3 (tests/test_overrule.py holds one of each)."""
     if t.seen_before == 0 or t.seen_after == 0:
         return False
     rate = (t.before + t.after) / (t.seen_before + t.seen_after)

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from sghr_gtsam.cache import Cache, Kind, refined_key
 from sghr_gtsam.config import Config
-from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_BYTES, GICP_THREADS, ScanFeatures
+from sghr_gtsam.features.local import GICP_BYTES, ScanFeatures, search_structures
 from sghr_gtsam.registration.icp import gicp
 from sghr_gtsam.registration.information import registration_information
 from sghr_gtsam.registration.pairwise import PAIRS, PairResult, informed, scored
@@ -99,12 +99,9 @@ class Pyramid:
 
     def level(self, k: int) -> Level:
         if k not in self._levels:
-            cloud = small_gicp.PointCloud(self.grids[k])
-            tree = small_gicp.KdTree(cloud, num_threads=GICP_THREADS)
-            # The same covariances as estimate_covariances, and the normals from the same neighbourhoods.
-            small_gicp.estimate_normals_covariances(cloud, tree, COV_NEIGHBORS, GICP_THREADS)
-            normals = np.asarray(cloud.normals())[:, :3]
-            self._levels[k] = Level(self.grids[k], normals, cloud, tree, cKDTree(self.grids[k]))
+            # The same covariances as the matching grid's, and the normals from the same neighbourhoods.
+            cloud, tree, point_tree = search_structures(self.grids[k], with_normals=True)
+            self._levels[k] = Level(self.grids[k], np.asarray(cloud.normals())[:, :3], cloud, tree, point_tree)
         return self._levels[k]
 
 
