@@ -39,7 +39,7 @@ from sghr_gtsam.scene import Log, check_given, load_scene, scene_voxel, too_few,
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.store import Attribute, Store, Stored
 from sghr_gtsam.sync import synchronize, unverified
-from sghr_gtsam.types import InputError, IterationRecord, PoseGraph, Scan, SyncResult
+from sghr_gtsam.types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
 from sghr_gtsam.verify import Verdict, Verification, verify
 
 
@@ -63,9 +63,8 @@ class _Timer:
             self._on_end(name, seconds)
 
 
-def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
-    """Unit global features (N, D) of the scans (``counts``: their descriptors), read one at a time, and what made
-    them."""
+def _global_features(features: Stored, config: Config) -> tuple[np.ndarray, str]:
+    """Unit global features (N, D) of the scans, read one at a time, and what made them."""
     # FPFH, also when pairs are matched on learned descriptors: the codebook and the shipped head rank overlaps on it
     fpfh = features[0].fpfh is not None
     descriptors = Attribute(features, "fpfh" if fpfh else "descriptors")
@@ -82,7 +81,7 @@ def _global_features(features: Stored, counts: list[int], config: Config) -> tup
         return F, f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
-    F, clusters = codebook_features(descriptors, seed=config.seed, counts=counts)
+    F, clusters = codebook_features(descriptors, seed=config.seed)
     return F, f"unsupervised VLAD codebook ({clusters} clusters of {kind}, k-means on this scene)"
 
 
@@ -218,11 +217,15 @@ def register(
     centres = local_frame.centres(np.array([st.median for st in stats]), voxel)
     scans = [replace(s, centre=c, stats=st) for s, c, st in zip(scans, centres, stats)]
     log(f"{len(scans)} scans, voxel {voxel:.4g}")
+    listed = [s.name for s in scans]
+    order = _content_order(stats)
+    scans, centres = [scans[k] for k in order], centres[order]
+    scores = None if scores is None else scores[np.ix_(order, order)]
     owned, store = store is None, store or Store(cache)
     try:
         with kept_workers(config.workers, config.ray):
             return _register(
-                scans, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress, cache
+                scans, listed, centres, voxel, config, store, recorder, log, skipped, timer, scores, progress, cache
             )
     except BaseException:
         if owned:  # a store it made goes with a failed run; the caller's is the caller's
@@ -230,8 +233,18 @@ def register(
         raise
 
 
+def _content_order(stats: list[ScanStats]) -> np.ndarray:
+    """The order the stages take the scans in: by the digest of their points, not by their names or where they are
+    listed. Registration is not symmetric (the first scan of a pair is the target), samples are drawn and ties
+    broken in this order, and the first synchronization's frame decides which cells predict a loop's overlap: in
+    listing order, the same scans listed the other way round gave another model (docs/benchmarks.md, stability).
+    ``_in_listing_order`` turns the result back."""
+    return np.argsort([st.digest for st in stats], kind="stable")
+
+
 def _register(
     scans: list[Scan],
+    listed: list[str],
     centres: np.ndarray,
     voxel: float,
     config: Config,
@@ -244,14 +257,17 @@ def _register(
     progress: Progress,
     cache: Cache | None,
 ) -> RunResult:
-    """``register`` from the features on: ``scans`` checked and centred (at ``centres``)."""
-    scans, centres, features, counts, scores = _local_features(
+    """``register`` from the features on: ``scans`` checked, centred (at ``centres``) and in ``_content_order``;
+    the result in the order of the names ``listed``."""
+    scans, centres, features, scores = _local_features(
         scans, centres, scores, voxel, config, store, skipped, timer, log, progress
     )
-    if recorder:
-        recorder.log_scans([s.name for s in scans], Attribute(features, "points"))
+    position = {name: k for k, name in enumerate(listed)}
+    listing = np.argsort([position[s.name] for s in scans], kind="stable")  # k-th listed scan -> its index here
+    if recorder:  # coloured as listed
+        recorder.log_scans([s.name for s in scans], Attribute(features, "points"), np.argsort(listing))
     stages = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
-    top_k, stages.scores, feature_kind = _global_graph(stages, counts, scores)
+    top_k, stages.scores, feature_kind = _global_graph(stages, scores)
 
     edges = EdgeSet()
     with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
@@ -259,7 +275,7 @@ def _register(
     log(f"pairwise: {len(edges.pairs)} pairs in {timer.seconds['pairwise']:.2f} s")
     graph = stages.pose_graph(edges)
     if not np.any(graph.weight > 0):
-        doubt = voxel_doubt(voxel, scans, given=config.voxel is not None)
+        doubt = voxel_doubt(voxel, [scans[k] for k in listing], given=config.voxel is not None)
         raise InputError(f"no pair of scans could be registered (do the scans overlap?{doubt})")
     result = stages.synchronize(graph, "synchronization")
     log(f"sync ({config.method}): {timer.seconds['sync']:.2f} s")
@@ -274,6 +290,7 @@ def _register(
         )
     graph, result = stages.overrule(edges, graph, result)
     graph, result, densify, first_weak = _densify(stages, edges, graph, result)
+    graph, result, first_weak = _in_listing_order(stages, listing, edges, graph, result, first_weak)
     return _run_result(stages, edges, graph, result, densify, first_weak, skipped, feature_kind)
 
 
@@ -288,15 +305,15 @@ def _local_features(
     timer: _Timer,
     log: Log,
     progress: Progress,
-) -> tuple[list[Scan], np.ndarray, Stored, list[int], np.ndarray | None]:
-    """The scans with features, their centres, their features in ``store``, their counts of descriptors and their
-    rows of the given ``scores`` (or None); the others go to ``skipped``."""
+) -> tuple[list[Scan], np.ndarray, Stored, np.ndarray | None]:
+    """The scans with features, their centres, their features in ``store`` and their rows of the given ``scores``
+    (or None); the others go to ``skipped``."""
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
-    # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
+    # go to the store as they arrive, and this process keeps only why a scan has none.
     keys = [scan_key(s, voxel, config) for s in scans]
-    shared = (voxel, config.normal_radius, config.fpfh_radius, config.descriptor)
+    shared = _feature_settings(voxel, config)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        counts = store.map(
+        missing = store.map(
             FEATURES,
             scan_features,
             shared,
@@ -305,27 +322,32 @@ def _local_features(
             config.workers,
             tick,
             config.ray,
-            keep=lambda f: f if isinstance(f, str) else len(f.descriptors),
+            keep=lambda f: f if isinstance(f, str) else None,
         )
-    for s, count in zip(scans, counts):
-        if isinstance(count, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
-            skipped[s.name] = count
-            log(f"skipped {s.name}: {count}")
-    usable = [k for k, count in enumerate(counts) if not isinstance(count, str)]
-    scans, centres, counts = [scans[k] for k in usable], centres[usable], [counts[k] for k in usable]
+    for s, why in zip(scans, missing):
+        if why is not None:  # no features: a stray point far away (too many voxels), keypoints off the scan
+            skipped[s.name] = why
+            log(f"skipped {s.name}: {why}")
+    usable = [k for k, why in enumerate(missing) if why is None]
+    scans, centres = [scans[k] for k in usable], centres[usable]
     if len(scans) < 2:
         raise too_few(scans, skipped)
     features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, shared, scans))
-    return scans, centres, features, counts, None if scores is None else scores[np.ix_(usable, usable)]
+    return scans, centres, features, None if scores is None else scores[np.ix_(usable, usable)]
 
 
-def _global_graph(stages: _Stages, counts: list[int], scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
+def _feature_settings(voxel: float, config: Config) -> tuple:
+    """What ``scan_features`` takes besides the scan."""
+    return voxel, config.normal_radius, config.fpfh_radius, config.descriptor
+
+
+def _global_graph(stages: _Stages, scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
     """The top-k pairs to register (bridged across parts with ``config.connect``), the (N, N) overlap scores
     (the caller's ``scores``, or from the global features) and what made them."""
     config, n = stages.config, len(stages.scans)
     with stages.timer.stage("global_graph"):
         if scores is None:
-            F, feature_kind = _global_features(stages.features, counts, config)
+            F, feature_kind = _global_features(stages.features, config)
             top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
             feature_kind = "overlap scores given by the caller"
@@ -420,6 +442,29 @@ def _densify(
         graph, result = stages.overrule(edges, graph, result)
     first_weak[densify.moved_scans()] = True  # a group that one registration moved is as weak as a weak scan
     return graph, result, densify, first_weak
+
+
+def _in_listing_order(
+    stages: _Stages, order: np.ndarray, edges: EdgeSet, graph: PoseGraph, result: SyncResult, first_weak: np.ndarray
+) -> tuple[PoseGraph, SyncResult, np.ndarray]:
+    """The stages' scans, features, scores and viewpoints, the edges, the graph, the synchronization and the weak
+    scans relabelled from ``_content_order`` to the order the scans were listed in (``order[k]``: the k-th listed):
+    the world is then the first listed scan of the largest part, and every output lists the scans as given."""
+    new = np.argsort(order)  # old index -> new
+    stages.scans = [stages.scans[k] for k in order]
+    keys = [stages.features.keys[k] for k in order]
+    again = _again(scan_features, _feature_settings(stages.voxel, stages.config), stages.scans)
+    stages.features = stages.store.sequence(FEATURES, keys, again)
+    stages.centres, stages.scores = stages.centres[order], stages.scores[np.ix_(order, order)]
+    if stages.views is not None:
+        stages.views = stages.views.reordered(order)
+    edges.ij = new[edges.ij]
+    graph = replace(graph, i=new[graph.i], j=new[graph.j])
+    history = [replace(r, poses=r.poses[order]) for r in result.history]
+    result = replace(result, poses=result.poses[order], component=result.component[order], history=history)
+    if stages.recorder:
+        stages.recorder.reorder(order, graph)
+    return graph, result, first_weak[order]
 
 
 def _run_result(

@@ -236,12 +236,13 @@ class Recorder:
     def log_message(self, text: str) -> None:
         self.rec.log("log", rr.TextLog(text))
 
-    def log_scans(self, names: list[str], points: Sequence[np.ndarray]) -> None:
+    def log_scans(self, names: list[str], points: Sequence[np.ndarray], ranks: Sequence[int] | None = None) -> None:
         """The (voxelised) scans, each in its own frame with its axes; poses come with every iteration.
-        ``points[k]`` is read once, one scan at a time."""
+        ``points[k]`` is read once, one scan at a time. ``ranks``: scan k takes the palette's colour ``ranks[k]``
+        (default k)."""
         self._names = list(names)
         self._paths = [f"world/scans/{rr.escape_entity_path_part(name)}" for name in names]
-        self._colours = scan_colours(len(names))
+        self._colours = scan_colours(len(names))[np.arange(len(names)) if ranks is None else np.asarray(ranks)]
         centres, self._boxes, self._moments = [], [], []
         for path, P, colour in zip(self._paths, points, self._colours):
             centres.append(P.mean(0) if len(P) else np.zeros(3))
@@ -257,6 +258,17 @@ class Recorder:
         for path in self._paths:
             self.rec.log(path, axes, static=True)
         self._log_nodes({})
+
+    def reorder(self, order: np.ndarray, graph: PoseGraph) -> None:
+        """From now on scan ``order[k]`` is scan k and ``graph`` (the logged graph's edges, relabelled so) is the
+        graph: the pipeline hands its result back in the scans' listing order."""
+        self._send_poses()  # held in the old order
+        self._names, self._paths, self._boxes, self._moments = (
+            [items[k] for k in order] for items in (self._names, self._paths, self._boxes, self._moments)
+        )
+        self._colours, self._centres = np.asarray(self._colours)[order], self._centres[order]
+        if self._graph is not None:
+            self._graph = graph
 
     def _log_nodes(self, marks: dict[str, str]) -> None:
         """The scans as graph nodes; a scan in ``marks`` gets its mark in the label and a larger node."""

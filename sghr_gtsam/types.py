@@ -152,7 +152,7 @@ class SyncResult:
     """Output of synchronization: absolute poses, final edge weights and the per-iteration history.
 
     ``component``: (N,) label of each node's connected part (0 = largest); every part is anchored at
-    its own first node, so poses of different parts are not comparable.
+    one of its own nodes, so poses of different parts are not comparable.
     """
 
     poses: np.ndarray  # (N, 4, 4)

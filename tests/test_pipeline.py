@@ -288,3 +288,23 @@ def test_config_takes_numpy_scalars_as_python_numbers_and_reads_odd_json_in_one_
         (tmp_path / name).write_text(text)
         with pytest.raises(InputError, match=f"cannot read config .*{name}"):
             Config.from_json(tmp_path / name)
+
+
+def test_result_does_not_depend_on_how_scans_are_named_or_listed():
+    """The same scans listed in reverse order under other names: the same pairs registered the same way round and
+    the same relative poses (the samples behind the global features and each pair's direction follow the scans'
+    content, not their place in the list)."""
+    scene = make_scene(kind="room", n_scans=6, seed=3)
+    scans = [Scan(n, P) for n, P in zip(scene.names, scene.scans)]
+    a = register(scans, Config(record=False), log=lambda m: None)
+    renamed = [Scan(f"z{5 - k}", s.source) for k, s in enumerate(scans)][::-1]
+    b = register(renamed, Config(record=False), log=lambda m: None)
+    to_a = {f"z{5 - k}": k for k in range(6)}  # b's name -> the scan's index in a
+    back = np.array([to_a[n] for n in b.names])
+    pairs_a = {(int(i), int(j)) for i, j in zip(a.graph.i, a.graph.j)}
+    pairs_b = {(int(back[i]), int(back[j])) for i, j in zip(b.graph.i, b.graph.j)}
+    assert pairs_a == pairs_b
+    for k in range(1, 6):
+        rel_a = inv_T(a.poses[0]) @ a.poses[k]
+        rel_b = inv_T(b.poses[np.flatnonzero(back == 0)[0]]) @ b.poses[np.flatnonzero(back == k)[0]]
+        np.testing.assert_allclose(rel_a, rel_b, atol=1e-6)

@@ -29,6 +29,7 @@ origin is no viewpoint (an object's centre) reads right registrations as conflic
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
@@ -110,6 +111,16 @@ class Viewpoints:
                 self.corners[k] = np.array(
                     [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
                 )
+
+    def reordered(self, order: np.ndarray) -> Viewpoints:
+        """The same viewpoints with scan ``order[k]`` as scan k (the pairs judged so far are judged again)."""
+        out = copy.copy(self)
+        new = {int(old): k for k, old in enumerate(order)}
+        out.images, out.samples, out.corners = (
+            {new[k]: v for k, v in d.items()} for d in (self.images, self.samples, self.corners)
+        )
+        out._judged, out._under = {}, None
+        return out
 
     def box(self, k: int, T: np.ndarray) -> np.ndarray:
         """(2, 3) lower and upper corner of a box that holds scan k under pose ``T``."""
