@@ -63,8 +63,9 @@ class _Timer:
             self._on_end(name, seconds)
 
 
-def _global_features(features: Stored, config: Config) -> tuple[np.ndarray, str]:
-    """Unit global features (N, D) of the scans, read one at a time, and what made them."""
+def _global_features(features: Stored, counts: list[int], config: Config) -> tuple[np.ndarray, str]:
+    """Unit global features (N, D) of the scans (``counts``: their descriptors), read one at a time, and what made
+    them."""
     # FPFH, also when pairs are matched on learned descriptors: the codebook and the shipped head rank overlaps on it
     fpfh = features[0].fpfh is not None
     descriptors = Attribute(features, "fpfh" if fpfh else "descriptors")
@@ -81,7 +82,7 @@ def _global_features(features: Stored, config: Config) -> tuple[np.ndarray, str]
         return F, f"learned NetVLAD head ({path}) on {kind}"
     if config.global_feature != "vlad":
         raise InputError(f"unknown global feature {config.global_feature!r} (vlad, learned)")
-    F, clusters = codebook_features(descriptors, seed=config.seed)
+    F, clusters = codebook_features(descriptors, seed=config.seed, counts=counts)
     return F, f"unsupervised VLAD codebook ({clusters} clusters of {kind}, k-means on this scene)"
 
 
@@ -234,12 +235,17 @@ def register(
 
 
 def _content_order(stats: list[ScanStats]) -> np.ndarray:
-    """The order the stages take the scans in: by the digest of their points, not by their names or where they are
-    listed. Registration is not symmetric (the first scan of a pair is the target), samples are drawn and ties
-    broken in this order, and the first synchronization's frame decides which cells predict a loop's overlap: in
-    listing order, the same scans listed the other way round gave another model (docs/benchmarks.md, stability).
-    ``_in_listing_order`` turns the result back."""
-    return np.argsort([st.digest for st in stats], kind="stable")
+    """The order the stages take the scans in: the most points first, then by their bounding box's diagonal, then
+    the digest of the points, not by their names or where they are listed (a count and a diagonal, unlike a digest,
+    are the same wherever a scan lies, to rounding: the same scans at a georeferenced offset run as near the origin;
+    simulated scans often share a count). Registration is not symmetric: the first scan of a pair is the target, so
+    the larger scan is, and GICP moves the smaller one, whose points then more often lie on the other and cost less;
+    samples are drawn and ties broken in this order, and the first synchronization's frame decides which cells
+    predict a loop's overlap: in listing order, the same scans listed the other way round gave another model
+    (docs/benchmarks.md, stability). ``_in_listing_order`` turns the result back."""
+    return np.array(
+        sorted(range(len(stats)), key=lambda k: (-stats[k].points, stats[k].span, stats[k].digest)), dtype=np.int64
+    )
 
 
 def _register(
@@ -259,7 +265,7 @@ def _register(
 ) -> RunResult:
     """``register`` from the features on: ``scans`` checked, centred (at ``centres``) and in ``_content_order``;
     the result in the order of the names ``listed``."""
-    scans, centres, features, scores = _local_features(
+    scans, centres, features, counts, scores = _local_features(
         scans, centres, scores, voxel, config, store, skipped, timer, log, progress
     )
     position = {name: k for k, name in enumerate(listed)}
@@ -267,7 +273,7 @@ def _register(
     if recorder:  # coloured as listed
         recorder.log_scans([s.name for s in scans], Attribute(features, "points"), np.argsort(listing))
     stages = _Stages(scans, features, centres, voxel, config, store, timer, log, recorder, progress, cache)
-    top_k, stages.scores, feature_kind = _global_graph(stages, scores)
+    top_k, stages.scores, feature_kind = _global_graph(stages, counts, scores)
 
     edges = EdgeSet()
     with timer.stage("pairwise"), progress.stage("pairwise registration", len(top_k)) as tick:
@@ -305,15 +311,15 @@ def _local_features(
     timer: _Timer,
     log: Log,
     progress: Progress,
-) -> tuple[list[Scan], np.ndarray, Stored, np.ndarray | None]:
-    """The scans with features, their centres, their features in ``store`` and their rows of the given ``scores``
-    (or None); the others go to ``skipped``."""
+) -> tuple[list[Scan], np.ndarray, Stored, list[int], np.ndarray | None]:
+    """The scans with features, their centres, their features in ``store``, their counts of descriptors and their
+    rows of the given ``scores`` (or None); the others go to ``skipped``."""
     # Each task reads its scan where it runs: full-resolution points live only in the scans in flight; its features
-    # go to the store as they arrive, and this process keeps only why a scan has none.
+    # go to the store as they arrive, and this process keeps their count of descriptors (or why there are none).
     keys = [scan_key(s, voxel, config) for s in scans]
     shared = _feature_settings(voxel, config)
     with timer.stage("features"), progress.stage("features", len(scans)) as tick:
-        missing = store.map(
+        counts = store.map(
             FEATURES,
             scan_features,
             shared,
@@ -322,18 +328,18 @@ def _local_features(
             config.workers,
             tick,
             config.ray,
-            keep=lambda f: f if isinstance(f, str) else None,
+            keep=lambda f: f if isinstance(f, str) else len(f.descriptors),
         )
-    for s, why in zip(scans, missing):
-        if why is not None:  # no features: a stray point far away (too many voxels), keypoints off the scan
-            skipped[s.name] = why
-            log(f"skipped {s.name}: {why}")
-    usable = [k for k, why in enumerate(missing) if why is None]
-    scans, centres = [scans[k] for k in usable], centres[usable]
+    for s, count in zip(scans, counts):
+        if isinstance(count, str):  # no features: a stray point far away (too many voxels), keypoints off the scan
+            skipped[s.name] = count
+            log(f"skipped {s.name}: {count}")
+    usable = [k for k, count in enumerate(counts) if not isinstance(count, str)]
+    scans, centres, counts = [scans[k] for k in usable], centres[usable], [counts[k] for k in usable]
     if len(scans) < 2:
         raise too_few(scans, skipped)
     features = store.sequence(FEATURES, [keys[k] for k in usable], _again(scan_features, shared, scans))
-    return scans, centres, features, None if scores is None else scores[np.ix_(usable, usable)]
+    return scans, centres, features, counts, None if scores is None else scores[np.ix_(usable, usable)]
 
 
 def _feature_settings(voxel: float, config: Config) -> tuple:
@@ -341,13 +347,13 @@ def _feature_settings(voxel: float, config: Config) -> tuple:
     return voxel, config.normal_radius, config.fpfh_radius, config.descriptor
 
 
-def _global_graph(stages: _Stages, scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
+def _global_graph(stages: _Stages, counts: list[int], scores: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, str]:
     """The top-k pairs to register (bridged across parts with ``config.connect``), the (N, N) overlap scores
     (the caller's ``scores``, or from the global features) and what made them."""
     config, n = stages.config, len(stages.scans)
     with stages.timer.stage("global_graph"):
         if scores is None:
-            F, feature_kind = _global_features(stages.features, config)
+            F, feature_kind = _global_features(stages.features, counts, config)
             top_k, _, scores = top_k_graph(F, config.k, full_scores=True)
         else:
             feature_kind = "overlap scores given by the caller"

@@ -220,20 +220,3 @@ def test_bridged_top_k_graph_is_connected_with_one_bridge_per_extra_part(seed, n
         a, b = np.triu_indices(n, 1)
         cross = label[a] != label[b]
         assert S[added[0, 0], added[0, 1]] == S[a[cross], b[cross]].max()
-
-
-@settings(max_examples=20, deadline=None)
-@given(n=st.integers(2, 8), seed=st.integers(0, 10_000), data=st.data())
-def test_vlad_codebook_and_features_do_not_depend_on_the_scans_order(n, seed, data):
-    """Permuting the scans permutes their global features and leaves the codebook as it is, also when the
-    codebook and the features sample the descriptors."""
-    rng = np.random.default_rng(seed)
-    descs = [rng.normal(size=(int(rng.integers(5, 400)), 8)).astype(np.float32) for _ in range(n)]
-    order = data.draw(st.permutations(range(n)))
-    shuffled = [descs[k] for k in order]
-    C = kmeans_codebook(descs, clusters=6, samples=300, seed=seed)
-    np.testing.assert_array_equal(C, kmeans_codebook(shuffled, clusters=6, samples=300, seed=seed))
-    head = VladHead.from_codebook(C)
-    np.testing.assert_array_equal(
-        global_features(head, descs, max_points=100)[order], global_features(head, shuffled, max_points=100)
-    )

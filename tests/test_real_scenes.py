@@ -40,8 +40,11 @@ def test_kitchen_scans_within_5_deg_and_20_cm(kitchen, data_dir):
     registered = set(kitchen.registered)
     report = {n: (round(r, 2), round(t, 3)) for n, r, t in zip(err.names, err.rotation_deg, err.translation)}
     assert ok.sum() >= 8, report
-    # Every scan the tool does not flag must be right: a wrong pose is worse than a flag.
-    assert all(ok[k] for k in registered), (report, kitchen.unregistered)
+    # Every scan the tool does not flag must be right: a wrong pose is worse than a flag; a loose one is off by no
+    # more than three of the σ it is reported with.
+    loose = kitchen.verdict.loose
+    assert all(ok[k] for k in registered if kitchen.names[k] not in loose), (report, kitchen.unregistered)
+    assert all(err.translation[kitchen.names.index(n)] <= 3 * v["sigma"] for n, v in loose.items()), (report, loose)
     # one part, every scan checked by a loop; a doubt here can only be a direction the overlap alone bounds
     assert [p.scans for p in kitchen.verdict.parts] == [kitchen.names]
     assert set(kitchen.verdict.doubts.values()) <= {"loose"}, kitchen.verdict.doubts

@@ -11,7 +11,6 @@ which keeps it off the default run (seconds of import).
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,33 +79,26 @@ def load_checkpoint(path: str, prefix: str = "vlador.pool.") -> VladHead:
     return head
 
 
-def _scan_rng(seed: int, d: np.ndarray) -> np.random.Generator:
-    """A generator seeded by ``seed`` and the scan's descriptors ``d`` themselves: a scan draws the same sample
-    wherever it is listed, so that naming or listing the scans in another order does not change the graph."""
-    digest = hashlib.blake2b(np.ascontiguousarray(d).tobytes(), digest_size=8).digest()
-    return np.random.default_rng([seed, int.from_bytes(digest, "little")])
-
-
 def kmeans_codebook(
-    descriptors: Iterable[np.ndarray], clusters: int = 64, samples: int = 20000, iters: int = 25, seed: int = 0
+    descriptors: Sequence[np.ndarray],
+    clusters: int = 64,
+    samples: int = 20000,
+    iters: int = 25,
+    seed: int = 0,
+    counts: Sequence[int] | None = None,
 ) -> np.ndarray:
     """Unsupervised VLAD codebook: spherical k-means on (a seeded sample of) unit-normalised descriptors.
 
-    ``descriptors``: each scan's (P_k, D), read once, one scan at a time. Each descriptor draws a priority from
-    its scan's own generator (``_scan_rng``) and the ``samples`` of lowest priority are clustered, in that order,
-    so the codebook does not depend on the order of the scans."""
-    prio, X = np.zeros(0), None
-    for d in descriptors:
-        d = np.asarray(d)
-        p = _scan_rng(seed, d).random(len(d))
-        take = np.argsort(p, kind="stable")[:samples]
-        prio = np.concatenate([prio, p[take]])
-        X = d[take].astype(np.float32) if X is None else np.concatenate([X, d[take].astype(np.float32)])
-        keep = np.argsort(prio, kind="stable")[:samples]
-        prio, X = prio[keep], X[keep]
+    ``descriptors[k]`` (P_k, D) is read one scan at a time, for its sampled rows only; ``counts``: the P_k when
+    known (otherwise each scan is read once more, for its length). The sample is the same as from the scans'
+    concatenation."""
+    rng = np.random.default_rng(seed)
+    counts = [len(d) for d in descriptors] if counts is None else list(counts)
+    total = int(sum(counts))
+    X = _rows(descriptors, counts, rng.choice(total, samples, replace=False) if total > samples else np.arange(total))
     X /= np.linalg.norm(X, axis=1, keepdims=True) + 1e-12
     clusters = min(clusters, len(X))
-    C = X[np.random.default_rng(seed).choice(len(X), clusters, replace=False)]
+    C = X[rng.choice(len(X), clusters, replace=False)]
     rows = np.arange(len(X))
     for _ in range(iters):
         labels = np.argmax(X @ C.T, axis=1)
@@ -117,25 +109,44 @@ def kmeans_codebook(
     return C
 
 
+def _rows(descriptors: Sequence[np.ndarray], counts: list[int], picks: np.ndarray) -> np.ndarray:
+    """Rows ``picks`` of the descriptors' concatenation, in that order, as float32; each scan with a pick read
+    once."""
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    scan = np.searchsorted(starts, picks, side="right") - 1
+    order = np.argsort(scan, kind="stable")
+    X = None
+    for group in np.split(order, np.flatnonzero(np.diff(scan[order])) + 1):
+        k = int(scan[group[0]])
+        rows = np.asarray(descriptors[k])[picks[group] - starts[k]]
+        if X is None:
+            X = np.empty((len(picks), rows.shape[1]), dtype=np.float32)
+        X[group] = rows
+    return X
+
+
 def global_features(
     head: VladHead, descriptors: Iterable[np.ndarray], max_points: int = 5000, seed: int = 0
 ) -> np.ndarray:
     """Unit global feature (N, K·D) of each scan's descriptors (P_i, D), read one scan at a time; at most
-    ``max_points`` per scan (the paper samples 5000 keypoints), sampled by the scan's own seeded generator
-    (``_scan_rng``), so reruns and reorderings give identical scores."""
+    ``max_points`` per scan (the paper samples 5000 keypoints), sampled with a fixed seed so reruns give identical
+    scores."""
+    rng = np.random.default_rng(seed)
     out = []
     for d in descriptors:
         if len(d) > max_points:
-            d = d[_scan_rng(seed, d).choice(len(d), max_points, replace=False)]
+            d = d[rng.choice(len(d), max_points, replace=False)]
         out.append(head(d))
     return np.stack(out)
 
 
-def codebook_features(descriptors: Sequence[np.ndarray], seed: int = 0) -> tuple[np.ndarray, int]:
+def codebook_features(
+    descriptors: Sequence[np.ndarray], seed: int = 0, counts: Sequence[int] | None = None
+) -> tuple[np.ndarray, int]:
     """The unsupervised global feature: a NetVLAD initialised from a k-means codebook of these scans' own
     descriptors (``kmeans_codebook``, ``from_codebook``); the (N, K·D) unit features and the cluster count.
-    ``descriptors[k]`` is read one scan at a time, twice."""
-    codebook = kmeans_codebook(descriptors, seed=seed)
+    ``descriptors[k]`` is read one scan at a time (``counts``: as in ``kmeans_codebook``)."""
+    codebook = kmeans_codebook(descriptors, seed=seed, counts=counts)
     return global_features(VladHead.from_codebook(codebook), descriptors, seed=seed), len(codebook)
 
 
