@@ -359,13 +359,19 @@ def _part_spreads(
     axes: np.ndarray,
 ) -> None:
     """Fill ``spreads`` and ``axes`` (``registration.information.loosest``) of the ``members`` scans from the
-    marginal covariances of their passing registrations, relative to their first scan (a stiff prior)."""
+    marginal covariances of their passing registrations, relative to the scan most of them hold (a stiff prior; ties
+    by the registrations' summed w⁰): the gauge follows the registrations, not the scans' names or order, so a pose
+    is not loose or firm by which scan happened to be listed first."""
     from sghr_gtsam.factor_graph import anchor_prior
     from sghr_gtsam.registration.information import loosest
 
     edges = np.flatnonzero(passed & members[graph.i] & members[graph.j])
     factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     nodes = np.flatnonzero(members)
+    ends = np.r_[graph.i[edges], graph.j[edges]]
+    degree = np.bincount(ends, minlength=len(poses))[nodes]
+    weight = np.bincount(ends, weights=np.r_[graph.weight[edges], graph.weight[edges]], minlength=len(poses))[nodes]
+    anchor = int(nodes[np.lexsort((-weight, -degree))[0]])
     for k in nodes:
         values.insert(int(k), gtsam.Pose3(poses[k]))
     for e in edges:
@@ -379,7 +385,7 @@ def _part_spreads(
         )
     factors.add(
         gtsam.PriorFactorPose3(
-            int(nodes[0]), gtsam.Pose3(poses[nodes[0]]), anchor_prior(float(np.abs(information[edges]).max()))
+            anchor, gtsam.Pose3(poses[anchor]), anchor_prior(float(np.abs(information[edges]).max()))
         )
     )
     try:

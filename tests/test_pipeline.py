@@ -291,9 +291,9 @@ def test_config_takes_numpy_scalars_as_python_numbers_and_reads_odd_json_in_one_
 
 
 def test_result_does_not_depend_on_how_scans_are_named_or_listed():
-    """The same scans listed in reverse order under other names: the same pairs registered the same way round and
-    the same relative poses (the samples behind the global features and each pair's direction follow the scans'
-    content, not their place in the list)."""
+    """The same scans listed in reverse order under other names: the same pairs registered the same way round, the
+    same relative poses and the same status of every scan (the stages take the scans in an order of their content,
+    ``pipeline._content_order``)."""
     scene = make_scene(kind="room", n_scans=6, seed=3)
     scans = [Scan(n, P) for n, P in zip(scene.names, scene.scans)]
     a = register(scans, Config(record=False), log=lambda m: None)
@@ -308,3 +308,4 @@ def test_result_does_not_depend_on_how_scans_are_named_or_listed():
         rel_a = inv_T(a.poses[0]) @ a.poses[k]
         rel_b = inv_T(b.poses[np.flatnonzero(back == 0)[0]]) @ b.poses[np.flatnonzero(back == k)[0]]
         np.testing.assert_allclose(rel_a, rel_b, atol=1e-6)
+    assert {a.names[to_a[n]]: status for n, status in b.verdict.status.items()} == a.verdict.status
