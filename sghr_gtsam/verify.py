@@ -32,7 +32,8 @@ from the passing registrations' measured information scaled by the a posteriori 
 (``sync.consensus.shown_variance_factor``: robust, never below 1), plus the bounds as they are. Its spread is set
 by those bounds, not by measurements, when it shrinks by more than ``STIFFEN^¼`` (the geometric middle of no change
 and ``√STIFFEN``) with every bound ``STIFFEN`` times stiffer; such a scan is reported loose with the direction and
-σ, and doubted only where σ exceeds ``Verification.max_sigma``.
+σ, and doubted only where σ exceeds ``Verification.max_sigma``. Spreads are taken relative to the scan of the part
+that most passing registrations hold, a gauge the registrations choose rather than the order of the scans.
 
 Parts are ordered largest first; part 0 holds the world scan when it is the largest. A part whose join failed is
 placed where its best join puts it, and marked so (``Part.join``).
