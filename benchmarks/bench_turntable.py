@@ -8,7 +8,7 @@ An object turned in equal steps in front of one sensor (``data_tools.simulate.ma
 the three switched off (the graph of the first synchronization: pairwise registration of the top-k graph, then
 sync). Per row:
 
-- unverified / unregistered: ``RunResult.unverified`` / ``.unregistered`` counts;
+- unverified / unregistered: placed scans not ``verified`` (``RunResult.verdict.status``) / ``.unregistered``;
 - rotation error, max and median over the registered scans, and worst translation error (mm): the estimated
   poses of the registered scans aligned to GT by one rigid transform of the whole poses
   (``evaluate.align_poses``: the chordal mean of the rotation offsets, so the gauge cancels and no single
@@ -79,7 +79,7 @@ def run(step: int, seed: int, steps_on: bool, workers: int, noise: float, overri
         "seed": seed,
         "on": steps_on,
         "n": len(scans),
-        "unverified": len(res.unverified),
+        "unverified": sum(status == "doubtful" for status in res.verdict.status.values()),
         "unregistered": len(res.unregistered),
         "rot_max": float(rot.max()),
         "rot_med": float(np.median(rot)),
