@@ -211,6 +211,7 @@ class Recorder:
         self._moments: list[tuple[int, np.ndarray, np.ndarray]] = []  # per scan: count, mean, covariance (own frame)
         self._colours = np.zeros((0, 3), dtype=np.uint8)
         self._graph: PoseGraph | None = None
+        self._scores = np.zeros((0, 0))
         self._labels: list[str] = []
         self._step = -1
         self._stage = ""
@@ -261,14 +262,16 @@ class Recorder:
 
     def reorder(self, order: np.ndarray, graph: PoseGraph) -> None:
         """From now on scan ``order[k]`` is scan k and ``graph`` (the logged graph's edges, relabelled so) is the
-        graph: the pipeline hands its result back in the scans' listing order."""
+        graph, and the overlap scores are shown in that order: the pipeline hands its result back in the scans'
+        listing order."""
         self._send_poses()  # held in the old order
         self._names, self._paths, self._boxes, self._moments = (
             [items[k] for k in order] for items in (self._names, self._paths, self._boxes, self._moments)
         )
         self._colours, self._centres = np.asarray(self._colours)[order], self._centres[order]
         if self._graph is not None:
-            self._graph = graph
+            self._graph, self._scores = graph, self._scores[np.ix_(order, order)]
+            self.rec.log("overlap_scores", rr.Tensor(self._scores.astype(np.float32)), static=True)
 
     def _log_nodes(self, marks: dict[str, str]) -> None:
         """The scans as graph nodes; a scan in ``marks`` gets its mark in the label and a larger node."""
@@ -284,7 +287,7 @@ class Recorder:
 
     def log_graph(self, graph: PoseGraph, scores: np.ndarray) -> None:
         """The pose graph of registered pairs before a synchronization (its edges only grow)."""
-        self._graph = graph
+        self._graph, self._scores = graph, scores
         self.rec.log("overlap_scores", rr.Tensor(scores.astype(np.float32)), static=True)
         self._labels = [f"{self._names[a]}{_SEP}{self._names[b]}" for a, b in zip(graph.i, graph.j)]
         for entity in ("residuals", "weights"):

@@ -383,3 +383,12 @@ def test_two_runs_of_one_scene_are_told_apart(tmp_path):
         Recorder(path, name="scene → out").close()
         ids.append(rr.chunk.RrdReader(path).recordings()[0].recording_id)
     assert ids[0] != ids[1] and all(i.startswith("scene → out · ") for i in ids)
+
+
+def test_the_overlap_scores_are_shown_in_the_order_the_scans_were_listed(object_run):
+    """The stages take the scans in an order of their content; the matrix the viewer shows is the result's, as
+    listed."""
+    result, rows = object_run
+    (shown,) = _latest(rows, "/overlap_scores", "Tensor:data")
+    matrix = np.asarray(shown["buffer"]).reshape(shown["shape"])
+    np.testing.assert_allclose(matrix, result.scores, atol=1e-6)
