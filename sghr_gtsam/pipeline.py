@@ -552,8 +552,8 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
             alike = look_alikes(stages.views, graph, run.sync)
     if stages.config.free_space:
 
-        def clash(doubted: np.ndarray) -> np.ndarray:
-            return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, doubted)
+        def clash(parts: np.ndarray) -> np.ndarray:
+            return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, parts)
 
     return verify(
         run.names,

@@ -23,8 +23,8 @@ standard one:
    is a group that several dropped registrations place elsewhere where the free space cannot tell the two
    placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever the weights.
 4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
-   that puts one scan's surfaces where another saw empty space is contradicted (``registration.visibility``),
-   blamed first on the scans outside the rigid parts.
+   that puts one scan's surfaces where another of its part saw empty space is contradicted
+   (``registration.visibility``). A conflict between two parts is about their join, which is already unverified.
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
 that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
@@ -57,7 +57,7 @@ from sghr_gtsam.sync.consensus import (
     shown_variance_factor,
     translation_tolerance,
 )
-from sghr_gtsam.sync.disputes import agreeing_edges, linkage_groups
+from sghr_gtsam.sync.disputes import agreeing_edges, elsewhere, linkage_groups
 from sghr_gtsam.sync.rotation import connected_components
 from sghr_gtsam.types import PoseGraph
 
@@ -279,7 +279,7 @@ def verify(
     k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
     each edge's information with its free directions bounded by the overlap alone (``PairResult.bounded``; default:
     the graph's) and ``free`` its part along them (``PairResult.loose``; None: no direction is free);
-    ``clash``: ``doubted -> (N,) bool``, the scans free-space conflicts are blamed on, the doubted first (None: no
+    ``clash``: ``parts -> (N,) bool``, the scans blamed for free-space conflicts within their part (None: no
     free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
     started from the poses they would check): they count in what holds a group against a competing placement, not
     in the loops that verify it; ``look_alike``: (N,) bool masks of groups that dropped registrations place
@@ -307,7 +307,7 @@ def verify(
         p.join = _join(p.id, label, graph.i, graph.j, kept, passed, outweighed, alike, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
-    contradicted = clash(alone) if clash is not None else np.zeros(n, dtype=bool)
+    contradicted = clash(label) if clash is not None else np.zeros(n, dtype=bool)
     max_sigma = translation_tolerance(kept_graph) if params.max_sigma is None else params.max_sigma
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
@@ -433,7 +433,7 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         leaving = inside & (group[i] != group[j])
         holding = leaving & kept
         held = w[holding].sum()
-        dropped = np.flatnonzero(leaving & ~kept)
+        dropped = elsewhere(graph, poses, group, np.flatnonzero(leaving & ~kept), tolerance)
         if len(dropped) < MIN_AGREEING or w[dropped].sum() <= held:
             continue
         agreeing, _ = agreeing_edges(graph, poses, group, dropped, tolerance)

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.se3 import inv_T, make_T
+from sghr_gtsam.sync.consensus import MAX_DEG
 from sghr_gtsam.types import PoseGraph
 from sghr_gtsam.verify import REASONS, STATUSES, Verification, verify
 
@@ -107,6 +108,15 @@ def test_dropped_registrations_that_agree_on_another_placement_split_the_group_o
     assert [len(p.scans) for p in verdict.parts] == [5, 4]
     assert "another placement" in verdict.parts[1].join.why
     graph.weight[len(edges) - 5 : len(edges) - 2] = 1.0  # lighter than what holds the group: no dispute
+    assert [len(p.scans) for p in _verdict(graph, poses, kept).parts] == [9]
+    # Heavier, but 15° off: within two error budgets of where the group is (one for the dropped registrations, one
+    # for those that hold it), so it is the same placement measured worse, not another one.
+    centre = poses[5:9, :3, 3].mean(axis=0)
+    turn = make_T(Rotation.from_euler("z", 1.5 * MAX_DEG, degrees=True).as_matrix(), np.zeros(3))
+    near = make_T(np.eye(3), centre) @ turn @ make_T(np.eye(3), -centre)  # about the group's centre
+    for e in range(len(edges) - 5, len(edges) - 2):
+        graph.T[e] = inv_T(poses[graph.i[e]]) @ near @ poses[graph.j[e]]
+    graph.weight[len(edges) - 5 : len(edges) - 2] = 40.0
     assert [len(p.scans) for p in _verdict(graph, poses, kept).parts] == [9]
 
 

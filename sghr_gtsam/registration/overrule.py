@@ -48,7 +48,7 @@ from sghr_gtsam.se3 import transform_points
 from sghr_gtsam.store import Attribute, Stored
 from sghr_gtsam.sync.bridges import bridge_edges
 from sghr_gtsam.sync.consensus import NOISE_QUANTILE, translation_tolerance
-from sghr_gtsam.sync.disputes import agreeing_edges, linkage_groups
+from sghr_gtsam.sync.disputes import agreeing_edges, elsewhere, linkage_groups
 from sghr_gtsam.types import PoseGraph, SyncResult
 
 COARSE_BIN_DEG = 3.0
@@ -257,7 +257,7 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
             continue
         leaving = inside & (group[i] != group[j])
         held = w[leaving & kept].sum()
-        dropped = np.flatnonzero(leaving & ~kept)
+        dropped = elsewhere(graph, poses, group, np.flatnonzero(leaving & ~kept), tolerance)
         if not len(dropped):
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)

@@ -188,27 +188,26 @@ def placement_conflicts(
     return clash | clash.T
 
 
-def contradicted_scans(clash: np.ndarray, doubted: np.ndarray | None = None) -> np.ndarray:
+def contradicted_scans(clash: np.ndarray, parts: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the scans to blame for the conflicts ``clash`` ((N, N) symmetric, ``placement_conflicts``):
     repeatedly the scan in conflict with the most others not blamed yet, while that is at least
-    ``MIN_CONFLICTS``; the ``doubted`` scans ((N,) bool: the run's own doubts from its graph) first, then the rest.
-    A scan placed wrong cuts through the free space of every scan around it (a 50-scan room: six misplaced scans in
-    conflict with 14-31 scans each, the right ones only with those six); a single conflicting pair (a depth edge, a
-    handful of points in view) blames no one. A conflict says that two placements disagree, not which one is wrong:
-    where a group placed wrong is larger than the right scans that see it (a corridor placed 177° off, 14 of its
-    scans in view of 6 right ones), the most conflicts are the right scans', and the graph's doubt about the other
-    group is what tells them apart."""
-    left = clash.copy()
+    ``MIN_CONFLICTS``. A scan placed wrong cuts through the free space of every scan around it (a 50-scan room: six
+    misplaced scans in conflict with 14-31 scans each, the right ones only with those six); a single conflicting
+    pair (a depth edge, a handful of points in view) blames no one. ``parts``: (N,) labels of rigid parts (None:
+    one part); only conflicts within a part blame. A conflict between two parts says their relative placement is
+    wrong, which is a join the parts already leave unverified, not which scans are: where a group placed wrong
+    outnumbers the right scans that see it (a corridor placed 177° off, 14 of its scans in view of 6 right ones),
+    the most conflicts are the right scans'."""
+    left = clash if parts is None else clash & (parts[:, None] == parts[None])
+    left = left.copy()
     blamed = np.zeros(len(clash), dtype=bool)
-    for pool in (np.zeros(len(clash), dtype=bool) if doubted is None else doubted, np.ones(len(clash), dtype=bool)):
-        while True:
-            degree = np.where(pool, left.sum(axis=1), -1)
-            k = int(np.argmax(degree))
-            if degree[k] < MIN_CONFLICTS:
-                break
-            blamed[k] = True
-            left[k], left[:, k] = False, False
-    return blamed
+    while True:
+        degree = left.sum(axis=1)
+        k = int(np.argmax(degree))
+        if degree[k] < MIN_CONFLICTS:
+            return blamed
+        blamed[k] = True
+        left[k], left[:, k] = False, False
 
 
 def contradicted_placements(
@@ -217,11 +216,11 @@ def contradicted_placements(
     placed: np.ndarray,
     voxel: float,
     centres: np.ndarray,
-    doubted: np.ndarray | None = None,
+    parts: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N,) bool: the ``placed`` scans blamed for free-space conflicts under ``poses`` (scan k's feature grid in
-    its centred frame to the world; ``placement_conflicts``, ``contradicted_scans`` with the run's ``doubted``
-    scans first), among the scans that can say where there is nothing (``viewpoints``)."""
+    its centred frame to the world; ``placement_conflicts``, ``contradicted_scans`` within ``parts``), among the
+    scans that can say where there is nothing (``viewpoints``)."""
     points = Attribute(features, "points")
     checked = placed & viewpoints(points, voxel, centres)
-    return contradicted_scans(placement_conflicts(points, poses, checked, voxel), doubted)
+    return contradicted_scans(placement_conflicts(points, poses, checked, voxel), parts)

@@ -35,9 +35,9 @@ edge length ‖t_ij‖, so the test needs no scene units (3DMatch: 0.27-0.58 m; 
 repeated wall are ~1 m off)."""
 MAX_SWEEPS = 10
 MARGIN = 0.25
+"""A scan moves only when the new placement's support exceeds the current one's by this fraction."""
 MIN_AGREEING = 2
 """Edges that must propose a placement (agree on it) before a scan may move there."""
-"""A scan moves only when the new placement's support exceeds the current one's by this fraction."""
 
 
 def translation_tolerance(graph: PoseGraph, max_deg: float = MAX_DEG) -> float:

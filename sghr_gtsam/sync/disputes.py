@@ -48,17 +48,34 @@ def linkage_groups(graph: PoseGraph, kept: np.ndarray, main: np.ndarray) -> Iter
         yield group
 
 
+def _moves(graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """(E, 4, 4): where each of ``edges`` (each leaving ``group``) would put the group, its end in the group moved
+    onto what the edge measures, as a move that left-multiplies the group's poses."""
+    i, j, T = graph.i[edges], graph.j[edges], graph.T[edges]
+    starts = group[i]
+    return np.where(starts[:, None, None], poses[j] @ inv_T(T) @ inv_T(poses[i]), poses[i] @ T @ inv_T(poses[j]))
+
+
+def elsewhere(
+    graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray, tolerance: float
+) -> np.ndarray:
+    """The ``edges`` (each leaving ``group``) that would move it farther than two error budgets (rotation
+    ``2 · consensus.MAX_DEG`` or its centre ``2 · tolerance``): a right registration may lie one budget off the
+    truth and the kept ones that hold the group one more, so a nearer move is the same placement, not another."""
+    moves = _moves(graph, poses, group, edges)
+    centre = poses[group, :3, 3].mean(axis=0)
+    shift = np.linalg.norm(moves[:, :3, :3] @ centre + moves[:, :3, 3] - centre, axis=1)
+    turn = np.degrees(Rotation.from_matrix(moves[:, :3, :3]).magnitude())
+    return edges[(turn > 2 * MAX_DEG) | (shift > 2 * tolerance)]
+
+
 def agreeing_edges(
     graph: PoseGraph, poses: np.ndarray, group: np.ndarray, edges: np.ndarray, tolerance: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """The largest-weight subset of ``edges`` (each leaving ``group``) that agree on one rigid move of the group
     in the world: rotations within ``consensus.MAX_DEG`` and the group's centre moved to within ``tolerance``;
     and that move (4, 4), as its heaviest-supported edge measures it (left-multiplies the group's poses)."""
-    i, j = graph.i[edges], graph.j[edges]
-    T = graph.T[edges]
-    starts = group[i]
-    # Where each edge would put the group: its end in the group moved onto what the edge measures.
-    moves = np.where(starts[:, None, None], poses[j] @ inv_T(T) @ inv_T(poses[i]), poses[i] @ T @ inv_T(poses[j]))
+    moves = _moves(graph, poses, group, edges)
     q = Rotation.from_matrix(moves[:, :3, :3]).as_quat()
     centre = poses[group, :3, 3].mean(axis=0)
     moved = moves[:, :3, :3] @ centre + moves[:, :3, 3]
