@@ -15,7 +15,7 @@ import numpy as np
 import small_gicp
 from scipy.spatial import cKDTree
 
-from sghr_gtsam.features.local import GICP_THREADS
+from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_THREADS
 
 
 class AlignedGrid(Protocol):
@@ -36,14 +36,30 @@ def nearest_within(target: AlignedGrid, moved: np.ndarray, radius: float) -> tup
 
 
 def gicp(
-    target: AlignedGrid, source: AlignedGrid, T_init: np.ndarray, max_distance: float, **criteria: float
+    target: AlignedGrid,
+    source: AlignedGrid,
+    T_init: np.ndarray,
+    max_distance: float,
+    reach: float | None = None,
+    **criteria: float,
 ) -> small_gicp.RegistrationResult:
     """small_gicp's GICP of ``source`` onto ``target`` from ``T_init`` (``T_target_source``) with correspondences
-    within ``max_distance``, on one thread (``features.local.GICP_THREADS``). ``criteria``: small_gicp's
+    within ``max_distance``, on one thread (``features.local.GICP_THREADS``). ``reach``: only the source points
+    within this distance of the target at ``T_init`` take part (their covariances from their neighbours among those;
+    None: all), for an alignment known to move the points less than ``reach − max_distance``: a point farther away
+    can never have a correspondence, yet its nearest-neighbour search is the slowest. ``criteria``: small_gicp's
     ``max_iterations``, ``rotation_epsilon``, ``translation_epsilon``."""
+    cloud = source.cloud
+    moved = source.points @ T_init[:3, :3].T + T_init[:3, 3]
+    near = np.ones(len(moved), dtype=bool) if reach is None else np.isfinite(nearest_within(target, moved, reach)[1])
+    if COV_NEIGHBORS <= np.count_nonzero(near) < len(near):
+        cloud = small_gicp.PointCloud(source.points[near])
+        small_gicp.estimate_covariances(
+            cloud, small_gicp.KdTree(cloud, num_threads=GICP_THREADS), COV_NEIGHBORS, GICP_THREADS
+        )
     return small_gicp.align(
         target.cloud,
-        source.cloud,
+        cloud,
         target.cloud_tree,
         init_T_target_source=T_init,
         registration_type="GICP",
