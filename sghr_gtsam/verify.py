@@ -49,6 +49,7 @@ import gtsam
 import networkx as nx
 import numpy as np
 
+from sghr_gtsam.se3 import rotation_angle
 from sghr_gtsam.sync.consensus import (
     MIN_AGREEING,
     consistent_edges,
@@ -88,10 +89,26 @@ class Verification:
 @dataclass
 class Join:
     """How a part hangs on another: the kept registrations between them (scan names) and why they do not verify
-    the join."""
+    the join; where dropped registrations agree on another placement of the part, how far that lies
+    (``[degrees, distance]``: the turn, and how far the part's centre moves)."""
 
     to: int
     edges: list[tuple[str, str]]
+    why: str
+    elsewhere: list[float] | None = None
+
+
+ALIKE = "dropped registrations agree on another placement of it that the free space cannot rule out"
+OUTWEIGHED = "dropped registrations agree on another placement of it and outweigh these"
+
+
+@dataclass
+class Dispute:
+    """A group of scans (``group``: (N,) bool) whose place dropped registrations dispute, how far their placement
+    lies (``Join.elsewhere``) and why the join fails (``ALIKE``, ``OUTWEIGHED``)."""
+
+    group: np.ndarray
+    elsewhere: list[float]
     why: str
 
 
@@ -147,7 +164,12 @@ class Verdict:
                 list(p["scans"]),
                 None
                 if p["join"] is None
-                else Join(int(p["join"]["to"]), [tuple(e) for e in p["join"]["edges"]], str(p["join"]["why"])),
+                else Join(
+                    int(p["join"]["to"]),
+                    [tuple(e) for e in p["join"]["edges"]],
+                    str(p["join"]["why"]),
+                    p["join"].get("elsewhere"),
+                ),
             )
             for p in data["parts"]
         ]
@@ -171,6 +193,8 @@ class Verdict:
                 if p.join is None and p.id == 0
                 else (f"joined to part {p.join.to} by a join that failed: {p.join.why}" if p.join else "not joined")
             )
+            if p.join is not None and p.join.elsewhere is not None:
+                where += f" ({p.join.elsewhere[0]:.1f}° / {p.join.elsewhere[1]:.3g} away)"
             said = f"part {p.id}: {len(p.scans)} scans, {len(p.scans) - len(doubtful)} verified; {where}"
             if doubtful:
                 said += "; doubtful: " + _listed(doubtful, self.doubts)
@@ -225,13 +249,13 @@ def _join(
     j: np.ndarray,
     kept: np.ndarray,
     passed: np.ndarray,
-    outweighed: np.ndarray,
-    alike: np.ndarray,
+    disputes: Sequence[Dispute],
     weight: np.ndarray,
     names: Sequence[str],
 ) -> Join | None:
     """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none);
-    ``outweighed`` and ``alike``: (N,) the scans of the groups whose place a competing one disputes."""
+    ``disputes``: the groups whose place a competing one disputes (the first that holds a scan of the part says
+    why)."""
     a, b = label[i], label[j]
     out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
     if not out.any():
@@ -241,10 +265,9 @@ def _join(
     to = int(b[best] if a[best] == part else a[best])
     good = e[passed[e]]
     members = label == part
-    if alike[members].any():
-        why = "dropped registrations agree on another placement of it that the free space cannot rule out"
-    elif outweighed[members].any():
-        why = "dropped registrations agree on another placement of it and outweigh these"
+    dispute = next((d for d in disputes if d.group[members].any()), None)
+    if dispute is not None:
+        why = dispute.why
     elif len(good) == 0:
         why = "its registrations to the rest do not close their loops within their noise"
     elif len(good) == 1:
@@ -257,7 +280,8 @@ def _join(
             if (len(set(inside.tolist())) == 1 or len(set(outside.tolist())) == 1)
             else "registrations that close no loop with the part"
         )
-    return Join(to=to, edges=[(names[i[x]], names[j[x]]) for x in e], why=why)
+    edges = [(names[i[x]], names[j[x]]) for x in e]
+    return Join(to=to, edges=edges, why=why, elsewhere=None if dispute is None else dispute.elsewhere)
 
 
 def verify(
@@ -272,7 +296,7 @@ def verify(
     free: np.ndarray | None = None,
     clash: Callable[[np.ndarray], np.ndarray] | None = None,
     dependent: np.ndarray | None = None,
-    look_alike: Sequence[np.ndarray] = (),
+    look_alike: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> Verdict:
     """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
     ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
@@ -282,19 +306,20 @@ def verify(
     ``clash``: ``parts -> (N,) bool``, the scans blamed for free-space conflicts within their part (None: no
     free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
     started from the poses they would check): they count in what holds a group against a competing placement, not
-    in the loops that verify it; ``look_alike``: (N,) bool masks of groups that dropped registrations place
-    elsewhere where the free space cannot tell the two placements apart (``registration.overrule.look_alikes``):
-    their joins to the rest are disputed."""
+    in the loops that verify it; ``look_alike``: groups ((N,) bool) with the move (4, 4, left-multiplying their
+    poses) that dropped registrations agree on, where the free space cannot tell the two placements apart
+    (``registration.overrule.look_alikes``): their joins to the rest are disputed."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]
     kept_graph = replace(graph, weight=kept.astype(float))
     consistent = consistent_edges(kept_graph, poses)
     passed = consistent.copy()
-    competing = _disputed(graph, kept, placed, poses)
-    outweighed, alike = _union(competing, n), _union(look_alike, n)
+    alike = [Dispute(g, _distance(poses, g, move), ALIKE) for g, move in look_alike]
+    disputes = alike + _disputed(graph, kept, placed, poses)
+    contested = _union([d.group for d in disputes], n)
     disputed = np.zeros(graph.num_edges, dtype=bool)
-    for group in [*competing, *look_alike]:
-        disputed |= kept & (group[graph.i] != group[graph.j])
+    for d in disputes:
+        disputed |= kept & (d.group[graph.i] != d.group[graph.j])
     passed &= ~disputed
     if dependent is not None:
         passed &= ~dependent
@@ -304,7 +329,7 @@ def verify(
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
-        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, outweighed, alike, graph.weight, names)
+        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
     contradicted = clash(label) if clash is not None else np.zeros(n, dtype=bool)
@@ -333,7 +358,7 @@ def verify(
             status[name] = "unplaced"
             continue
         reason = (
-            _alone_reason(k, graph, kept & ~consistent, passed, outweighed | alike)
+            _alone_reason(k, graph, kept & ~consistent, passed, contested)
             if alone[k]
             else "free space"
             if contradicted[k]
@@ -419,8 +444,8 @@ def _union(groups: Sequence[np.ndarray], n: int) -> np.ndarray:
     return out
 
 
-def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[np.ndarray]:
-    """(N,) bool masks: the scans, and linkage groups, held where two or more dropped registrations that agree on
+def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[Dispute]:
+    """The scans, and linkage groups, held where two or more dropped registrations that agree on
     another placement of them outweigh what holds them (module doc, test 3). Of nested disputed groups, the largest
     only: the same dropped registrations move any of its subgroups as well, which says nothing of the registrations
     inside it."""
@@ -436,14 +461,24 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         dropped = elsewhere(graph, poses, group, np.flatnonzero(leaving & ~kept), tolerance)
         if len(dropped) < MIN_AGREEING or w[dropped].sum() <= held:
             continue
-        agreeing, _ = agreeing_edges(graph, poses, group, dropped, tolerance)
+        agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
         if len(agreeing) < MIN_AGREEING or w[agreeing].sum() <= held:
             continue
         accused = np.zeros(graph.n, dtype=bool)
         accused[np.where(group[i[agreeing]], j[agreeing], i[agreeing])] = True
         if w[inside & kept & (accused[i] != accused[j])].sum() >= held:  # else they accuse their far ends
-            disputed.append(group)
-    return [g for g in disputed if not any(o.sum() > g.sum() and np.all(o[g]) for o in disputed)]
+            disputed.append(Dispute(group, _distance(poses, group, move), OUTWEIGHED))
+    return [
+        d for d in disputed if not any(o.group.sum() > d.group.sum() and np.all(o.group[d.group]) for o in disputed)
+    ]
+
+
+def _distance(poses: np.ndarray, group: np.ndarray, move: np.ndarray) -> list[float]:
+    """``[degrees, distance]`` of ``move`` (4, 4; left-multiplies the group's poses): its turn, and how far it moves
+    the group's centre."""
+    centre = poses[group, :3, 3].mean(axis=0)
+    shift = move[:3, :3] @ centre + move[:3, 3] - centre
+    return [round(float(np.degrees(rotation_angle(move[:3, :3]))), 2), round(float(np.linalg.norm(shift)), 4)]
 
 
 __all__ = [

@@ -180,7 +180,7 @@ def test_a_placement_free_space_cannot_rule_out_is_a_look_alike(building, degree
     if overruled_edges(views, graph, result).any():
         assert not look_alikes(views, graph, result)
     else:
-        assert any(group[room].all() for group in look_alikes(views, graph, result))
+        assert any(group[room].all() for group, _ in look_alikes(views, graph, result))
     into_view = _moved(truth, room, sign * degrees, distance / 2 * building.towards)
     assert not look_alikes(views, *_graph(truth, into_view, room))
     assert not look_alikes(views, *_graph(into_view, truth, room))
@@ -274,7 +274,7 @@ def test_scans_are_vouched_for_only_where_enough_loops_check_their_frames(kitche
 
 
 def _trial(before: int, seen_before: int, after: int, seen_after: int) -> _Trial:
-    return _Trial(np.zeros(1, bool), np.zeros(1, bool), 2, 1.0, before, after, seen_before, seen_after)
+    return _Trial(np.zeros(1, bool), np.zeros(1, bool), 2, 1.0, before, after, seen_before, seen_after, np.eye(4))
 
 
 @settings(max_examples=300, deadline=None)

@@ -107,6 +107,10 @@ def test_dropped_registrations_that_agree_on_another_placement_split_the_group_o
     verdict = _verdict(graph, poses, kept)
     assert [len(p.scans) for p in verdict.parts] == [5, 4]
     assert "another placement" in verdict.parts[1].join.why
+    centre = poses[5:9, :3, 3].mean(axis=0)  # the join says how far the other placement lies
+    shift = np.linalg.norm(turn[:3, :3] @ centre + turn[:3, 3] - centre)
+    np.testing.assert_allclose(verdict.parts[1].join.elsewhere, [90.0, shift], rtol=1e-3)
+    assert "90.0° / " in verdict.summary()[1]
     graph.weight[len(edges) - 5 : len(edges) - 2] = 1.0  # lighter than what holds the group: no dispute
     assert [len(p.scans) for p in _verdict(graph, poses, kept).parts] == [9]
     # Heavier, but 15° off: within two error budgets of where the group is (one for the dropped registrations, one

@@ -212,6 +212,7 @@ class _Trial:
     after: int  # ... and at the move (counted up to ``before`` + 1)
     seen_before: int  # scan pairs judged (boxes meet, ``MIN_IN_VIEW`` points in view) where it is
     seen_after: int  # ... and at the move
+    move: np.ndarray  # (4, 4): the move tried, left-multiplying the group's poses
 
 
 def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool = False) -> list[_Trial]:
@@ -287,7 +288,7 @@ def _trials(views: Viewpoints, graph: PoseGraph, result: SyncResult, alike: bool
                     agreeing, move, support, after, seen_after = family, family_move, weight / held, count, seen
             for family, count in tried:
                 holding[family] |= count > RATIO * before
-        trials.append(_Trial(group, holding, len(agreeing), support, before, after, seen_before, seen_after))
+        trials.append(_Trial(group, holding, len(agreeing), support, before, after, seen_before, seen_after, move))
     return trials
 
 
@@ -336,16 +337,16 @@ def _clearer(t: _Trial) -> bool:
     return bool(noise > 0 and gap >= norm.isf(1.0 - NOISE_QUANTILE) * noise)
 
 
-def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[np.ndarray]:
-    """(N,) bool masks: the groups that ``MIN_LOOK_ALIKE`` or more dropped registrations agree on placing elsewhere,
-    where the scans' free space (``views``) finds no more conflicts than where it is, judged on some scan pairs and
-    on at least half as many at the move (a place nobody saw is no evidence): two placements that the scans cannot
-    tell apart (identical rooms), of which synchronization took the one with more weight. None while
-    ``overruled_edges`` has edges to overrule: that model is not the last."""
+def look_alikes(views: Viewpoints, graph: PoseGraph, result: SyncResult) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The groups ((N,) bool) that ``MIN_LOOK_ALIKE`` or more dropped registrations agree on placing elsewhere, with
+    that move (4, 4, left-multiplying their poses), where the scans' free space (``views``) finds no more conflicts
+    than where it is, judged on some scan pairs and on at least half as many at the move (a place nobody saw is no
+    evidence): two placements that the scans cannot tell apart (identical rooms), of which synchronization took the
+    one with more weight. None while ``overruled_edges`` has edges to overrule: that model is not the last."""
     if overruled_edges(views, graph, result).any():  # its conflicts are kept for the trials below (``judged``)
         return []
     return [
-        t.group
+        (t.group, t.move)
         for t in _trials(views, graph, result, alike=True)
         if t.agreeing >= MIN_LOOK_ALIKE and t.after <= t.before and 2 * t.seen_after >= t.seen_before > 0
     ]
