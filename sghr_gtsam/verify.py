@@ -316,7 +316,7 @@ def verify(
     passed = consistent.copy()
     alike = [Dispute(g, _distance(poses, g, move), ALIKE) for g, move in look_alike]
     disputes = alike + _disputed(graph, kept, placed, poses)
-    contested = _union([d.group for d in disputes], n)
+    contested = np.any([d.group for d in disputes], axis=0) if disputes else np.zeros(n, dtype=bool)
     disputed = np.zeros(graph.num_edges, dtype=bool)
     for d in disputes:
         disputed |= kept & (d.group[graph.i] != d.group[graph.j])
@@ -434,14 +434,6 @@ def _alone_reason(k: int, graph: PoseGraph, failing: np.ndarray, passed: np.ndar
     if (own & failing).any() and int(np.sum(own & passed)) < 2:
         return "loop error"
     return "single registration"
-
-
-def _union(groups: Sequence[np.ndarray], n: int) -> np.ndarray:
-    """(N,) bool: the scans of any of ``groups``."""
-    out = np.zeros(n, dtype=bool)
-    for group in groups:
-        out |= group
-    return out
 
 
 def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[Dispute]:
