@@ -145,7 +145,7 @@ def free_directions(
     target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray, step: float, base: float
 ) -> Information:
     """``information`` of ``T exp(ξ)`` with the directions the pair's geometry does not fix (a plane's three, a
-    corridor's one, a cylinder's two) bounded only by the overlap's extent, and their number.
+    corridor's one, a cylinder's two) bounded only by how far the data tell a move apart, and their number.
 
     A direction does not fix the pose when moving scan j's close points ``q`` by ``step`` (RMS) along it,
     with every point re-associated to its nearest target point, raises their mean squared point-to-plane
@@ -153,9 +153,11 @@ def free_directions(
     linearized information cannot say so: noisy normals tilt off a flat wall and give sliding along it a
     spurious stiffness. Directions are tried from the least informative (generalized eigenvectors of the
     information in ``displacement_metric``) until one is fixed. A free one gets the information of a
-    displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap),
-    or ``FREE_FLOOR`` times the best direction's when that is more (see there). ``base``: the mean squared
-    point-to-plane residual of ``q`` at ``T``, which the caller has already measured."""
+    displacement σ equal to the least move along it that does double the residual, the step doubled until it does
+    (a wall's relief, a doorway, a TSDF fragment's noise as large as the step: the data tell a larger move apart),
+    at most the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap: a plane, a
+    corridor); or ``FREE_FLOOR`` times the best direction's information when that is more (see there). ``base``:
+    the mean squared point-to-plane residual of ``q`` at ``T``, which the caller has already measured."""
     A = displacement_metric(q)
     try:
         values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
@@ -170,18 +172,27 @@ def free_directions(
         values = np.maximum(values, FREE_FLOOR * values[-1])
         information = AV @ np.diag(values) @ AV.T
         information = (information + information.T) / 2
-    free = 0
-    for k in range(6):
-        xi = step * vectors[:, k]
+
+    def tells(k: int, distance: float) -> bool:
+        """Whether moving ``q`` by ``distance`` (RMS) along direction k at least doubles the residual."""
+        xi = distance * vectors[:, k]
         moved = [_mean_square(target_i, q, T @ _exp(sign * xi)) for sign in (1.0, -1.0)]
-        if (moved[0] + moved[1]) / 2 - base >= base:
-            break
+        return (moved[0] + moved[1]) / 2 - base >= base
+
+    free = 0
+    while free < 6 and not tells(free, step):
         free += 1
     if free == 0:
         return Information(information, 0, np.zeros((6, 6)), information)
-    bound = max(1.0 / float(np.sum(np.var(q, axis=0))), FREE_FLOOR * values[-1])
+    radius = float(np.sqrt(np.sum(np.var(q, axis=0))))
+    told = np.empty(free)
+    for k in range(free):  # the step doubled until the data tells the move apart, at most the overlap's radius
+        told[k] = min(2 * step, radius)
+        while told[k] < radius and not tells(k, told[k]):
+            told[k] = min(2 * told[k], radius)
+    bound = np.maximum(1.0 / told**2, FREE_FLOOR * values[-1])
     fixed = AV[:, free:] @ np.diag(values[free:]) @ AV[:, free:].T
-    loose = bound * AV[:, :free] @ AV[:, :free].T
+    loose = AV[:, :free] @ np.diag(bound) @ AV[:, :free].T
     return Information((fixed + fixed.T) / 2 + (loose + loose.T) / 2, free, (loose + loose.T) / 2, information)
 
 
