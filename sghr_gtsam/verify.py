@@ -49,7 +49,6 @@ import gtsam
 import networkx as nx
 import numpy as np
 
-from sghr_gtsam.se3 import rotation_angle
 from sghr_gtsam.sync.consensus import (
     MIN_AGREEING,
     consistent_edges,
@@ -58,7 +57,7 @@ from sghr_gtsam.sync.consensus import (
     shown_variance_factor,
     translation_tolerance,
 )
-from sghr_gtsam.sync.disputes import agreeing_edges, elsewhere, linkage_groups
+from sghr_gtsam.sync.disputes import agreeing_edges, elsewhere, linkage_groups, move_size
 from sghr_gtsam.sync.rotation import connected_components
 from sghr_gtsam.types import PoseGraph
 
@@ -468,9 +467,8 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
 def _distance(poses: np.ndarray, group: np.ndarray, move: np.ndarray) -> list[float]:
     """``[degrees, distance]`` of ``move`` (4, 4; left-multiplies the group's poses): its turn, and how far it moves
     the group's centre."""
-    centre = poses[group, :3, 3].mean(axis=0)
-    shift = move[:3, :3] @ centre + move[:3, 3] - centre
-    return [round(float(np.degrees(rotation_angle(move[:3, :3]))), 2), round(float(np.linalg.norm(shift)), 4)]
+    turn, shift = move_size(poses, group, move)
+    return [round(float(turn), 2), round(float(shift), 4)]
 
 
 __all__ = [

@@ -198,8 +198,7 @@ def contradicted_scans(clash: np.ndarray, parts: np.ndarray | None = None) -> np
     wrong, which is a join the parts already leave unverified, not which scans are: where a group placed wrong
     outnumbers the right scans that see it (a corridor placed 177° off, 14 of its scans in view of 6 right ones),
     the most conflicts are the right scans'."""
-    left = clash if parts is None else clash & (parts[:, None] == parts[None])
-    left = left.copy()
+    left = clash.copy() if parts is None else clash & (parts[:, None] == parts[None])
     blamed = np.zeros(len(clash), dtype=bool)
     while True:
         degree = left.sum(axis=1)

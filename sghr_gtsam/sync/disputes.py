@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 
-from sghr_gtsam.se3 import inv_T
+from sghr_gtsam.se3 import inv_T, rotation_angle
 from sghr_gtsam.sync.consensus import MAX_DEG
 from sghr_gtsam.types import PoseGraph
 
@@ -62,11 +62,16 @@ def elsewhere(
     """The ``edges`` (each leaving ``group``) that would move it farther than two error budgets (rotation
     ``2 · consensus.MAX_DEG`` or its centre ``2 · tolerance``): a right registration may lie one budget off the
     truth and the kept ones that hold the group one more, so a nearer move is the same placement, not another."""
-    moves = _moves(graph, poses, group, edges)
-    centre = poses[group, :3, 3].mean(axis=0)
-    shift = np.linalg.norm(moves[:, :3, :3] @ centre + moves[:, :3, 3] - centre, axis=1)
-    turn = np.degrees(Rotation.from_matrix(moves[:, :3, :3]).magnitude())
+    turn, shift = move_size(poses, group, _moves(graph, poses, group, edges))
     return edges[(turn > 2 * MAX_DEG) | (shift > 2 * tolerance)]
+
+
+def move_size(poses: np.ndarray, group: np.ndarray, moves: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each of ``moves`` (..., 4, 4; left-multiplying the poses of ``group``) takes the group: its turn
+    (degrees) and how far it moves the group's centre."""
+    centre = poses[group, :3, 3].mean(axis=0)
+    shift = np.linalg.norm(moves[..., :3, :3] @ centre + moves[..., :3, 3] - centre, axis=-1)
+    return np.degrees(rotation_angle(moves[..., :3, :3])), shift
 
 
 def agreeing_edges(
