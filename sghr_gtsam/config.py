@@ -21,15 +21,13 @@ KERNELS = ("none", "huber", "cauchy", "tls")
 """Robust kernels of the gtsam graph (``gtsam_api``)."""
 
 
-MIN_INLIERS = {"fpfh": 15, "learned": 31}
-"""``Config.min_inliers`` by descriptor (given descriptors use FPFH's): one more than the most inliers a wrong
-pair reached among all pairs of the 3DMatch fragments and an object's range scans
-(``benchmarks/bench_learned_descriptor.py bars``, sc2; FPFH 14, the learned descriptor 30); right FPFH pairs reach
-down to 9 there. In a 60-fragment 3DMatch scene, 5 of 45 grossly wrong FPFH pairs reach 15-27
-(chance agreement between alike objects); on held-out simulated rooms (``bench_learned_descriptor.py calibrate``)
-FPFH's bar admits 12 of 59 wrong registrations (their 90th percentile: 21 inliers) and all 57 right ones (median 180).
-It filters chance agreement; synchronization judges what passes it. Fitted on real scans with no margin, it is due
-for a calibration on generated scenes: a wrong kitchen pair reaches it once GICP crops its source."""
+MIN_INLIERS = {"fpfh": 13, "learned": 44}
+"""``Config.min_inliers`` by descriptor (given descriptors use FPFH's): the most inliers a registration may be asked
+for while at most 5 % of right registrations fall short, on held-out simulated rooms
+(``benchmarks/bench_learned_descriptor.py calibrate``; pairs of GT overlap > 0.1). The bar tests "this registration
+is right": a right one it drops is lost to the pose graph, while the wrong ones it admits (there 16 % for FPFH, 8 %
+for the learned descriptor; alike objects and repeated structure) are what synchronization's cycle consistency
+rejects."""
 DESCRIPTORS = tuple(MIN_INLIERS)
 """Local descriptors (``features.local.compute_features``)."""
 
