@@ -15,7 +15,11 @@ import numpy as np
 import small_gicp
 from scipy.spatial import cKDTree
 
-from sghr_gtsam.features.local import GICP_THREADS
+from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_THREADS
+
+REACH_VOXELS = 3.0
+"""How far (voxels) an alignment may move a scan's points beyond the correspondence distance and still take up
+points that started out of reach; ``refine.stays_near`` confirms no larger move."""
 
 
 class AlignedGrid(Protocol):
@@ -36,14 +40,28 @@ def nearest_within(target: AlignedGrid, moved: np.ndarray, radius: float) -> tup
 
 
 def gicp(
-    target: AlignedGrid, source: AlignedGrid, T_init: np.ndarray, max_distance: float, **criteria: float
+    target: AlignedGrid,
+    source: AlignedGrid,
+    T_init: np.ndarray,
+    max_distance: float,
+    voxel: float,
+    **criteria: float,
 ) -> small_gicp.RegistrationResult:
     """small_gicp's GICP of ``source`` onto ``target`` from ``T_init`` (``T_target_source``) with correspondences
-    within ``max_distance``, on one thread (``features.local.GICP_THREADS``). ``criteria``: small_gicp's
-    ``max_iterations``, ``rotation_epsilon``, ``translation_epsilon``."""
+    within ``max_distance``, on one thread (``features.local.GICP_THREADS``), on the source points within
+    ``max_distance + REACH_VOXELS · voxel`` of the target at ``T_init`` (their covariances from their neighbours among
+    those). ``criteria``: small_gicp's ``max_iterations``, ``rotation_epsilon``, ``translation_epsilon``."""
+    moved = source.points @ T_init[:3, :3].T + T_init[:3, 3]
+    reach = np.isfinite(nearest_within(target, moved, max_distance + REACH_VOXELS * voxel)[1])
+    cloud = source.cloud
+    if COV_NEIGHBORS <= np.count_nonzero(reach) < len(reach):
+        cloud = small_gicp.PointCloud(source.points[reach])
+        small_gicp.estimate_covariances(
+            cloud, small_gicp.KdTree(cloud, num_threads=GICP_THREADS), COV_NEIGHBORS, GICP_THREADS
+        )
     return small_gicp.align(
         target.cloud,
-        source.cloud,
+        cloud,
         target.cloud_tree,
         init_T_target_source=T_init,
         registration_type="GICP",

@@ -201,6 +201,7 @@ def register_pair(
         source_j,
         T,
         icp_distance * voxel,
+        voxel,
         max_iterations=GICP_MAX_ITERATIONS,
         rotation_epsilon=GICP_ROTATION_EPS,
         translation_epsilon=GICP_TRANSLATION_EPS * voxel,

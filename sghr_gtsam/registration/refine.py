@@ -171,6 +171,7 @@ def multiscale_icp(target_i: Pyramid, source_j: Pyramid, T_init: np.ndarray) -> 
             source_j.level(k),
             T,
             _distance(target_i, k),
+            target_i.voxels[0],
             max_iterations=LEVEL_ITERATIONS[k],
             translation_epsilon=STEP_VOXELS * target_i.voxels[0],
         )
