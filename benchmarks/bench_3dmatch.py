@@ -8,7 +8,8 @@ by ``sghr_gtsam.evaluate.score_run``: fragments placed / unregistered; registrat
 protocol on 3DMatch (gt.log) and 3DLoMatch (its gt.log: pairs of 10-30 % overlap) pairs with |i − j| > 1, a pair
 with an unplaced fragment counting as failed; the run's parts (``verify``) by ``evaluate.score_parts``: a scan is
 misplaced when outside the largest rigid piece of its own part (15° / 0.6 m against GT), and the doubted scans
-(the run's doubts) are scored against the misplaced ones; and the
+(the run's doubts) are scored against the misplaced ones and against the scans outside the largest rigid piece of
+the whole model (a scan alone in its part, or a part placed by a failed join, can be off there only); and the
 whole model: one rigid alignment of all placed scan positions to GT (as ``evo_ape --align``), then the scans
 within 5° / 0.2 m (bunny: 0.2° / 0.5 mm, aligned by whole poses: its sensor positions ring the object and
 leave a positions-only alignment's rotation loose), ATE rmse and rotation errors. ``doubted`` lists the placed scans
@@ -232,6 +233,7 @@ def tables(rows: list[dict]) -> list[tuple[str, list[str], list[list]]]:
         "misplaced in its part",
         "doubted by the run",
         "of them misplaced",
+        "of them off the whole model",
         "within tol",
         "ATE rmse m",
         "median rot °",
@@ -260,6 +262,7 @@ def tables(rows: list[dict]) -> list[tuple[str, list[str], list[list]]]:
                 labels(r["misplaced"]),
                 labels(r["doubts"]),
                 len(r["caught"]),
+                len(r.get("doubted_off_whole", [])),
                 f"{r['within']}/{r['scans']}",
                 f"{r['ate_rmse']:.4g}",
                 f"{r['median_rot']:.3g}",
@@ -390,7 +393,10 @@ def run_scene(
     flagged = set(names) - set(r["trusted"])
     score = score_run(names, poses, unregistered=r["unregistered"], flagged=flagged, **gt)
     gt_by_name = dict(zip(gt["gt_names"], gt["gt_poses"]))
-    parts = score_parts(names, poses, np.stack([gt_by_name[n] for n in names]), r["parts"], r["doubts"])
+    truth = np.stack([gt_by_name[n] for n in names])
+    parts = score_parts(names, poses, truth, r["parts"], r["doubts"])
+    placed_names = [n for n in names if n not in set(r["unregistered"])]
+    whole = score_parts(names, poses, truth, [placed_names], r["doubts"])  # the whole model as one part
     lo_recall = None
     lo = lo_gt(data, scene)
     if lo is not None:
@@ -402,6 +408,7 @@ def run_scene(
             scene_ids=[fragment_id(n) for n in gt["gt_names"]],
         ).recall
     row = score_row(name, score, r["timings"], wall, r["peak_mb"], parts, lo_recall)
+    row["doubted_off_whole"] = whole.caught
     row["poses"] = dict(zip(names, r["poses"]))  # for scoring against another reference later
     if refit_gt and scene.gt_dir:
         row["refit"] = refit_row(data, scene, names, poses, r, gt)
