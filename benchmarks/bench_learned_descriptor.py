@@ -60,7 +60,7 @@ PER_PAIR = 128
 HOLD_OUT = 10  # every tenth room is held out of training
 
 
-def _learned(net: PatchNet, fpfh: list) -> list:
+def learned_features(net: PatchNet, fpfh: list) -> list:
     """The scans of ``fpfh`` (``ScanFeatures``) with the learned descriptors of the same grid points."""
     return [
         ScanFeatures(
@@ -207,7 +207,7 @@ def evaluate(weights: Path | None, scenes: list[str], root: Path) -> None:
         fpfh = [compute_features(s, voxel) for s in scans]
         seconds = {"FPFH": (time.perf_counter() - t0) / len(scans)}
         t0 = time.perf_counter()
-        learned = _learned(net, fpfh)
+        learned = learned_features(net, fpfh)
         seconds["learned"] = (time.perf_counter() - t0) / len(scans)
         right = {}
         far = [k for k, (i, j) in enumerate(sorted(log)) if abs(i - j) > 1]
@@ -278,7 +278,7 @@ def calibrate(weights: Path | None, scenes: int) -> None:
         scene, _ = _room(index)
         fpfh = [compute_features(P, scene.voxel) for P in scene.scans]
         rooms["fpfh"].append(room_registrations(scene, fpfh))
-        rooms["learned"].append(room_registrations(scene, _learned(net, fpfh)))
+        rooms["learned"].append(room_registrations(scene, learned_features(net, fpfh)))
     columns = [
         "descriptor",
         "right registrations",
@@ -346,7 +346,7 @@ def bars(weights: Path | None) -> None:
         _, _, rot_bound, trans_bound = SCENES[name]
         _, poses, scans, voxel = load_scene(name)
         fpfh = [compute_features(s, voxel) for s in scans]
-        for label, feats in (("fpfh", fpfh), ("learned", _learned(net, fpfh))):
+        for label, feats in (("fpfh", fpfh), ("learned", learned_features(net, fpfh))):
             for i, j in itertools.combinations(range(len(scans)), 2):
                 res = register_pair(feats[i], feats[j], voxel)
                 rot, trans = relative_errors(res.T, inv_T(poses[i]) @ poses[j])

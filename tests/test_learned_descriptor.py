@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from test_pairwise import boxes_scene
 
-from benchmarks.bench_learned_descriptor import DROPPED_RIGHT, _learned, inlier_bar, room_registrations
+from benchmarks.bench_learned_descriptor import DROPPED_RIGHT, inlier_bar, learned_features, room_registrations
 from data_tools.simulate import make_training_scene
 from sghr_gtsam.config import MIN_INLIERS, Config
 from sghr_gtsam.features.learned import SECTORS, learned_descriptors, load_patch_net, torch_network
@@ -85,7 +85,7 @@ def unseen_rooms():
     for index in range(8):  # a room's right registrations can be hard as a whole: several rooms
         scene = make_training_scene("room", 12, [index, UNSEEN_SEED])
         fpfh = [compute_features(P, scene.voxel) for P in scene.scans]
-        rooms.append((scene, {"fpfh": fpfh, "learned": _learned(net, fpfh)}))
+        rooms.append((scene, {"fpfh": fpfh, "learned": learned_features(net, fpfh)}))
     return rooms
 
 
