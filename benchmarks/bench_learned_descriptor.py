@@ -249,10 +249,9 @@ def room_registrations(scene, feats: list, near: int = 15, apart: int = 20) -> l
     from sghr_gtsam.se3 import relative_errors
 
     pairs = [(i, j) for i in range(len(feats)) for j in range(i + 1, len(feats))]
+    overlapping = [p for p in pairs if scene.overlap[p] > 0.1][:near]
     out = []
-    for i, j in [p for p in pairs if scene.overlap[p] > 0.1][:near] + [p for p in pairs if scene.overlap[p] < 0.02][
-        :apart
-    ]:
+    for i, j in overlapping + [p for p in pairs if scene.overlap[p] < 0.02][:apart]:
         res = register_pair(feats[i], feats[j], scene.voxel)
         rot, trans = relative_errors(res.T, np.linalg.inv(scene.poses[i]) @ scene.poses[j])
         out.append((bool(scene.overlap[i, j] > 0.1 and rot < 5 and trans < 10 * scene.voxel), res.inliers))
@@ -268,8 +267,8 @@ def inlier_bar(registrations: list[tuple[bool, int]], dropped: float = DROPPED_R
 
 
 def calibrate(weights: Path | None, scenes: int) -> None:
-    """``config.MIN_INLIERS``: each descriptor's ``inlier_bar`` on the held-out simulated rooms of ``train``
-    (``room_registrations``; no real scan is used)."""
+    """``config.MIN_INLIERS``: each descriptor's ``inlier_bar`` on ``scenes`` simulated rooms that ``train`` never
+    sees (``room_registrations``; no real scan is used), and how far it moves when the rooms are resampled."""
     from sghr_gtsam.config import MIN_INLIERS
 
     net = load_patch_net(weights)
