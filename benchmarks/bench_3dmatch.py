@@ -395,12 +395,12 @@ def run_scene(
     gt_by_name = dict(zip(gt["gt_names"], gt["gt_poses"]))
     truth = np.stack([gt_by_name[n] for n in names])
     parts = score_parts(names, poses, truth, r["parts"], r["doubts"])
-    placed_names = [n for n in names if n not in set(r["unregistered"])]
-    whole = score_parts(names, poses, truth, [placed_names], r["doubts"])  # the whole model as one part
+    unregistered = set(r["unregistered"])
+    placed = [k for k, n in enumerate(names) if n not in unregistered]
+    whole = score_parts(names, poses, truth, [[names[k] for k in placed]], r["doubts"])  # the whole model as one part
     lo_recall = None
     lo = lo_gt(data, scene)
     if lo is not None:
-        placed = [k for k, n in enumerate(names) if n not in set(r["unregistered"])]
         lo_recall = registration_recall_counting_unplaced(
             [fragment_id(names[k]) for k in placed],
             poses[placed],

@@ -4,7 +4,7 @@ data and training on simulated rooms, its inlier bar, and FPFH against it on the
 
     python benchmarks/bench_learned_descriptor.py data DIR [--scenes 160]       # ~10 min on 2 cores
     python benchmarks/bench_learned_descriptor.py train DIR WEIGHTS.npz [--minutes 22]
-    python benchmarks/bench_learned_descriptor.py calibrate [--weights W] [--scenes 20]   # config.MIN_INLIERS
+    python benchmarks/bench_learned_descriptor.py calibrate [--weights W] [--scenes 60]   # config.MIN_INLIERS
     python benchmarks/bench_learned_descriptor.py bars [--weights W]            # what it admits on real scans
     python benchmarks/bench_learned_descriptor.py eval [--weights W] [--scenes studyroom home_at ...] [--data ROOT]
 
