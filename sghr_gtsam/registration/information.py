@@ -39,6 +39,7 @@ import gtsam
 import numpy as np
 import small_gicp
 from scipy.linalg import eigh
+from scipy.special import ndtri
 from scipy.spatial import cKDTree
 
 from sghr_gtsam.cells import unique_cells
@@ -58,6 +59,9 @@ marginals can factor (NaN covariances). Real residuals are 0.1-0.3 voxels, 50× 
 CORRELATION_SAMPLE = 2000
 """Points whose neighbour distances give ``correlation_length``'s median (a median needs no more; the
 k-nearest-neighbour search on every point of a dense 3DMatch grid costs a tenth of a second a pair)."""
+FREE_QUANTILE = 0.999
+"""A direction is fixed when moving the scan along it raises the mean squared residual more than chance would at
+this one-sided level (the level of synchronization's χ² tests, ``sync.consensus.NOISE_QUANTILE``)."""
 FREE_FLOOR = 1e-6
 """Least information of a free direction, relative to the pair's best-determined one (both per unit RMS
 displacement of the points): gtsam's Cholesky calls a pose block whose information spans more than about
@@ -133,29 +137,40 @@ def displacement_metric(points: np.ndarray) -> np.ndarray:
     return A
 
 
-def _mean_square(target_i: Grid, q: np.ndarray, T: np.ndarray) -> float:
-    """Mean squared point-to-plane residual of ``q`` under ``T``, each point against its nearest target point."""
+def _plane_residuals(target_i: Grid, q: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Point-to-plane residuals of ``q`` under ``T``, each point against its nearest target point."""
     moved = q @ T[:3, :3].T + T[:3, 3]
     nearest = np.asarray(target_i.cloud_tree.batch_nearest_neighbor_search(moved, GICP_THREADS)[0])
-    r = np.einsum("mk,mk->m", moved - target_i.points[nearest], target_i.normals[nearest])
-    return float(r @ r) / len(r)
+    return np.einsum("mk,mk->m", moved - target_i.points[nearest], target_i.normals[nearest])
+
+
+def _clustered_error(values: np.ndarray, cells: np.ndarray) -> float:
+    """Standard error of the mean of ``values`` whose errors may be correlated within a cell (``cells``: each
+    value's cell index) and are independent across cells: the cluster-robust variance ``plane_information`` uses."""
+    G = int(cells.max()) + 1
+    if G < 2:
+        return float("inf")
+    s = np.bincount(cells, weights=values - values.mean(), minlength=G)
+    return float(np.sqrt(s @ s * G / (G - 1))) / len(values)
 
 
 def free_directions(
-    target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray, step: float, base: float
+    target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray, step: float, residuals: np.ndarray, cell: float
 ) -> Information:
     """``information`` of ``T exp(ξ)`` with the directions the pair's geometry does not fix (a plane's three, a
     corridor's one, a cylinder's two) bounded only by the overlap's extent, and their number.
 
-    A direction does not fix the pose when moving scan j's close points ``q`` by ``step`` (RMS) along it,
-    with every point re-associated to its nearest target point, raises their mean squared point-to-plane
-    residual by less than the residual itself: the data cannot tell the pose from one moved that far. The
-    linearized information cannot say so: noisy normals tilt off a flat wall and give sliding along it a
-    spurious stiffness. Directions are tried from the least informative (generalized eigenvectors of the
-    information in ``displacement_metric``) until one is fixed. A free one gets the information of a
-    displacement σ equal to the RMS radius of ``q`` (two scans that overlap cannot slide beyond their overlap),
-    or ``FREE_FLOOR`` times the best direction's when that is more (see there). ``base``: the mean squared
-    point-to-plane residual of ``q`` at ``T``, which the caller has already measured."""
+    A direction does not fix the pose when moving scan j's close points ``q`` by ``step`` (RMS) along it, with every
+    point re-associated to its nearest target point, does not raise their mean squared point-to-plane residual
+    significantly: by less than ``ndtri(FREE_QUANTILE)`` standard errors of that mean's change, its residuals
+    correlated within cells of side ``cell`` as in ``plane_information``. The data then cannot tell the pose from
+    one moved that far. The linearized information cannot say so: noisy normals tilt off a flat wall and give
+    sliding along it a spurious stiffness, while re-associated points slide along the wall at no cost. Directions
+    are tried from the least informative (generalized eigenvectors of the information in ``displacement_metric``)
+    until one is fixed. A free one gets the information of a displacement σ equal to the RMS radius of ``q`` (two
+    scans that overlap cannot slide beyond their overlap), or ``FREE_FLOOR`` times the best direction's when that
+    is more (see there). ``residuals``: the point-to-plane residuals of ``q`` at ``T``, which the caller has
+    already measured."""
     A = displacement_metric(q)
     try:
         values, vectors = eigh(information, A)  # vectorsᵀ A vectors = I: unit RMS displacement per unit
@@ -170,11 +185,14 @@ def free_directions(
         values = np.maximum(values, FREE_FLOOR * values[-1])
         information = AV @ np.diag(values) @ AV.T
         information = (information + information.T) / 2
+    _, cells = unique_cells(np.floor(q / cell).astype(np.int64))
+    z = float(ndtri(FREE_QUANTILE))
     free = 0
     for k in range(6):
         xi = step * vectors[:, k]
-        moved = [_mean_square(target_i, q, T @ _exp(sign * xi)) for sign in (1.0, -1.0)]
-        if (moved[0] + moved[1]) / 2 - base >= base:
+        moved = [_plane_residuals(target_i, q, T @ _exp(sign * xi)) ** 2 for sign in (1.0, -1.0)]
+        rise = (moved[0] + moved[1]) / 2 - residuals**2
+        if rise.mean() > z * _clustered_error(rise, cells):
             break
         free += 1
     if free == 0:
@@ -233,9 +251,7 @@ def registration_information(
     residuals = np.einsum("mk,mk->m", moved[close] - target_i.points[nearest], n)
     cell = correlation_length(target_i, target_i.points[nearest])
     information = plane_information(q[close], n @ R, residuals, cell)
-    return free_directions(
-        target_i, q[close], T, information, max_distance, float(residuals @ residuals) / len(residuals)
-    )
+    return free_directions(target_i, q[close], T, information, max_distance, residuals, cell)
 
 
 def pose_spread(covariance: np.ndarray, points: np.ndarray) -> float:
