@@ -39,8 +39,8 @@ import gtsam
 import numpy as np
 import small_gicp
 from scipy.linalg import eigh
-from scipy.special import ndtri
 from scipy.spatial import cKDTree
+from scipy.special import ndtri
 
 from sghr_gtsam.cells import unique_cells
 from sghr_gtsam.features.local import COV_NEIGHBORS, GICP_THREADS
@@ -155,7 +155,13 @@ def _clustered_error(values: np.ndarray, cells: np.ndarray) -> float:
 
 
 def free_directions(
-    target_i: Grid, q: np.ndarray, T: np.ndarray, information: np.ndarray, step: float, residuals: np.ndarray, cell: float
+    target_i: Grid,
+    q: np.ndarray,
+    T: np.ndarray,
+    information: np.ndarray,
+    step: float,
+    residuals: np.ndarray,
+    cell: float,
 ) -> Information:
     """``information`` of ``T exp(ξ)`` with the directions the pair's geometry does not fix (a plane's three, a
     corridor's one, a cylinder's two) bounded only by the overlap's extent, and their number.
@@ -214,11 +220,8 @@ class Information:
     of directions its geometry leaves ``free`` (``free_directions``), ``loose``: the part of ``matrix`` along
     them (zeros when none is free), and ``measured``: the point-to-plane information before that bounding.
 
-    Synchronization weighs an edge by ``measured``; the reported covariances and the ``underdetermined`` flag
-    use ``matrix``. The move test also finds free directions on real scans that are not degenerate (21 of the
-    36 pairs of 3DMatch fragments, whose TSDF residuals are about as large as the move), and weighing those edges
-    by ``matrix`` cost such a scene a scan (left unregistered, placed 1.6° / 0.16 m from the truth by
-    ``measured``): a doubt belongs in what is reported, not in where the scans go."""
+    Synchronization weighs an edge by ``measured``; the reported covariances and the ``loose`` status use
+    ``matrix``: a doubt belongs in what is reported, not in where the scans go."""
 
     matrix: np.ndarray
     free: int
