@@ -194,7 +194,7 @@ def real(names: list[str], data: Path, out_root: Path, workers: int | None, reus
         scenes[scene] = {
             "variance_factor": variance_factor(result),
             "most_edges_at_a_scan": int(degree),
-            "underdetermined": result.underdetermined,
+            "loose": result.verdict.loose,
             "poses": result.poses.tolist(),
             "names": result.names,
         }
