@@ -29,9 +29,9 @@ tolerance = 5° / 0.2 m (kitchen) or 1° / 1 mm (bunny), as
 *all* gt.log pairs among the 9 fragments, a pair with an unregistered scan counting as missed. Times are
 ``RunResult.timings`` (features + global graph + pairwise + sync; scans already loaded), wall clock; CPU s is
 the process CPU time of the run (all threads), less sensitive to other jobs on the machine. "flagged (of
-the misplaced)": registered scans the run doubts (any of ``RunResult.flags``: unverified, contested,
-underdetermined), and how many of the registered scans outside tolerance are among them. Random rows: the
-mean over seeds of every column (errors are over each run's registered scans only), ranges in brackets.
+the misplaced)": registered scans the run doubts (any reason of ``RunResult.flags``), and how many of the
+registered scans outside tolerance are among them. Random rows: the mean over seeds of every column (errors are
+over each run's registered scans only), ranges in brackets.
 
 ``--sim-rooms R``: the real scenes have 9 and 10 scans, so "≤ 40 % of the pairs" means k = 2–3 there; the
 paper's claim is about 3DMatch scenes of ~54 scans and k = 10. These rows run that setting on R simulated

@@ -123,7 +123,7 @@ class Config:
     max_sigma: float | None = None
     """The largest σ (scene units) of a scan's points along a direction only its registrations' overlap bounds (a
     plane, a corridor) for which it is not doubted as loose (``verify.Verification``); None: the consistency test's
-    translation tolerance (0.3-0.6 m on 3DMatch scenes)."""
+    translation tolerance (0.10-0.14 m on the 3DMatch scenes at hand)."""
     free_space: bool = True
     """Give weight 0 to registrations that put one scan's surfaces in the space the other saw empty
     (``registration.visibility``; only scans seen from their frame's origin can be checked), and to those that hold
