@@ -1,0 +1,161 @@
+"""Doubts on generated scenes: do a run's doubts catch its misplaced scans, and how many right ones do they mark?
+
+    python benchmarks/bench_doubts.py [--kinds room building hotel] [--seeds 0 1 2] [--workers 2]
+
+Each scene is ``synthetic.make_scene(kind, scans, seed)`` (rooms of 10 scans; buildings and hotels, whose rooms are
+all alike, of 30), registered by ``pipeline.register`` with the default ``Config`` (``record=False``). Its parts
+(``verify``) are scored against GT by ``evaluate.score_parts`` as ``bench_3dmatch.py`` scores the real scenes: a scan
+is *misplaced* when outside the largest rigid piece of its own part (15° / 0.6 m), and *off the whole model* when
+outside the largest rigid piece of all placed scans (where a scan alone in its part, or a part placed by a failed
+join, can be off). Per scene: parts, misplaced, off the whole model, doubted, and how the doubts split; a row per
+kind sums its scenes, and the notes give per kind the doubts' precision (doubted scans that are off, either way, of
+the doubted) and recall (scans off doubted, of them), and the share of scans doubted in scenes where none is off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks._results import save  # noqa: E402
+from sghr_gtsam.config import Config  # noqa: E402
+from sghr_gtsam.evaluate import score_parts  # noqa: E402
+from sghr_gtsam.pipeline import Scan, register  # noqa: E402
+from sghr_gtsam.synthetic import make_scene  # noqa: E402
+
+SCANS = {"room": 10, "object": 10, "building": 30, "hotel": 30}
+COLUMNS = [
+    "scene",
+    "scans",
+    "placed",
+    "parts",
+    "misplaced in its part",
+    "off the whole model",
+    "doubted",
+    "doubted and off",
+    "off, not doubted",
+]
+
+
+def scene_row(kind: str, seed: int, workers: int) -> dict:
+    """One generated scene run and scored (module doc)."""
+    scene = make_scene(kind, SCANS[kind], seed)
+    result = register(
+        [Scan(n, np.asarray(P)) for n, P in zip(scene.names, scene.scans)],
+        Config(record=False, workers=workers),
+        log=lambda m: None,
+    )
+    names, poses = result.names, result.poses
+    placed = [n for k, n in enumerate(names) if k in set(result.registered)]
+    parts = [p.scans for p in result.verdict.parts]
+    doubted = sorted(result.verdict.doubts, key=names.index)
+    by_part = score_parts(names, poses, scene.poses, parts, doubted)
+    whole = score_parts(names, poses, scene.poses, [placed], doubted)
+    off = set(whole.misplaced) | set(by_part.misplaced)
+    return {
+        "scene": f"{kind} {seed}",
+        "scans": len(names),
+        "placed": len(placed),
+        "parts": " + ".join(str(len(p)) for p in parts),
+        "misplaced": by_part.misplaced,
+        "off": sorted(off, key=names.index),
+        "doubted": doubted,
+        "caught": [n for n in doubted if n in off],
+        "missed": [n for n in sorted(off, key=names.index) if n not in set(doubted)],
+    }
+
+
+def _total(kind: str, rows: list[dict]) -> list:
+    """The table's row summing ``rows``."""
+    return [
+        f"all {kind}s",
+        sum(r["scans"] for r in rows),
+        sum(r["placed"] for r in rows),
+        "",
+        sum(len(r["misplaced"]) for r in rows),
+        sum(len(r["off"]) for r in rows),
+        sum(len(r["doubted"]) for r in rows),
+        sum(len(r["caught"]) for r in rows),
+        sum(len(r["missed"]) for r in rows),
+    ]
+
+
+def _summary(kind: str, rows: list[dict]) -> str:
+    """The doubts' precision and recall over ``rows``, and the share doubted where no scan is off."""
+    doubted = sum(len(r["doubted"]) for r in rows)
+    caught = sum(len(r["caught"]) for r in rows)
+    off = sum(len(r["off"]) for r in rows)
+    clean = [r for r in rows if not r["off"]]
+    precision = f"{caught / doubted:.2f}" if doubted else "-"
+    recall = f"{caught / off:.2f}" if off else "-"
+    return (
+        f"{kind.capitalize()}s: precision {precision} ({caught} of {doubted} doubts on scans off), recall {recall} "
+        f"({caught} of {off} scans off doubted); in the {len(clean)} with no scan off, "
+        f"{sum(len(r['doubted']) for r in clean)} of {sum(r['scans'] for r in clean)} scans doubted."
+    )
+
+
+def _labels(names: list[str]) -> str:
+    return " ".join(n.removeprefix("scan_").removesuffix(".ply") for n in names) or "-"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--kinds", nargs="+", default=["room", "building", "hotel"], choices=list(SCANS))
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--no-save", action="store_true")
+    args = ap.parse_args(argv)
+    rows = []
+    for kind in args.kinds:
+        for seed in args.seeds:
+            r = scene_row(kind, seed, args.workers)
+            rows.append(r)
+            print(
+                f"{r['scene']}: parts {r['parts']}, off {_labels(r['off'])}, doubted {_labels(r['doubted'])}",
+                flush=True,
+            )
+    table = [
+        [
+            r["scene"],
+            r["scans"],
+            r["placed"],
+            r["parts"],
+            _labels(r["misplaced"]),
+            _labels(r["off"]),
+            _labels(r["doubted"]),
+            len(r["caught"]),
+            _labels(r["missed"]),
+        ]
+        for r in rows
+    ]
+    summaries = []
+    for kind in args.kinds:
+        of_kind = [r for r in rows if r["scene"].split()[0] == kind]
+        table.append(_total(kind, of_kind))
+        summaries.append(_summary(kind, of_kind))
+    summary = " ".join(summaries)
+    print("| " + " | ".join(COLUMNS) + " |\n|" + "---|" * len(COLUMNS))
+    for row in table:
+        print("| " + " | ".join(str(x) for x in row) + " |")
+    print(summary)
+    if not args.no_save:
+        save(
+            "doubts_generated",
+            table,
+            COLUMNS,
+            notes=summary,
+            section="3DMatch end to end",
+            title="Doubts on generated scenes: the misplaced scans they catch, the right ones they mark",
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
