@@ -151,7 +151,7 @@ def main(argv: list[str] | None = None) -> int:
             table,
             COLUMNS,
             notes=summary,
-            section="3DMatch end to end",
+            section="Other",
             title="Doubts on generated scenes: the misplaced scans they catch, the right ones they mark",
         )
     return 0
