@@ -450,10 +450,10 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         holding = leaving & kept
         held = w[holding].sum()
         dropped = elsewhere(graph, poses, group, np.flatnonzero(leaving & ~kept), tolerance)
-        if len(dropped) < MIN_AGREEING or w[dropped].sum() <= held:
+        if len(dropped) < MIN_AGREEING:
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
-        if len(agreeing) < MIN_AGREEING or w[agreeing].sum() <= held:
+        if len(agreeing) < MIN_AGREEING:
             continue
         accused = np.zeros(graph.n, dtype=bool)
         accused[np.where(group[i[agreeing]], j[agreeing], i[agreeing])] = True
