@@ -146,10 +146,9 @@ def _plane_residuals(target_i: Grid, q: np.ndarray, T: np.ndarray) -> np.ndarray
 
 def _clustered_error(values: np.ndarray, cells: np.ndarray) -> float:
     """Standard error of the mean of ``values`` whose errors may be correlated within a cell (``cells``: each
-    value's cell index) and are independent across cells: the cluster-robust variance ``plane_information`` uses."""
+    value's cell index, at least two cells) and are independent across cells: the cluster-robust variance
+    ``plane_information`` uses."""
     G = int(cells.max()) + 1
-    if G < 2:
-        return float("inf")
     s = np.bincount(cells, weights=values - values.mean(), minlength=G)
     return float(np.sqrt(s @ s * G / (G - 1))) / len(values)
 
@@ -192,6 +191,8 @@ def free_directions(
         information = AV @ np.diag(values) @ AV.T
         information = (information + information.T) / 2
     _, cells = unique_cells(np.floor(q / cell).astype(np.int64))
+    if cells.max() + 1 < MIN_CELLS:  # too few cells to estimate a spread from: independent, as the information
+        cells = np.arange(len(q))
     z = float(ndtri(FREE_QUANTILE))
     free = 0
     for k in range(6):
