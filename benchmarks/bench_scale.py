@@ -34,6 +34,7 @@ sys.path.insert(0, str(ROOT))
 
 from bench_memory import measured_run  # noqa: E402
 
+from benchmarks._results import save  # noqa: E402
 from sghr_gtsam.evaluate import score_run  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.result import DOUBTS  # noqa: E402
@@ -57,7 +58,7 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         gt_names,
         gt,
         unregistered=report["unregistered"],
-        flagged={n for flag in DOUBTS for n in report[flag]},
+        flagged=set(report["doubts"]),
         max_deg=MAX_DEG,
         max_trans=MAX_TRANS,
     )
@@ -69,7 +70,7 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         "wrong_unflagged": len(score.unflagged_wrong),
         "ate": float(np.sqrt(np.mean(whole.translation[basis] ** 2))),
         "median_deg": float(np.median(whole.rotation_deg[basis])),
-        "flags": {flag: len(report[flag]) for flag in DOUBTS},
+        "flags": {reason: list(report["doubts"].values()).count(reason) for reason in DOUBTS},
     }
 
 
@@ -143,28 +144,58 @@ def main() -> None:
         "scans MB",
         "cache MB",
     ]
+    table = [
+        [
+            r["n"],
+            r["k"],
+            round(r["generate_s"], 1),
+            round(r["wall"]),
+            round(r["cpu"]),
+            *(round(r["seconds"].get(s, 0.0), 1) for s in STAGES),
+            r["stage_pairs"],
+            r["pairs"],
+            f"{r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%})",
+            r["within"],
+            r["wrong_unflagged"],
+            *(r["flags"][f] for f in DOUBTS),
+            round(r["ate"], 3),
+            round(r["median_deg"], 2),
+            round(r["max_process_gb"], 2),
+            round(r["tree_pss_gb"], 2),
+            round(r["pair_s"], 3),
+            round(r["scan_mb"]),
+            round(r["cache_mb"]),
+        ]
+        for r in rows
+    ]
     print("| " + " | ".join(header) + " |\n" + "|---" * len(header) + "|")
-    for r in rows:
-        stages = " | ".join(f"{r['seconds'].get(s, 0.0):.1f}" for s in STAGES)
-        flags = " | ".join(str(r["flags"][f]) for f in DOUBTS)
-        print(
-            f"| {r['n']} | {r['k']} | {r['generate_s']:.1f} | {r['wall']:.0f} | {r['cpu']:.0f} | {stages} | "
-            f"{r['stage_pairs']} | {r['pairs']} | {r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%}) | "
-            f"{r['within']} | {r['wrong_unflagged']} | {flags} | {r['ate']:.3f} | {r['median_deg']:.2f} | "
-            f"{r['max_process_gb']:.2f} | {r['tree_pss_gb']:.2f} | {r['pair_s']:.3f} | {r['scan_mb']:.0f} | "
-            f"{r['cache_mb']:.0f} |"
-        )
+    for row in table:
+        print("| " + " | ".join(str(x) for x in row) + " |")
+    fit = ""
     if len(rows) > 1:  # seconds = c · (N·k)^e: e from a least-squares line through the logs
         nk = np.array([r["n"] * r["k"] for r in rows], float)
-        print(f"\nfitted exponent e of seconds ∝ (N·k)^e over N·k = {', '.join(f'{x:g}' for x in nk)}:")
         series = {
             "run wall": [r["wall"] for r in rows],
             "CPU": [r["cpu"] for r in rows],
             **{stage: [r["seconds"].get(stage, 0.0) for r in rows] for stage in ("total", *STAGES)},
         }
-        for label, seconds in series.items():
-            if min(seconds) >= 0.1:  # a stage that did (almost) nothing somewhere has no exponent
-                print(f"- {label}: {np.polyfit(np.log(nk), np.log(seconds), 1)[0]:.2f}")
+        exponents = [
+            f"{label} {np.polyfit(np.log(nk), np.log(seconds), 1)[0]:.2f}"
+            for label, seconds in series.items()
+            if min(seconds) >= 0.1  # a stage that did (almost) nothing somewhere has no exponent
+        ]
+        fit = f"Fitted exponent e of seconds ∝ (N·k)^e over N·k = {', '.join(f'{x:g}' for x in nk)}: " + ", ".join(
+            exponents
+        )
+        print(f"\n{fit}")
+    save(
+        f"scale_{args.kind}s",
+        table,
+        header,
+        notes=fit,
+        section="Scale and speed",
+        title=f"Generated {args.kind}s end to end (seed {args.seed})",
+    )
 
 
 if __name__ == "__main__":
