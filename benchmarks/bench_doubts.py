@@ -2,8 +2,9 @@
 
     python benchmarks/bench_doubts.py [--kinds room building hotel] [--seeds 0 1 2] [--workers 2]
 
-Each scene is ``synthetic.make_scene(kind, scans, seed)`` (rooms of 10 scans; buildings and hotels, whose rooms are
-all alike, of 30), registered by ``pipeline.register`` with the default ``Config`` (``record=False``). Its parts
+Each scene is ``synthetic.make_scene(kind, scans, seed)`` (rooms of 10 scans; buildings of 12, 20 and 30; hotels,
+whose rooms are all alike, of 16 and 30), registered by ``pipeline.register`` with the default ``Config``
+(``record=False``); the scene column reads kind, scans / seed. Its parts
 (``verify``) are scored against GT by ``evaluate.score_parts`` as ``bench_3dmatch.py`` scores the real scenes: a scan
 is *misplaced* when outside the largest rigid piece of its own part (15° / 0.6 m), and *off the whole model* when
 outside the largest rigid piece of all placed scans (where a scan alone in its part, or a part placed by a failed
@@ -29,9 +30,9 @@ from sghr_gtsam.evaluate import score_parts  # noqa: E402
 from sghr_gtsam.pipeline import Scan, register  # noqa: E402
 from sghr_gtsam.synthetic import make_scene  # noqa: E402
 
-SCANS = {"room": 10, "object": 10, "building": 30, "hotel": 30}
+SCANS = {"room": (10,), "object": (10,), "building": (12, 20, 30), "hotel": (16, 30)}
 COLUMNS = [
-    "scene",
+    "scene (scans / seed)",
     "scans",
     "placed",
     "parts",
@@ -43,9 +44,9 @@ COLUMNS = [
 ]
 
 
-def scene_row(kind: str, seed: int, workers: int) -> dict:
+def scene_row(kind: str, scans: int, seed: int, workers: int) -> dict:
     """One generated scene run and scored (module doc)."""
-    scene = make_scene(kind, SCANS[kind], seed)
+    scene = make_scene(kind, scans, seed)
     result = register(
         [Scan(n, np.asarray(P)) for n, P in zip(scene.names, scene.scans)],
         Config(record=False, workers=workers),
@@ -59,7 +60,7 @@ def scene_row(kind: str, seed: int, workers: int) -> dict:
     whole = score_parts(names, poses, scene.poses, [placed], doubted)
     off = set(whole.misplaced) | set(by_part.misplaced)
     return {
-        "scene": f"{kind} {seed}",
+        "scene": f"{kind} {scans}/{seed}",
         "scans": len(names),
         "placed": len(placed),
         "parts": " + ".join(str(len(p)) for p in parts),
@@ -114,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     rows = []
     for kind in args.kinds:
-        for seed in args.seeds:
-            r = scene_row(kind, seed, args.workers)
+        for scans in SCANS[kind]:
+            for seed in args.seeds:
+                r = scene_row(kind, scans, seed, args.workers)
             rows.append(r)
             print(
                 f"{r['scene']}: parts {r['parts']}, off {_labels(r['off'])}, doubted {_labels(r['doubted'])}",
