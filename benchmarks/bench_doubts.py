@@ -118,11 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         for scans in SCANS[kind]:
             for seed in args.seeds:
                 r = scene_row(kind, scans, seed, args.workers)
-            rows.append(r)
-            print(
-                f"{r['scene']}: parts {r['parts']}, off {_labels(r['off'])}, doubted {_labels(r['doubted'])}",
-                flush=True,
-            )
+                rows.append(r)
+                print(f"{r['scene']}: parts {r['parts']}, off {_labels(r['off'])}, doubted {_labels(r['doubted'])}")
     table = [
         [
             r["scene"],
