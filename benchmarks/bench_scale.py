@@ -8,9 +8,10 @@ each scan overlapping a bounded number of others), then one ``python -m sghr_gts
 --no-record --quiet`` measured as ``benchmarks/bench_memory.py`` measures (``/usr/bin/time -v`` for the largest
 process, the process tree's RSS and PSS sampled every 0.2 s, CPU seconds of every process). From OUT/report.json:
 the seconds of each stage and the pairs. Against GT (``evaluate.score_run``): scans placed, scans within 5° / 0.2 m
-after one rigid alignment fitted to the positions of the scans placed without a flag (``SceneScore.certain``; to every
-placed scan when fewer than 3 are unflagged), unflagged scans outside that (``SceneScore.unflagged_wrong``: placed
-wrongly as if certain), ATE rmse and median rotation error of the scans aligned on, and the flags.
+after one rigid alignment fitted to the positions of the trusted scans (the verified scans of the world part,
+``Verdict.trusted``; ``SceneScore.certain``; to every placed scan when fewer than 3 are trusted), trusted scans outside
+that (``SceneScore.unflagged_wrong``: placed wrongly as if certain), ATE rmse and median rotation error of the scans
+aligned on, and the doubts by reason.
 Then a log-log fit of the total seconds against N·k (the exponent: 1 is linear) and, for a multi-machine plan, the
 cost of a pair (pairwise seconds × workers / pairs registered by the pairwise stage) and the data volumes (scan files,
 OUT/cache).
@@ -48,6 +49,12 @@ def _bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
 
+def _trusted(report: dict) -> set[str]:
+    """The verified scans of the world part (``Verdict.trusted``): the model a user takes as it is."""
+    world = report["parts"][0]["scans"] if report["parts"] else []
+    return {n for n in world if report["status"][n] == "verified"}
+
+
 def _score(scene: Path, out: Path, report: dict) -> dict:
     """The run's poses against GT (module doc)."""
     gt_names, gt = read_poses(scene / "gt_poses.txt")
@@ -58,7 +65,7 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         gt_names,
         gt,
         unregistered=report["unregistered"],
-        flagged=set(report["doubts"]),
+        flagged=set(names) - _trusted(report),
         max_deg=MAX_DEG,
         max_trans=MAX_TRANS,
     )
