@@ -53,7 +53,7 @@ def scene_row(kind: str, scans: int, seed: int, workers: int) -> dict:
         log=lambda m: None,
     )
     names, poses = result.names, result.poses
-    placed = [n for k, n in enumerate(names) if k in set(result.registered)]
+    placed = [names[k] for k in result.registered]
     parts = [p.scans for p in result.verdict.parts]
     doubted = sorted(result.verdict.doubts, key=names.index)
     by_part = score_parts(names, poses, scene.poses, parts, doubted)

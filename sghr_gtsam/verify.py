@@ -451,7 +451,7 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         holding = leaving & kept
         held = w[holding].sum()
         dropped = elsewhere(graph, poses, group, np.flatnonzero(leaving & ~kept), tolerance)
-        if not len(dropped) or w[dropped].sum() <= held:
+        if w[dropped].sum() <= held:  # also when none is dropped: the weights are not negative
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
         if w[agreeing].sum() <= held:
