@@ -33,7 +33,7 @@ from sghr_gtsam.registration.edges import GUESSED, EdgeSet, edge_status
 from sghr_gtsam.registration.overrule import Viewpoints, look_alikes, overruled_edges
 from sghr_gtsam.registration.refine import PYRAMIDS, scan_pyramid
 from sghr_gtsam.registration.retry import weak_scans
-from sghr_gtsam.registration.visibility import contradicted_placements
+from sghr_gtsam.registration.visibility import viewpoint_conflicts
 from sghr_gtsam.result import RunResult
 from sghr_gtsam.scene import Log, check_given, load_scene, scene_voxel, too_few, usable_scans, voxel_doubt
 from sghr_gtsam.se3 import inv_T
@@ -546,14 +546,12 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
             [info if p.bounded is None else p.bounded for p, info in zip(run.pairs, graph.information)]
         )
         free = np.stack([np.zeros((6, 6)) if p.loose is None else p.loose for p in run.pairs])
-    clash, alike = None, []
+    conflicts, alike = None, []
     if stages.views is not None:  # config.free_space
         with stages.timer.stage("free_space"):
             alike = look_alikes(stages.views, graph, run.sync)
     if stages.config.free_space:
-
-        def clash(parts: np.ndarray) -> np.ndarray:
-            return contradicted_placements(stages.features, run.poses, placed, stages.voxel, stages.centres, parts)
+        conflicts = viewpoint_conflicts(stages.features, run.poses, placed, stages.voxel, stages.centres)
 
     return verify(
         run.names,
@@ -565,7 +563,7 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
         Attribute(stages.features, "points"),
         information,
         free,
-        clash,
+        conflicts,
         guessed,
         alike,
     )

@@ -25,8 +25,16 @@ standard one:
    is a group that several dropped registrations place elsewhere where the free space cannot tell the two
    placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever the weights.
 4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
-   that puts one scan's surfaces where another of its part saw empty space is contradicted
-   (``registration.visibility``). A conflict between two parts is about their join, which is already unverified.
+   that puts one scan's surfaces where another saw empty space is contradicted
+   (``registration.visibility.placement_conflicts``). Within a part, such conflicts say a registration on the
+   path between the two scans is wrong. The join is found as the minimum cut of the part's verified graph between
+   the scan in most conflicts and the scans it conflicts with; when the pairs of scans in conflict across that cut
+   outnumber the registrations that hold it, the free space contradicts the join, its registrations fail, and the
+   two sides are parts of their own. (Look-alike rooms: a generated 100-scan building's two wings held 11 m
+   apart by two light registrations that close loops, against 288 conflicting pairs across them.) A scan left in
+   conflict with others of its part that no cut separates is blamed as a scan
+   (``registration.visibility.contradicted_scans``); a conflict between two parts is about their join, which is
+   already unverified.
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
 that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
@@ -43,7 +51,7 @@ placed where its best join puts it, and marked so (``Part.join``).
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import chain
 
@@ -51,6 +59,7 @@ import gtsam
 import networkx as nx
 import numpy as np
 
+from sghr_gtsam.registration.visibility import contradicted_scans
 from sghr_gtsam.sync.consensus import (
     consistent_edges,
     edge_residuals,
@@ -100,6 +109,7 @@ class Join:
 
 ALIKE = "dropped registrations agree on another placement of it that the free space cannot rule out"
 OUTWEIGHED = "dropped registrations agree on another placement of it and outweigh these"
+SEEN_THROUGH = "scans across it see each other's surfaces in their free space, more pairs than it has registrations"
 
 
 @dataclass
@@ -250,12 +260,13 @@ def _join(
     kept: np.ndarray,
     passed: np.ndarray,
     disputes: Sequence[Dispute],
+    seen_through: np.ndarray,
     weight: np.ndarray,
     names: Sequence[str],
 ) -> Join | None:
     """The kept registrations from ``part`` to other parts and why they do not verify its place (None: none);
     ``disputes``: the groups whose place a competing one disputes (the first that holds a scan of the part says
-    why)."""
+    why); ``seen_through``: (E,) the registrations of joins the free space contradicts."""
     a, b = label[i], label[j]
     out = kept & ((a == part) != (b == part)) & (a >= 0) & (b >= 0)
     if not out.any():
@@ -268,6 +279,8 @@ def _join(
     dispute = next((d for d in disputes if d.group[members].any()), None)
     if dispute is not None:
         why = dispute.why
+    elif seen_through[e].any():
+        why = SEEN_THROUGH
     elif len(good) == 0:
         why = "its registrations to the rest do not close their loops within their noise"
     elif len(good) == 1:
@@ -294,7 +307,7 @@ def verify(
     points: Sequence[np.ndarray] | None = None,
     information: np.ndarray | None = None,
     free: np.ndarray | None = None,
-    clash: Callable[[np.ndarray], np.ndarray] | None = None,
+    conflicts: np.ndarray | None = None,
     dependent: np.ndarray | None = None,
     look_alike: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> Verdict:
@@ -303,8 +316,8 @@ def verify(
     k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
     each edge's information with its free directions bounded by the overlap alone (``PairResult.bounded``; default:
     the graph's) and ``free`` its part along them (``PairResult.loose``; None: no direction is free);
-    ``clash``: ``parts -> (N,) bool``, the scans blamed for free-space conflicts within their part (None: no
-    free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
+    ``conflicts``: (N, N) symmetric bool, the pairs of scans the poses place in each other's free space
+    (``registration.visibility.placement_conflicts``; None: no free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
     started from the poses they would check): they count in what holds a group against a competing placement, not
     in the loops that verify it; ``look_alike``: groups ((N,) bool) with the move (4, 4, left-multiplying their
     poses) that dropped registrations agree on, where the free space cannot tell the two placements apart
@@ -323,16 +336,19 @@ def verify(
     passed &= ~disputed
     if dependent is not None:
         passed &= ~dependent
+    conflicts = np.zeros((n, n), dtype=bool) if conflicts is None else conflicts
+    seen_through = _seen_through(graph, passed, placed, conflicts)
+    passed &= ~seen_through
     factor = 1.0
     if graph.information is not None:  # the a posteriori variance factor of the passing registrations
         factor = shown_variance_factor(mahalanobis(edge_residuals(graph, poses)[0][passed], graph.information[passed]))
     label = rigid_parts(n, graph.i, graph.j, passed, placed)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
-        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, graph.weight, names)
+        p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, seen_through, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
-    contradicted = clash(label) if clash is not None else np.zeros(n, dtype=bool)
+    contradicted = contradicted_scans(conflicts, label)
     max_sigma = translation_tolerance(kept_graph) if params.max_sigma is None else params.max_sigma
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
@@ -358,7 +374,7 @@ def verify(
             status[name] = "unplaced"
             continue
         reason = (
-            _alone_reason(k, graph, kept & ~consistent, passed, contested)
+            _alone_reason(k, graph, kept & ~consistent, passed, contested, seen_through)
             if alone[k]
             else "free space"
             if contradicted[k]
@@ -425,15 +441,67 @@ def _part_spreads(
     spreads[nodes], axes[nodes] = (a[nodes] for a in loosest(covariances, points, nodes))
 
 
-def _alone_reason(k: int, graph: PoseGraph, failing: np.ndarray, passed: np.ndarray, contested: np.ndarray) -> str:
+def _alone_reason(
+    k: int,
+    graph: PoseGraph,
+    failing: np.ndarray,
+    passed: np.ndarray,
+    contested: np.ndarray,
+    seen_through: np.ndarray,
+) -> str:
     """Why scan k is in no part of three: a competing placement of it (``contested``: (N,) the scans of the disputed
-    groups), its kept registrations ``failing`` the consistency test, or too few that pass."""
+    groups), a join the free space contradicts (``seen_through``: (E,)), its kept registrations ``failing`` the
+    consistency test, or too few that pass."""
     own = (graph.i == k) | (graph.j == k)
     if contested[k]:
         return "competing placement"
+    if (own & seen_through).any():
+        return "free space"
     if (own & failing).any() and int(np.sum(own & passed)) < 2:
         return "loop error"
     return "single registration"
+
+
+def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conflicts: np.ndarray) -> np.ndarray:
+    """(E,) the ``passed`` registrations of joins the free space contradicts (module doc, test 4). Repeatedly, in
+    each rigid part the scan in most conflicts with others of it is cut from them (a minimum cut, one unit a
+    registration); the cut is a contradicted join when more pairs of scans conflict across it than it has
+    registrations. A scan whose cut does not pass is not tried again until its part changes."""
+    cut = np.zeros(graph.num_edges, dtype=bool)
+    tried: set[int] = set()
+    while True:
+        label = rigid_parts(graph.n, graph.i, graph.j, passed & ~cut, placed)
+        inside = conflicts & (label[:, None] == label[None]) & (label[:, None] >= 0)
+        count = inside.sum(axis=1)
+        for k in np.argsort(-count, kind="stable"):
+            if count[k] == 0:
+                return cut
+            if k in tried:
+                continue
+            part = label == label[k]
+            edges, side = _min_cut(graph, passed & ~cut & part[graph.i] & part[graph.j], int(k), inside[k])
+            if len(edges) and inside[np.ix_(side, part & ~side)].sum() > len(edges):
+                cut[edges] = True
+                tried -= set(np.flatnonzero(part).tolist())
+                break
+            tried.add(int(k))
+        else:
+            return cut
+
+
+def _min_cut(graph: PoseGraph, edges: np.ndarray, k: int, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The registrations (indices) of a minimum cut of the graph of ``edges`` ((E,) bool; one unit each) between
+    scan ``k`` and the ``targets`` ((N,) bool), and (N,) bool the side of ``k``."""
+    G = nx.Graph()
+    for a, b in zip(graph.i[edges].tolist(), graph.j[edges].tolist()):
+        G.add_edge(a, b, capacity=G.get_edge_data(a, b, {"capacity": 0})["capacity"] + 1)
+    G.add_edges_from((int(t), -1) for t in np.flatnonzero(targets))  # no capacity: unbounded
+    side = np.zeros(graph.n, dtype=bool)
+    if k not in G or not nx.has_path(G, k, -1):
+        return np.zeros(0, dtype=int), side
+    _, (reached, _) = nx.minimum_cut(G, k, -1)
+    side[list(reached)] = True
+    return np.flatnonzero(edges & (side[graph.i] != side[graph.j])), side
 
 
 def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[Dispute]:

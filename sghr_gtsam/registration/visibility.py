@@ -209,17 +209,10 @@ def contradicted_scans(clash: np.ndarray, parts: np.ndarray | None = None) -> np
         left[k], left[:, k] = False, False
 
 
-def contradicted_placements(
-    features: Stored,
-    poses: np.ndarray,
-    placed: np.ndarray,
-    voxel: float,
-    centres: np.ndarray,
-    parts: np.ndarray | None = None,
+def viewpoint_conflicts(
+    features: Stored, poses: np.ndarray, placed: np.ndarray, voxel: float, centres: np.ndarray
 ) -> np.ndarray:
-    """(N,) bool: the ``placed`` scans blamed for free-space conflicts under ``poses`` (scan k's feature grid in
-    its centred frame to the world; ``placement_conflicts``, ``contradicted_scans`` within ``parts``), among the
-    scans that can say where there is nothing (``viewpoints``)."""
+    """(N, N) bool: ``placement_conflicts`` under ``poses`` (scan k's feature grid in its centred frame to the
+    world) among the ``placed`` scans that can say where there is nothing (``viewpoints``)."""
     points = Attribute(features, "points")
-    checked = placed & viewpoints(points, voxel, centres)
-    return contradicted_scans(placement_conflicts(points, poses, checked, voxel), parts)
+    return placement_conflicts(points, poses, placed & viewpoints(points, voxel, centres), voxel)
