@@ -42,7 +42,7 @@ from sghr_gtsam.result import DOUBTS  # noqa: E402
 from sghr_gtsam.synthetic import make_scene, write_scene  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
-STAGES = ("features", "global_graph", "pairwise", "free_space", "sync", "refine", "loops", "retry", "groups", "write")
+STAGES = ("features", "global_graph", "pairwise", "free_space", "sync", "refine", "loops", "retry", "groups", "verify", "write")
 
 
 def _bytes(folder: Path) -> int:

@@ -311,16 +311,16 @@ def verify(
     dependent: np.ndarray | None = None,
     look_alike: Sequence[tuple[np.ndarray, np.ndarray]] = (),
 ) -> Verdict:
-    """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept;
-    ``poses``: (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan
-    k's points in its own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6)
-    each edge's information with its free directions bounded by the overlap alone (``PairResult.bounded``; default:
-    the graph's) and ``free`` its part along them (``PairResult.loose``; None: no direction is free);
-    ``conflicts``: (N, N) symmetric bool, the pairs of scans the poses place in each other's free space
-    (``registration.visibility.placement_conflicts``; None: no free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
-    started from the poses they would check): they count in what holds a group against a competing placement, not
-    in the loops that verify it; ``look_alike``: groups ((N,) bool) with the move (4, 4, left-multiplying their
-    poses) that dropped registrations agree on, where the free space cannot tell the two placements apart
+    """The parts and statuses of a run (module doc). ``kept``: (E,) the registrations synchronization kept; ``poses``:
+    (N, 4, 4) in the frames of ``graph``; ``placed``: (N,) the scans with a pose; ``points[k]``: scan k's points in its
+    own frame, for its ``pose_spread`` (None: looseness not judged); ``information``: (E, 6, 6) each edge's information
+    with its free directions bounded by the overlap alone (``PairResult.bounded``; default: the graph's) and ``free``
+    its part along them (``PairResult.loose``; None: no direction is free); ``conflicts``: (N, N) symmetric bool, the
+    pairs of scans the poses place in each other's free space (``registration.visibility.placement_conflicts``; None: no
+    free-space test); ``dependent``: (E,) the kept registrations that are no independent evidence for a loop (they
+    started from the poses they would check): they count in what holds a group against a competing placement, not in the
+    loops that verify it; ``look_alike``: groups ((N,) bool) with the move (4, 4, left-multiplying their poses) that
+    dropped registrations agree on, where the free space cannot tell the two placements apart
     (``registration.overrule.look_alikes``): their joins to the rest are disputed."""
     n = len(names)
     kept = kept & placed[graph.i] & placed[graph.j]

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.sync.consensus import MAX_DEG
 from sghr_gtsam.types import PoseGraph
-from sghr_gtsam.verify import REASONS, STATUSES, Verification, verify
+from sghr_gtsam.verify import REASONS, SEEN_THROUGH, STATUSES, Verification, verify
 
 
 def _poses(n: int, seed: int) -> np.ndarray:
@@ -37,10 +37,18 @@ def _graph(poses: np.ndarray, edges: list[tuple[int, int]], wrong: dict[int, np.
     )
 
 
-def _verdict(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray | None = None):
+def _verdict(graph: PoseGraph, poses: np.ndarray, kept: np.ndarray | None = None, conflicts: np.ndarray | None = None):
     names = [f"s{k}" for k in range(graph.n)]
     kept = np.ones(graph.num_edges, dtype=bool) if kept is None else kept
-    return verify(names, graph, kept, poses, np.ones(graph.n, dtype=bool), Verification())
+    return verify(names, graph, kept, poses, np.ones(graph.n, dtype=bool), Verification(), conflicts=conflicts)
+
+
+def _conflicting(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(n, n) symmetric free-space conflicts of ``pairs``."""
+    conflicts = np.zeros((n, n), dtype=bool)
+    for a, b in pairs:
+        conflicts[a, b] = conflicts[b, a] = True
+    return conflicts
 
 
 def _clique(nodes: range) -> list[tuple[int, int]]:
@@ -122,6 +130,60 @@ def test_dropped_registrations_that_agree_on_another_placement_split_the_group_o
         graph.T[e] = inv_T(poses[graph.i[e]]) @ near @ poses[graph.j[e]]
     graph.weight[len(edges) - 5 : len(edges) - 2] = 40.0
     assert [len(p.scans) for p in _verdict(graph, poses, kept).parts] == [9]
+
+
+def test_a_join_whose_scans_see_each_other_in_their_free_space_splits_the_part():
+    """Two groups held together by two registrations that close a loop, as look-alike rooms register: the loop
+    passes, but scans across the join stand in each other's free space. More such pairs than registrations in the
+    join: it fails and each group is a part of its own, verified inside. As many or fewer: the join stands, and a
+    scan in conflict with two or more others is blamed for it."""
+    poses = _poses(10, 6)
+    edges = _clique(range(5)) + _clique(range(5, 10)) + [(4, 5), (3, 6)]
+    graph = _graph(poses, edges)
+    across = [(a, b) for a in range(5) for b in range(5, 10)]
+    verdict = _verdict(graph, poses, conflicts=_conflicting(10, across[:3]))
+    assert [p.scans for p in verdict.parts] == [[f"s{k}" for k in range(5)], [f"s{k}" for k in range(5, 10)]]
+    assert verdict.parts[1].join.why == SEEN_THROUGH and sorted(verdict.parts[1].join.edges) == [
+        ("s3", "s6"),
+        ("s4", "s5"),
+    ]
+    assert set(verdict.status.values()) == {"verified"}
+    held = _verdict(graph, poses, conflicts=_conflicting(10, across[:2]))  # s0 in conflict with s5 and s6
+    assert [len(p.scans) for p in held.parts] == [10] and held.doubts == {"s0": "free space"}
+
+
+def test_a_scan_in_conflict_with_more_scans_than_its_registrations_is_cut_off():
+    """A scan held by three registrations in a loop, placed where four scans of its part saw empty space: the
+    minimum cut between it and them is its own registrations, and it is alone, doubted for the free space."""
+    poses = _poses(7, 7)
+    edges = _clique(range(6)) + [(6, 0), (6, 1), (6, 2)]
+    verdict = _verdict(_graph(poses, edges), poses, conflicts=_conflicting(7, [(6, k) for k in range(1, 5)]))
+    assert [p.scans for p in verdict.parts] == [[f"s{k}" for k in range(6)], ["s6"]]
+    assert verdict.doubts == {"s6": "free space"}
+
+
+@settings(max_examples=30, deadline=None)
+@given(n=st.integers(3, 12), seed=st.integers(0, 10**6), extra=st.integers(0, 20), clashes=st.integers(0, 15))
+def test_free_space_conflicts_only_split_parts(n, seed, extra, clashes):
+    """Any conflicts between scans of exact registrations: every part lies inside one part of the run without
+    them, and no scan stays in a part in conflict with more of its scans than it has registrations there (cutting
+    those would pass)."""
+    rng = np.random.default_rng(seed)
+    poses = _poses(n, seed % 1000)
+    edges = sorted(
+        {(k, k + 1) for k in range(n - 1)} | {tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(extra)}
+    )
+    graph = _graph(poses, edges)
+    conflicts = _conflicting(n, [tuple(rng.choice(n, 2, replace=False)) for _ in range(clashes)])
+    before, split = _verdict(graph, poses).part_of(), _verdict(graph, poses, conflicts=conflicts)
+    assert all(len({before[s] for s in p.scans}) == 1 for p in split.parts)
+    assert sorted(s for p in split.parts for s in p.scans) == sorted(before)
+    label = np.array([split.part_of()[f"s{k}"] for k in range(n)])
+    same = label[:, None] == label[None]
+    inside = np.bincount(
+        np.r_[graph.i, graph.j], weights=np.r_[same[graph.i, graph.j], same[graph.i, graph.j]], minlength=n
+    )
+    assert np.all((conflicts & same).sum(axis=1) <= inside)
 
 
 @settings(max_examples=20, deadline=None)
