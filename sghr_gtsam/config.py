@@ -117,7 +117,7 @@ class Config:
     """Give scans left unregistered, unverified or on fewer than 2 kept edges global registration against
     their next k candidates by overlap score: once a run for a scan placed in the largest part, every round for one
     left outside it."""
-    groups: bool = True
+    groups: bool = False
     """Register each group of unverified scans (held together by its own kept edges), merged, onto the merged
     verified rest, and the pairs that placement makes overlap by ICP from it (``registration.groups``)."""
     max_sigma: float | None = None
