@@ -11,7 +11,9 @@ the seconds of each stage and the pairs. Against GT (``evaluate.score_run``): sc
 after one rigid alignment fitted to the positions of the trusted scans (the verified scans of the world part,
 ``Verdict.trusted``; ``SceneScore.certain``; to every placed scan when fewer than 3 are trusted), trusted scans outside
 that (``SceneScore.unflagged_wrong``: placed wrongly as if certain), ATE rmse and median rotation error of the scans
-aligned on, and the doubts by reason.
+aligned on, and the doubts by reason. The parts: how many, the scans in parts of two or more, the largest, and the
+scans outside the largest rigid piece of their own part (``evaluate.score_parts`` at 5° / 0.2 m) with those of them
+the run verified.
 Then a log-log fit of the total seconds against N·k (the exponent: 1 is linear) and, for a multi-machine plan, the
 cost of a pair (pairwise seconds × workers / pairs registered by the pairwise stage) and the data volumes (scan files,
 OUT/cache).
@@ -36,13 +38,25 @@ sys.path.insert(0, str(ROOT))
 from bench_memory import measured_run  # noqa: E402
 
 from benchmarks._results import save  # noqa: E402
-from sghr_gtsam.evaluate import score_run  # noqa: E402
+from sghr_gtsam.evaluate import score_parts, score_run  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.result import DOUBTS  # noqa: E402
 from sghr_gtsam.synthetic import make_scene, write_scene  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
-STAGES = ("features", "global_graph", "pairwise", "free_space", "sync", "refine", "loops", "retry", "groups", "verify", "write")
+STAGES = (
+    "features",
+    "global_graph",
+    "pairwise",
+    "free_space",
+    "sync",
+    "refine",
+    "loops",
+    "retry",
+    "groups",
+    "verify",
+    "write",
+)
 
 
 def _bytes(folder: Path) -> int:
@@ -69,6 +83,8 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         max_deg=MAX_DEG,
         max_trans=MAX_TRANS,
     )
+    parts = [p["scans"] for p in report["parts"]]
+    by_part = score_parts(names, poses, _gt_of(names, gt_names, gt), parts, report["doubts"], MAX_DEG, MAX_TRANS)
     whole = score.certain or score.whole  # every placed scan flagged: aligned on all of them
     basis = np.array([n not in set(score.flagged) for n in score.placed]) if score.certain else slice(None)
     return {
@@ -78,7 +94,18 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         "ate": float(np.sqrt(np.mean(whole.translation[basis] ** 2))),
         "median_deg": float(np.median(whole.rotation_deg[basis])),
         "flags": {reason: list(report["doubts"].values()).count(reason) for reason in DOUBTS},
+        "parts": len(parts),
+        "in_parts": sum(len(p) for p in parts if len(p) > 1),
+        "largest_part": max((len(p) for p in parts), default=0),
+        "misplaced": len(by_part.misplaced),
+        "misplaced_verified": len(set(by_part.misplaced) - set(by_part.doubted)),
     }
+
+
+def _gt_of(names: list[str], gt_names: list[str], gt: np.ndarray) -> np.ndarray:
+    """GT poses in the order of ``names``."""
+    index = {n: k for k, n in enumerate(gt_names)}
+    return gt[[index[n] for n in names]]
 
 
 def _case(n: int, args: argparse.Namespace, work: Path) -> dict:
@@ -142,6 +169,11 @@ def main() -> None:
         "placed",
         f"within {MAX_DEG:g}°/{MAX_TRANS:g} m",
         "unflagged wrong",
+        "parts",
+        "scans in parts of 2+",
+        "largest part",
+        "misplaced in its part",
+        "of them verified",
         *DOUBTS,
         "ATE m",
         "median °",
@@ -164,6 +196,11 @@ def main() -> None:
             f"{r['placed']}/{r['n']} ({r['placed'] / r['n']:.0%})",
             r["within"],
             r["wrong_unflagged"],
+            r["parts"],
+            r["in_parts"],
+            r["largest_part"],
+            r["misplaced"],
+            r["misplaced_verified"],
             *(r["flags"][f] for f in DOUBTS),
             round(r["ate"], 3),
             round(r["median_deg"], 2),
