@@ -231,20 +231,35 @@ def _listed(names: list[str], doubts: dict[str, str]) -> str:
     return "; ".join(f"{reason}: {_names(found)}" for reason, found in by_reason.items())
 
 
-def rigid_parts(n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, placed: np.ndarray) -> np.ndarray:
+def rigid_parts(
+    n: int, i: np.ndarray, j: np.ndarray, verified: np.ndarray, placed: np.ndarray, weight: np.ndarray | None = None
+) -> np.ndarray:
     """(N,) part label of each scan (−1 unplaced): the biconnected components of three or more scans of the
     ``verified`` edges, largest first (ties: the one with the smallest scan); an articulation point goes to the
-    largest component it is in (so a triangle hung on one can leave a part of two); every other placed scan is a
+    component whose registrations hold it most (``weight``: (E,) w⁰; None: one each), then the largest (so a
+    triangle hung on one can leave a part of two): two blocks that share a scan are placed against each other by
+    that scan alone, and it belongs where more of the evidence for its own pose lies; every other placed scan is a
     part of its own."""
+    weight = np.ones(len(i)) if weight is None else weight
     G = nx.Graph()
-    G.add_edges_from(zip(i[verified].tolist(), j[verified].tolist()))
-    components = sorted((sorted(c) for c in nx.biconnected_components(G) if len(c) >= 3), key=lambda c: (-len(c), c[0]))
+    for a, b, w in zip(i[verified].tolist(), j[verified].tolist(), weight[verified].tolist()):
+        G.add_edge(a, b, w=G.get_edge_data(a, b, {"w": 0.0})["w"] + w)
+    blocks = [list(c) for c in nx.biconnected_component_edges(G)]
+    blocks = [c for c in blocks if len({k for e in c for k in e}) >= 3]
+    members = [sorted({k for e in c for k in e}) for c in blocks]
+    order = sorted(range(len(blocks)), key=lambda x: (-len(members[x]), members[x][0]))
+    held: dict[int, dict[int, float]] = {}
+    for x in order:
+        for a, b in blocks[x]:
+            for k in (a, b):
+                held.setdefault(k, {}).setdefault(x, 0.0)
+                held[k][x] += G[a][b]["w"]
+    rank_of = {x: r for r, x in enumerate(order)}
     label = np.full(n, -1)
-    for x, c in enumerate(components):
-        free = [k for k in c if label[k] < 0]
-        label[free] = x
+    for k, by_block in held.items():
+        label[k] = min(by_block, key=lambda x: (-by_block[x], rank_of[x]))
     alone = np.flatnonzero(placed & (label < 0))
-    label[alone] = len(components) + np.arange(len(alone))
+    label[alone] = len(blocks) + np.arange(len(alone))
     sizes = np.bincount(label[label >= 0], minlength=label.max() + 1)
     order = sorted(range(len(sizes)), key=lambda x: (-sizes[x], int(np.flatnonzero(label == x)[0])))
     rank = np.empty(len(order), dtype=int)
@@ -342,7 +357,7 @@ def verify(
     factor = 1.0
     if graph.information is not None:  # the a posteriori variance factor of the passing registrations
         factor = shown_variance_factor(mahalanobis(edge_residuals(graph, poses)[0][passed], graph.information[passed]))
-    label = rigid_parts(n, graph.i, graph.j, passed, placed)
+    label = rigid_parts(n, graph.i, graph.j, passed, placed, graph.weight)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
         p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, seen_through, graph.weight, names)
@@ -470,7 +485,7 @@ def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conf
     cut = np.zeros(graph.num_edges, dtype=bool)
     tried: set[int] = set()
     while True:
-        label = rigid_parts(graph.n, graph.i, graph.j, passed & ~cut, placed)
+        label = rigid_parts(graph.n, graph.i, graph.j, passed & ~cut, placed, graph.weight)
         inside = conflicts & (label[:, None] == label[None]) & (label[:, None] >= 0)
         count = inside.sum(axis=1)
         for k in np.argsort(-count, kind="stable"):

@@ -88,6 +88,20 @@ def test_a_group_hung_on_one_scan_is_a_part_of_its_own():
     assert "articulation point" in verdict.parts[1].join.why
 
 
+def test_a_scan_shared_by_two_groups_goes_to_the_one_whose_registrations_hold_it_most():
+    """Scan 4 closes loops with a large group by two light registrations and with a small one by three heavy ones:
+    the groups are placed against each other by scan 4 alone, and it goes with the heavier evidence for its own
+    pose, not with the larger group."""
+    poses = _poses(8, 8)
+    edges = _clique(range(4)) + [(4, 0), (4, 1)] + _clique(range(5, 8)) + [(4, 5), (4, 6), (4, 7)]
+    graph = _graph(poses, edges)
+    graph.weight[[len(_clique(range(4))), len(_clique(range(4))) + 1]] = 1.0  # 4-0 and 4-1: light
+    verdict = _verdict(graph, poses)
+    assert [p.scans for p in verdict.parts[:2]] == [["s0", "s1", "s2", "s3"], ["s4", "s5", "s6", "s7"]]
+    graph.weight[:] = 10.0  # equal weights: 4's three registrations to the small group still outweigh its two
+    assert verdict.parts[1].scans == _verdict(graph, poses).parts[1].scans
+
+
 def test_a_registration_that_breaks_its_loop_leaves_the_part_and_its_scan_is_doubted():
     """Scan 5 hangs on two registrations; one is 30° off, so their loop does not close within any noise: the
     scan is no longer checked by a loop, and the wrong registration's failure is the reason given."""
