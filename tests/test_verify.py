@@ -3,6 +3,7 @@ joins through one registration or one scan reported and not trusted, one status 
 
 import json
 
+import networkx as nx
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -180,8 +181,9 @@ def test_a_scan_in_conflict_with_more_scans_than_its_registrations_is_cut_off():
 @given(n=st.integers(3, 12), seed=st.integers(0, 10**6), extra=st.integers(0, 20), clashes=st.integers(0, 15))
 def test_free_space_conflicts_only_split_parts(n, seed, extra, clashes):
     """Any conflicts between scans of exact registrations: every part lies inside one part of the run without
-    them, and no scan stays in a part in conflict with more of its scans than it has registrations there (cutting
-    those would pass)."""
+    them, but for the scans two loops share (which go where their registrations hold them most, and may follow a
+    loop the cut left whole), and no scan stays in a part in conflict with more of its scans than it has
+    registrations there (cutting those would pass)."""
     rng = np.random.default_rng(seed)
     poses = _poses(n, seed % 1000)
     edges = sorted(
@@ -190,7 +192,8 @@ def test_free_space_conflicts_only_split_parts(n, seed, extra, clashes):
     graph = _graph(poses, edges)
     conflicts = _conflicting(n, [tuple(rng.choice(n, 2, replace=False)) for _ in range(clashes)])
     before, split = _verdict(graph, poses).part_of(), _verdict(graph, poses, conflicts=conflicts)
-    assert all(len({before[s] for s in p.scans}) == 1 for p in split.parts)
+    shared = {f"s{k}" for k in nx.articulation_points(nx.Graph(edges))}
+    assert all(len({before[s] for s in p.scans if s not in shared}) <= 1 for p in split.parts)
     assert sorted(s for p in split.parts for s in p.scans) == sorted(before)
     label = np.array([split.part_of()[f"s{k}"] for k in range(n)])
     same = label[:, None] == label[None]
