@@ -43,8 +43,10 @@ the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
 
 
 class _Lru:
-    """Items by key; the least recently used are dropped while the items hold more than ``limit`` bytes (their
-    ``nbytes`` as of now: search structures built since they were read count). The newest stays however large."""
+    """Items by key; when an item is read, the least recently used are dropped while the items hold more than
+    ``limit`` bytes (their ``nbytes`` as of then: search structures built since they were read count). The newest
+    stays however large. The bytes are summed on a read only, not on every use: summing them on each use cost
+    O(items) a call, 96 of a 500-scan building's 370 profiled seconds."""
 
     def __init__(self, limit: int) -> None:
         self.limit = limit
@@ -52,10 +54,10 @@ class _Lru:
 
     def get(self, key: Any, load: Callable[[], Any]) -> Any:
         item = self._items.get(key)
-        if item is None:
-            item = load()
-        self._items[key] = item
-        self._items.move_to_end(key)
+        if item is not None:
+            self._items.move_to_end(key)
+            return item
+        item = self._items[key] = load()
         total = sum(v.nbytes for v in self._items.values())
         while total > self.limit and len(self._items) > 1:
             total -= self._items.popitem(last=False)[1].nbytes

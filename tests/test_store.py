@@ -77,9 +77,11 @@ def test_lru_keeps_within_its_bound_and_drops_the_least_recently_used():
     assert list(lru._items) == ["c", "a", "d"] and loads == ["a", "b", "c", "d"]
     lru.get("b", load("b", 30))
     assert loads[-1] == "b" and list(lru._items) == ["a", "d", "b"]
-    lru._items["d"].nbytes = 80  # a task built its search structures: the bound counts them
-    lru.get("a", load("a", 30))
-    assert list(lru._items) == ["b", "a"] and loads[-1] == "b"
+    lru._items["d"].nbytes = 80  # a task built its search structures: the bound counts them at the next read
+    lru.get("a", load("a", 30))  # a use, no read: nothing is summed or dropped
+    assert list(lru._items) == ["d", "b", "a"] and loads[-1] == "b"
+    lru.get("e", load("e", 10))  # 150 bytes: d, the oldest, goes
+    assert list(lru._items) == ["b", "a", "e"]
     lru.get("huge", load("huge", 500))  # larger than the bound: kept alone, the newest
     assert list(lru._items) == ["huge"]
 
