@@ -481,7 +481,7 @@ def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conf
     """(E,) the ``passed`` registrations of joins the free space contradicts (module doc, test 4). Repeatedly, in
     each rigid part the scan in most conflicts with others of it is cut from them (a minimum cut, one unit a
     registration); the cut is a contradicted join when more pairs of scans conflict across it than it has
-    registrations. A scan whose cut does not pass is not tried again until its part changes."""
+    registrations. A scan whose cut does not pass is not tried again until a cut changes the parts."""
     cut = np.zeros(graph.num_edges, dtype=bool)
     tried: set[int] = set()
     while True:
@@ -497,7 +497,7 @@ def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conf
             edges, side = _min_cut(graph, passed & ~cut & part[graph.i] & part[graph.j], int(k), inside[k])
             if len(edges) and inside[np.ix_(side, part & ~side)].sum() > len(edges):
                 cut[edges] = True
-                tried -= set(np.flatnonzero(part).tolist())
+                tried.clear()
                 break
             tried.add(int(k))
         else:
