@@ -42,6 +42,7 @@ from sghr_gtsam.evaluate import score_parts, score_run  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.result import DOUBTS  # noqa: E402
 from sghr_gtsam.synthetic import make_scene, write_scene  # noqa: E402
+from sghr_gtsam.verify import Verdict  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
 STAGES = (
@@ -63,12 +64,6 @@ def _bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
 
-def _trusted(report: dict) -> set[str]:
-    """The verified scans of the world part (``Verdict.trusted``): the model a user takes as it is."""
-    world = report["parts"][0]["scans"] if report["parts"] else []
-    return {n for n in world if report["status"][n] == "verified"}
-
-
 def _score(scene: Path, out: Path, report: dict) -> dict:
     """The run's poses against GT (module doc)."""
     gt_names, gt = read_poses(scene / "gt_poses.txt")
@@ -79,12 +74,14 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         gt_names,
         gt,
         unregistered=report["unregistered"],
-        flagged=set(names) - _trusted(report),
+        flagged=set(names) - set(Verdict.from_dict(report).trusted()),
         max_deg=MAX_DEG,
         max_trans=MAX_TRANS,
     )
     parts = [p["scans"] for p in report["parts"]]
-    by_part = score_parts(names, poses, _gt_of(names, gt_names, gt), parts, report["doubts"], MAX_DEG, MAX_TRANS)
+    gt_by_name = dict(zip(gt_names, gt))
+    truth = np.stack([gt_by_name[n] for n in names])
+    by_part = score_parts(names, poses, truth, parts, report["doubts"], MAX_DEG, MAX_TRANS)
     whole = score.certain or score.whole  # every placed scan flagged: aligned on all of them
     basis = np.array([n not in set(score.flagged) for n in score.placed]) if score.certain else slice(None)
     return {
@@ -100,12 +97,6 @@ def _score(scene: Path, out: Path, report: dict) -> dict:
         "misplaced": len(by_part.misplaced),
         "misplaced_verified": len(set(by_part.misplaced) - set(by_part.doubted)),
     }
-
-
-def _gt_of(names: list[str], gt_names: list[str], gt: np.ndarray) -> np.ndarray:
-    """GT poses in the order of ``names``."""
-    index = {n: k for k, n in enumerate(gt_names)}
-    return gt[[index[n] for n in names]]
 
 
 def _case(n: int, args: argparse.Namespace, work: Path) -> dict:

@@ -51,6 +51,7 @@ placed where its best join puts it, and marked so (``Part.join``).
 
 from __future__ import annotations
 
+from collections import defaultdict
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import chain
@@ -241,19 +242,15 @@ def rigid_parts(
     that scan alone, and it belongs where more of the evidence for its own pose lies; every other placed scan is a
     part of its own."""
     weight = np.ones(len(i)) if weight is None else weight
-    G = nx.Graph()
-    for a, b, w in zip(i[verified].tolist(), j[verified].tolist(), weight[verified].tolist()):
-        G.add_edge(a, b, w=G.get_edge_data(a, b, {"w": 0.0})["w"] + w)
-    blocks = [list(c) for c in nx.biconnected_component_edges(G)]
-    blocks = [c for c in blocks if len({k for e in c for k in e}) >= 3]
+    G = _summed_graph(i[verified], j[verified], weight[verified], "w")
+    blocks = [c for c in map(list, nx.biconnected_component_edges(G)) if len({k for e in c for k in e}) >= 3]
     members = [sorted({k for e in c for k in e}) for c in blocks]
     order = sorted(range(len(blocks)), key=lambda x: (-len(members[x]), members[x][0]))
-    held: dict[int, dict[int, float]] = {}
-    for x in order:
-        for a, b in blocks[x]:
-            for k in (a, b):
-                held.setdefault(k, {}).setdefault(x, 0.0)
-                held[k][x] += G[a][b]["w"]
+    held: defaultdict[int, defaultdict[int, float]] = defaultdict(lambda: defaultdict(float))
+    for x, block in enumerate(blocks):
+        for a, b in block:
+            held[a][x] += G[a][b]["w"]
+            held[b][x] += G[a][b]["w"]
     rank_of = {x: r for r, x in enumerate(order)}
     label = np.full(n, -1)
     for k, by_block in held.items():
@@ -265,6 +262,15 @@ def rigid_parts(
     rank = np.empty(len(order), dtype=int)
     rank[order] = np.arange(len(order))
     return np.where(label >= 0, rank[np.maximum(label, 0)], -1)
+
+
+def _summed_graph(i: np.ndarray, j: np.ndarray, values: np.ndarray, key: str) -> nx.Graph:
+    """The graph of edges ``i[e]``–``j[e]``, each pair's ``values`` summed into its attribute ``key`` (parallel
+    registrations of one pair add up)."""
+    G = nx.Graph()
+    for a, b, v in zip(i.tolist(), j.tolist(), values.tolist()):
+        G.add_edge(a, b, **{key: G.get_edge_data(a, b, {key: 0.0})[key] + v})
+    return G
 
 
 def _join(
@@ -352,12 +358,11 @@ def verify(
     if dependent is not None:
         passed &= ~dependent
     conflicts = np.zeros((n, n), dtype=bool) if conflicts is None else conflicts
-    seen_through = _seen_through(graph, passed, placed, conflicts)
+    seen_through, label = _seen_through(graph, passed, placed, conflicts)
     passed &= ~seen_through
     factor = 1.0
     if graph.information is not None:  # the a posteriori variance factor of the passing registrations
         factor = shown_variance_factor(mahalanobis(edge_residuals(graph, poses)[0][passed], graph.information[passed]))
-    label = rigid_parts(n, graph.i, graph.j, passed, placed, graph.weight)
     parts = [Part(id=x, scans=[names[k] for k in np.flatnonzero(label == x)]) for x in range(label.max() + 1)]
     for p in parts[1:]:
         p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, seen_through, graph.weight, names)
@@ -477,8 +482,11 @@ def _alone_reason(
     return "single registration"
 
 
-def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conflicts: np.ndarray) -> np.ndarray:
-    """(E,) the ``passed`` registrations of joins the free space contradicts (module doc, test 4). Repeatedly, in
+def _seen_through(
+    graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conflicts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(E,) the ``passed`` registrations of joins the free space contradicts (module doc, test 4), and the rigid
+    parts (``rigid_parts``) of the passed registrations without them. Repeatedly, in
     each rigid part the scan in most conflicts with others of it is cut from them (a minimum cut, one unit a
     registration); the cut is a contradicted join when more pairs of scans conflict across it than it has
     registrations. A scan whose cut does not pass is not tried again until a cut changes the parts."""
@@ -490,7 +498,7 @@ def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conf
         count = inside.sum(axis=1)
         for k in np.argsort(-count, kind="stable"):
             if count[k] == 0:
-                return cut
+                return cut, label
             if k in tried:
                 continue
             part = label == label[k]
@@ -501,15 +509,13 @@ def _seen_through(graph: PoseGraph, passed: np.ndarray, placed: np.ndarray, conf
                 break
             tried.add(int(k))
         else:
-            return cut
+            return cut, label
 
 
 def _min_cut(graph: PoseGraph, edges: np.ndarray, k: int, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The registrations (indices) of a minimum cut of the graph of ``edges`` ((E,) bool; one unit each) between
     scan ``k`` and the ``targets`` ((N,) bool), and (N,) bool the side of ``k``."""
-    G = nx.Graph()
-    for a, b in zip(graph.i[edges].tolist(), graph.j[edges].tolist()):
-        G.add_edge(a, b, capacity=G.get_edge_data(a, b, {"capacity": 0})["capacity"] + 1)
+    G = _summed_graph(graph.i[edges], graph.j[edges], np.ones(int(edges.sum())), "capacity")
     G.add_edges_from((int(t), -1) for t in np.flatnonzero(targets))  # no capacity: unbounded
     side = np.zeros(graph.n, dtype=bool)
     if k not in G or not nx.has_path(G, k, -1):
