@@ -10,9 +10,9 @@ half a voxel in random directions (a synchronized guess's drift) is refined by `
 table: on 3DMatch, metres). The fixed point is the same ICP with a step of 1e-6 voxels and 200 iterations a level.
 The voxel is the run's default (``scene.scene_voxel``: 1/100 of the median scan's bounding-box diagonal).
 Each step runs with each budget of iterations a level (``refine.LEVEL_ITERATIONS``; ``--budgets``). Columns: the
-pairs called converged, those also within ``refine.stays_near`` of their guess (what refinement admits, inliers
-aside), the pairs whose verdict differs from the 1 mm stop's at the first budget, and the distance of each stop from
-the fixed point (rotation °, translation in voxels), median and 90 %.
+pairs called converged, those also within ``refine.stays_near`` of their guess (what refinement admitted until it
+took a converged ICP wherever it moved, inliers aside), the pairs whose verdict differs from the 1 mm stop's at the
+first budget, and the distance of each stop from the fixed point (rotation °, translation in voxels), median and 90 %.
 """
 
 from __future__ import annotations

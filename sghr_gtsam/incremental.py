@@ -212,7 +212,7 @@ class Session:
             if pair.inliers >= cfg.inlier_bar and cfg.refine:
                 # The batch's refinement, from the registration itself: the session has no synchronized
                 # guess before the scan is placed, and from either start ICP lands in the same basin.
-                refined, near = refine_pair(
+                refined, converged = refine_pair(
                     self.features[i],
                     f,
                     self._pyramids[i],
@@ -223,7 +223,7 @@ class Session:
                     cfg.inlier_bar,
                     pair.matches,
                 )
-                if confirms(refined, near, cfg.inlier_bar):
+                if confirms(refined, converged, cfg.inlier_bar):
                     pair = refined
             tried.append(pair)
             if pair.inliers >= cfg.inlier_bar and pair.information is not None:

@@ -81,7 +81,7 @@ def refine_edges(
     cache: Cache | None = None,
 ) -> int:
     """Re-register every kept edge of the largest part not refined yet by multi-scale ICP from the
-    synchronized ``T_i⁻¹ T_j``; an edge takes the result when it ``confirms`` the guess. Returns the count."""
+    synchronized ``T_i⁻¹ T_j``; an edge takes the result when it passes (``refine.confirms``). Returns the count."""
     main = sync.component == 0
     todo = np.flatnonzero(_kept(edges, sync) & ~edges.refined & main[edges.ij[:, 0]] & main[edges.ij[:, 1]])
     if not len(todo):
@@ -123,7 +123,7 @@ def close_loops(
 ) -> int:
     """Register the pairs of the largest part that overlap under the synchronized poses but have no kept edge,
     by multi-scale ICP from the synchronized guess: pairs never tried, and pairs whose global registration
-    synchronization rejected (a wrong registration of a right pair). Those that ``confirm`` the guess enter
+    synchronization rejected (a wrong registration of a right pair). Those that pass (``refine.confirms``) enter
     as loop edges (a rejected edge's registration is replaced). Each pair is tried once a run."""
     n = len(features)
     skip = report.or_tried(_kept_pairs(edges, sync, n))
@@ -162,7 +162,7 @@ def register_weak_groups(
 ) -> int:
     """Each weak group (``groups.weak_groups`` of the ``flagged`` scans), merged, registered globally onto the
     merged verified rest of the largest part (``groups.register_group``); where that moves it, the pairs across its
-    border that overlap at the new place are registered by ICP from it and those that ``confirm`` it enter as group
+    border that overlap at the new place are registered by ICP from it and those that pass enter as group
     edges (a rejected edge's registration is replaced). Each group is tried once a run. Returns the edges added."""
     n = len(features)
     rest = (sync.component == 0) & ~flagged
@@ -233,7 +233,7 @@ def _register_guessed(
     label: str,
 ) -> tuple[int, int]:
     """Multi-scale ICP from ``poses`` of the ``placed`` pairs that overlap under them (``loops.propose_loops``; not
-    those in ``skip``, (n, n) bool); those that ``confirm`` their guess enter with ``origin``, replacing the pair's
+    those in ``skip``, (n, n) bool); those that pass (``refine.confirms``) enter with ``origin``, replacing the pair's
     earlier registration if it has one. Returns the pairs tried and those that entered."""
     overlap = predicted_overlap(Attribute(features, "points"), poses, placed, voxel)
     ij = propose_loops(overlap, skip, config.k)

@@ -57,8 +57,8 @@ at the 3DMatch scenes' 4 cm voxel; on a scene of repeated desks a 2 % change of 
 (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
 MAX_MOVE_DEG = 5.0
 MAX_MOVE_VOXELS = 3.0
-"""A re-registration confirms the synchronized poses only if ICP stays near the guess: a larger move means
-the guess (or the ICP) is wrong, and an edge that disagrees with the poses it came from is no evidence for them."""
+"""ICP's reach: a registration of a weak group that moves it less than this leaves it where loop closure from its
+current place finds it (``densify.register_weak_groups``)."""
 MIN_FITNESS = 0.2
 """Fraction of the source's grid points within the ICP distance of the target after the loop's ICP."""
 
@@ -118,19 +118,19 @@ def _decode_pyramid(a: dict[str, np.ndarray]) -> Pyramid:
 
 
 def _encode_refined(result: tuple[PairResult, bool]) -> dict[str, np.ndarray]:
-    pair, near = result
-    return {**PAIRS.encode(pair), "near": np.bool_(near)}
+    pair, converged = result
+    return {**PAIRS.encode(pair), "converged": np.bool_(converged)}
 
 
 def _decode_refined(a: dict[str, np.ndarray]) -> tuple[PairResult, bool]:
-    return PAIRS.decode(a), bool(a["near"])
+    return PAIRS.decode(a), bool(a["converged"])
 
 
 PYRAMIDS = Kind("pyramids", _encode_pyramid, _decode_pyramid)
 """A scan's refinement grids in the cache and the store (``cache.Kind``)."""
 REFINED = Kind("refined", _encode_refined, _decode_refined)
-"""A pair's re-registration from a synchronized guess, and whether it stayed near the guess (``refine_pair``), in
-the cache (``cache.Kind``)."""
+"""A pair's re-registration from a synchronized guess, and whether its ICP converged (``refine_pair``), in the cache
+(``cache.Kind``)."""
 
 
 def build_pyramid(points: np.ndarray, voxel: float) -> Pyramid:
@@ -198,16 +198,16 @@ def refine_pair(
     min_inliers: int,
     matches: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[PairResult, bool]:
-    """Multi-scale ICP from ``T_init``, and whether its finest level converged within ``MAX_MOVE_DEG`` /
-    ``MAX_MOVE_VOXELS`` of ``T_init``. Only then is the pair scored at the result (``score_pair``, on the pair's
-    earlier ``matches`` when given), and only a result that ``confirms`` the guess at ``min_inliers`` gets the
-    information of the finest level's alignment (the matching grid's when that level has too few close pairs):
-    one that enters no graph needs none. Otherwise the result has no inliers and no information."""
+    """Multi-scale ICP from ``T_init``, and whether its finest level converged. Only then is the pair scored at the
+    result (``score_pair``, on the pair's earlier ``matches`` when given), and only a result that ``confirms`` at
+    ``min_inliers`` gets the information of the finest level's alignment (the matching grid's when that level has
+    too few close pairs): one that enters no graph needs none. Otherwise the result has no inliers and no
+    information."""
     start = time.perf_counter()
     T, converged, coarser = multiscale_icp(pyramid_i, pyramid_j, T_init)
-    if not (converged and stays_near(T, T_init, voxel)):
-        # A move away from the guess is no evidence for the poses the guess came from, whatever its score:
-        # skipping the scoring saves the descriptor matching and the information (40 % of a pair on 3DMatch).
+    if not converged:
+        # ICP still moving is no registration, whatever its score: skipping the scoring saves the descriptor
+        # matching and the information (40 % of a pair on 3DMatch).
         return PairResult(T, 0, 0.0, 0.0, None, time.perf_counter() - start, matches=matches), False
     result, search = scored(target_i, source_j, T, voxel, icp_distance, matches)
     if confirms(result, True, min_inliers):
@@ -222,11 +222,13 @@ def refine_pair(
     return result, True
 
 
-def confirms(result: PairResult, near: bool, min_inliers: int) -> bool:
-    """A refined edge or a loop closure enters the graph when ICP converged near the guess (``near``, from
-    ``refine_pair``) with enough overlap and at least ``min_inliers`` descriptor matches agree with it (the bar a
-    global registration must pass)."""
-    return bool(near and result.inliers >= min_inliers and result.fitness >= MIN_FITNESS)
+def confirms(result: PairResult, converged: bool, min_inliers: int) -> bool:
+    """A refined edge or a loop closure enters the graph when its ICP converged (from ``refine_pair``) with enough
+    overlap and at least ``min_inliers`` descriptor matches agree with it: the bar a global registration must pass.
+    How far ICP moved from its guess does not matter: a re-registration that passes is evidence on the same terms
+    as a global registration, and synchronization weighs it against the rest. (A bound of 5° / 3 voxels on that
+    move refused the loop closures that would straighten a model bent by a few degrees.)"""
+    return bool(converged and result.inliers >= min_inliers and result.fitness >= MIN_FITNESS)
 
 
 def _refine_task(shared: tuple[Stored, Stored, float, float, int], task: tuple) -> tuple[PairResult, bool]:
@@ -250,8 +252,7 @@ def register_from_guesses(
 ) -> tuple[list[PairResult], np.ndarray]:
     """``refine_pair`` of every (i, j) row of ``ij`` from its guess ``T_ij`` (E, 4, 4), on the scans' stored
     ``features`` and ``pyramids``, over the executor's processes (``config.workers``, ``config.ray``), with each
-    pair's earlier descriptor ``matches`` where known (None: found anew): the results and whether each converged
-    near its guess.
+    pair's earlier descriptor ``matches`` where known (None: found anew): the results and whether each converged.
     ``on_result`` as in ``parallel_map`` (progress); ``cache``: results stored and reused (``cache.Cache``)."""
     matches = matches or [None] * len(ij)
     tasks = [(int(a), int(b), T, m) for (a, b), T, m in zip(ij, guesses, matches)]
