@@ -4,7 +4,7 @@ The cheap test is a shared occupancy grid: each placed scan marks the cells (of 
 points fall in, in the world frame; a pair's predicted overlap is the number of cells both mark over the
 smaller scan's count (one sparse product for all pairs). Pairs above ``MIN_OVERLAP`` are then registered by
 multi-scale ICP from the synchronized guess (``refine.register_from_guesses``) and enter the graph when the
-result confirms the guess (``refine.confirms``)."""
+result passes the bar of a registration (``refine.confirms``)."""
 
 from __future__ import annotations
 
