@@ -20,13 +20,10 @@ standard one:
    ``sync.disputes``). When those that agree on one move of it outweigh (``w⁰``) the kept registrations that hold
    it there, one or several, and moving the scans at their far ends instead would cost as much, the evidence
    against the join passes the same test as the evidence for it: the join is disputed and the group is a part of
-   its own, together with the scans outside it that its registrations hold more than the rest's do (``w⁰``):
-   those are placed by the group, so the dispute over its place is over theirs too, as an articulation point goes
-   with the block that holds it most. (Asking for two or more let a scan turned 180° stand verified on three light
-   look-alike registrations whose loops close, against the one right registration that outweighed them: a
-   generated 12-scan building.) So is a group that several dropped registrations place elsewhere where the free
-   space cannot tell the two placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever
-   the weights.
+   its own. (Asking for two or more let a scan turned 180° stand verified on three light look-alike registrations
+   whose loops close, against the one right registration that outweighed them: a generated 12-scan building.) So
+   is a group that several dropped registrations place elsewhere where the free space cannot tell the two
+   placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever the weights.
 4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
    that puts one scan's surfaces where another saw empty space is contradicted
    (``registration.visibility.placement_conflicts``). Within a part, such conflicts say a registration on the
@@ -352,9 +349,7 @@ def verify(
     consistent = consistent_edges(kept_graph, poses)
     passed = consistent.copy()
     alike = [Dispute(g, _distance(poses, g, move), ALIKE) for g, move in look_alike]
-    disputes = [
-        replace(d, group=_with_held(d.group, graph, kept)) for d in alike + _disputed(graph, kept, placed, poses)
-    ]
+    disputes = alike + _disputed(graph, kept, placed, poses)
     contested = np.any([d.group for d in disputes], axis=0) if disputes else np.zeros(n, dtype=bool)
     disputed = np.zeros(graph.num_edges, dtype=bool)
     for d in disputes:
@@ -557,17 +552,6 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
     return [
         d for d in disputed if not any(o.group.sum() > d.group.sum() and np.all(o.group[d.group]) for o in disputed)
     ]
-
-
-def _with_held(group: np.ndarray, graph: PoseGraph, kept: np.ndarray) -> np.ndarray:
-    """``group`` and the scans outside it whose ``kept`` registrations into it weigh more (``w⁰``) than those to the
-    other scans outside it."""
-    i, j, w = graph.i, graph.j, graph.weight
-    into, rest = np.zeros(graph.n), np.zeros(graph.n)
-    for a, b in ((i, j), (j, i)):
-        np.add.at(into, a[kept & ~group[a] & group[b]], w[kept & ~group[a] & group[b]])
-        np.add.at(rest, a[kept & ~group[a] & ~group[b]], w[kept & ~group[a] & ~group[b]])
-    return group | (into > rest)
 
 
 def _distance(poses: np.ndarray, group: np.ndarray, move: np.ndarray) -> list[float]:
