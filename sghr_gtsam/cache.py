@@ -107,7 +107,7 @@ def pyramid_key(scan: str) -> str | None:
 
 def pair_key(a: str, b: str, config: Config) -> str | None:
     """A pair's global registration, from its scans' keys (None when one is not known: not cached)."""
-    return _key("pair", a, b, config.matcher, config.icp_distance, config.seed) if a and b else None
+    return _key("pair", a, b, config.matcher, config.icp_distance, config.seed, config.inlier_bar) if a and b else None
 
 
 def refined_key(a: str, b: str, guess: np.ndarray, icp_distance: float, min_inliers: int) -> str | None:

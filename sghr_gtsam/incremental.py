@@ -207,7 +207,13 @@ class Session:
         for s in np.argsort(-scores, kind="stable")[: cfg.k]:
             i = scanned[s]
             pair = register_pair(
-                self.features[i], f, self.voxel, matcher=cfg.matcher, icp_distance=cfg.icp_distance, seed=cfg.seed
+                self.features[i],
+                f,
+                self.voxel,
+                matcher=cfg.matcher,
+                icp_distance=cfg.icp_distance,
+                seed=cfg.seed,
+                min_inliers=cfg.inlier_bar,
             )
             if pair.inliers >= cfg.inlier_bar and cfg.refine:
                 # The batch's refinement, from the registration itself: the session has no synchronized

@@ -16,7 +16,13 @@ def _register(shared: tuple[Stored, float, Config], pair: tuple[int, int]) -> Pa
     features, voxel, config = shared
     a, b = pair
     return register_pair(
-        features[a], features[b], voxel, matcher=config.matcher, icp_distance=config.icp_distance, seed=config.seed
+        features[a],
+        features[b],
+        voxel,
+        matcher=config.matcher,
+        icp_distance=config.icp_distance,
+        seed=config.seed,
+        min_inliers=config.inlier_bar,
     )
 
 

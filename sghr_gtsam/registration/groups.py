@@ -95,4 +95,6 @@ def register_group(
     source = merged(features, poses, group, voxel, config)
     if target is None or source is None:
         return None
-    return register_pair(target, source, GRID * voxel, config.matcher, config.icp_distance, config.seed)
+    return register_pair(
+        target, source, GRID * voxel, config.matcher, config.icp_distance, config.seed, config.inlier_bar
+    )
