@@ -113,12 +113,15 @@ class _Stages:
         """The graph of ``edges`` for synchronization, the contradicted ones (``config.free_space``) at weight 0."""
         if self.config.free_space:
             with self.timer.stage("free_space"):
-                new = edges.check_free_space(self.features, self.voxel, self.centres, self.views)
+                new = edges.check_free_space(
+                    self.features, self.voxel, self.centres, self.config.inlier_bar, self.views
+                )
             if new:  # said again only when new registrations were checked (overrule rounds add none)
+                registered = sum(p.inliers >= self.config.inlier_bar for p in edges.pairs)
                 checked = int(np.isfinite(edges.conflict).sum())
                 self.log(
-                    f"free space: {int(edges.contradicted().sum())} of {len(edges.pairs)} registrations "
-                    f"contradicted ({len(edges.pairs) - checked} not checkable: scans not seen from their "
+                    f"free space: {int(edges.contradicted().sum())} of {registered} registrations "
+                    f"contradicted ({registered - checked} not checkable: scans not seen from their "
                     f"origins{'' if self.views is None else ' nor vouched for'})"
                 )
         graph = edges.pose_graph(len(self.features), self.scores, self.config.inlier_bar, self.config.initial_weight)

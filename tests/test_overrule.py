@@ -249,15 +249,15 @@ def test_a_look_alike_registration_between_vouched_fragments_is_contradicted(kit
     edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in graph.T], "top-k")
     edges.add(np.c_[graph.i, graph.j], [PairResult(T, 100, 0.5, 0.01, None, 0.0) for T in look_alike], "retry")
     features = [SimpleNamespace(points=P) for P in grids]
-    edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views)
+    edges.check_free_space(features, views.voxel, np.zeros((n, 3)), 15, views)
     assert np.isnan(edges.conflict).all()  # not vouched for yet: nothing judged
     assert views.vouch(graph, result) and len(views.images) == n
-    assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views) == 2 * len(graph.i)
+    assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), 15, views) == 2 * len(graph.i)
     right, wrong = edges.conflict[: len(graph.i)], edges.conflict[len(graph.i) :]
     assert not np.any(right > CONFLICT), np.round(right, 2)
     judged = np.isfinite(wrong)
     assert judged.sum() >= 30 and np.all(wrong[judged] > CONFLICT), np.round(wrong, 2)
-    assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), views) == 0  # each judged once
+    assert edges.check_free_space(features, views.voxel, np.zeros((n, 3)), 15, views) == 0  # each judged once
 
 
 def test_scans_are_vouched_for_only_where_enough_loops_check_their_frames(kitchen):

@@ -126,7 +126,8 @@ def test_parts_are_blamed_each_on_its_own(n, seed, k):
 
 
 def test_contradicted_edges_weigh_nothing(room):
-    """A wrong registration with many inliers enters the pose graph at weight 0 and is named contradicted."""
+    """A wrong registration with many inliers enters the pose graph at weight 0 and is named contradicted; the same
+    wrong transform with fewer inliers than the bar failed already and is not judged."""
     grids = [_grid(P, room.voxel) for P in room.scans]
 
     class Grids(list):
@@ -138,17 +139,18 @@ def test_contradicted_edges_weigh_nothing(room):
     right = inv_T(room.poses[0]) @ room.poses[1]
     edges = EdgeSet()
     edges.add(
-        np.array([[0, 1], [0, 2]]),
+        np.array([[0, 1], [0, 2], [0, 2]]),
         [
             PairResult(right, 200, 0.5, 0.01, None, 0.0),
             PairResult(inv_T(room.poses[0]) @ room.poses[2] @ wrong, 200, 0.5, 0.01, None, 0.0),
+            PairResult(inv_T(room.poses[0]) @ room.poses[2] @ wrong, 14, 0.5, 0.01, None, 0.0),
         ],
         "top-k",
     )
-    edges.check_free_space(Grids(grids), room.voxel, np.zeros((6, 3)))
-    assert edges.contradicted().tolist() == [False, True]
+    assert edges.check_free_space(Grids(grids), room.voxel, np.zeros((6, 3)), 15) == 2
+    assert edges.contradicted().tolist() == [False, True, False] and np.isnan(edges.conflict[2])
     graph = edges.pose_graph(6, np.full((6, 6), 0.5), 15, "s*r")
-    assert graph.weight[0] > 0 and graph.weight[1] == 0
+    assert graph.weight[0] > 0 and graph.weight[1] == 0 and graph.weight[2] == 0
 
 
 def test_real_fragments_are_not_checked(data_dir):

@@ -104,22 +104,24 @@ class EdgeSet:
             self.origin[e] = origin
 
     def check_free_space(
-        self, features: Stored, voxel: float, centres: np.ndarray, views: Viewpoints | None = None
+        self, features: Stored, voxel: float, centres: np.ndarray, min_inliers: int, views: Viewpoints | None = None
     ) -> int:
-        """``conflict`` of the edges added or replaced since the last check (``visibility.conflicts``), and, once
-        ``views`` vouches for the scene's frames (``overrule.Viewpoints.vouch``), of those it leaves unjudged the
-        coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
+        """``conflict`` of the registrations (at least ``min_inliers`` inliers: a failed one is no measurement, and
+        its verdict would change nothing) added or replaced since the last check (``visibility.conflicts``), and,
+        once ``views`` vouches for the scene's frames (``overrule.Viewpoints.vouch``), of those it leaves unjudged
+        the coarse ``Viewpoints.fraction``; returns how many edges were judged anew. Fused RGB-D fragments are
         not seen from one origin (``visibility``), so only the coarse check judges them: in a scene of repeated
         desks, the look-alike registrations, 57 of its 127 wrong ones, none of its 256 right ones
         (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
-        todo = np.flatnonzero(~self._checked)
+        registered = np.array([p.inliers >= min_inliers for p in self.pairs], dtype=bool)
+        todo = np.flatnonzero(~self._checked & registered)
         if len(todo):
             T = np.stack([self.pairs[e].T for e in todo])
             self.conflict[todo] = conflicts(features, self.ij[todo], T, voxel, centres)
             self._checked[todo], self._coarse[todo] = True, False
         if views is None or not views.vouched:
             return len(todo)
-        coarse = np.flatnonzero(~self._coarse & np.isnan(self.conflict))
+        coarse = np.flatnonzero(registered & ~self._coarse & np.isnan(self.conflict))
         for e in coarse:
             self.conflict[e] = views.fraction(int(self.ij[e, 0]), int(self.ij[e, 1]), self.pairs[e].T)
         self._coarse[coarse] = True
