@@ -37,9 +37,10 @@ EDGE_STATUS = {
 
 
 def _information(pairs: list[PairResult]) -> np.ndarray | None:
-    """(E, 6, 6) the pairs' information; None when none has any. A pair without (fewer than 3 matches, or under
-    ``information.MIN_PAIRS`` close points: a failed registration) gets ``FREE_FLOOR`` of the weakest measured
-    information on each axis: positive definite, as synchronization and the g2o files ask, and too weak to pull.
+    """(E, 6, 6) the pairs' information; None when none has any. A pair without (under the inlier bar, fewer than 3
+    matches, or under ``information.MIN_PAIRS`` close points: a failed registration) gets ``FREE_FLOOR`` of the
+    weakest measured information on each axis: positive definite, as synchronization and the g2o files ask, and too
+    weak to pull.
     A single such pair (a featureless scan) used to take the information of every edge, calibrated covariances
     and g2o included."""
     measured = [p.information for p in pairs if p.information is not None]

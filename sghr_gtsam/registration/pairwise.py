@@ -57,7 +57,8 @@ class PairResult:
     gtsam's tangent order [rotation, translation] for ``T_ij @ exp(xi)``, point-to-plane over the close
     pairs of the grid ``T`` was aligned on (those pairs here; the finest pyramid level for a refined edge or
     a loop closure) with the point noise estimated from their residuals
-    (``information.registration_information``); None with too few pairs. ``seconds``: wall time.
+    (``information.registration_information``); None with too few pairs, or for a registration under the inlier bar
+    (``register_pair``'s ``min_inliers``, ``refine.refine_pair``). ``seconds``: wall time.
     ``coverage``: cells of ``COVERAGE_CELL`` voxels
     (a grid in scan i's frame) that hold at least one of the ``inliers``: how spread the agreement is.
     ``matches``: the mutual descriptor matches (a, b) it was scored on; they depend on the two scans only, so
@@ -182,7 +183,8 @@ def register_pair(
     matches agree with is no registration, and is scored as it is: GICP polishes a registration within the ICP
     distance, it does not find one. The robust estimators maximise the matches that agree (within the same
     ``INLIER_DISTANCE``), so a transform GICP reaches from there rarely gains enough to pass a bar its start
-    missed (``benchmarks/bench_pairwise.py``), and a pair that fails it has no weight in the pose graph."""
+    missed (``benchmarks/bench_learned_descriptor.py calibrate``), and a pair that fails it has no weight in the
+    pose graph. Only a result that passes gets an ``information``."""
     if matcher not in MATCHERS:
         raise InputError(f"unknown matcher {matcher!r}; choose one of: {', '.join(MATCHERS)}")
     start = time.perf_counter()
@@ -212,7 +214,9 @@ def register_pair(
             translation_epsilon=GICP_TRANSLATION_EPS * voxel,
         ).T_target_source
 
-    result = score_pair(target_i, source_j, T, voxel, icp_distance, (a, b))
+    result, search = scored(target_i, source_j, T, voxel, icp_distance, (a, b))
+    if result.inliers >= min_inliers:  # one that enters no graph needs no information
+        result = informed(target_i, source_j, result, search, voxel, icp_distance)
     result.seconds = time.perf_counter() - start
     return result
 
