@@ -92,17 +92,15 @@ def unseen_rooms():
 @pytest.mark.parametrize("descriptor", list(MIN_INLIERS))
 def test_inlier_bar_drops_few_right_registrations_of_rooms_it_was_not_calibrated_on(unseen_rooms, descriptor):
     """``MIN_INLIERS`` (``calibrate``: 5 % of right registrations dropped on held-out rooms) holds on other rooms,
-    and still admits fewer than half the wrong registrations. Skipping GICP where the robust estimate misses the bar
-    (``register_pair``'s ``min_inliers``) loses at most 2 % of the right registrations more."""
+    and still admits fewer than half the wrong registrations."""
     registrations = [r for scene, f in unseen_rooms for r in room_registrations(scene, f[descriptor], apart=8)]
-    ok, inliers, at_estimate = (np.array(column) for column in zip(*registrations))
+    ok, inliers, _ = (np.array(column) for column in zip(*registrations))
     admitted = inliers >= MIN_INLIERS[descriptor]
     assert ok.sum() >= 80 and (~ok).sum() >= 40, (ok.sum(), (~ok).sum())
     assert np.mean(~admitted[ok]) <= 2 * DROPPED_RIGHT and np.mean(admitted[~ok]) < 0.5, (
         np.mean(~admitted[ok]),
         np.mean(admitted[~ok]),
     )
-    assert np.sum(ok & admitted & (at_estimate < MIN_INLIERS[descriptor])) <= 0.02 * ok.sum()
 
 
 @settings(max_examples=50, deadline=None)
