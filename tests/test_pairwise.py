@@ -69,6 +69,16 @@ def test_information_is_the_calibrated_point_to_plane_one(boxes):
     assert np.all(np.linalg.eigvalsh(result.information) > 0)
 
 
+def test_a_registration_under_the_bar_is_the_same_but_gets_no_information(boxes):
+    """``min_inliers`` decides the information only: the transform and its score do not depend on it."""
+    _, voxel, fi, fj = boxes
+    free, barred = register_pair(fi, fj, voxel), register_pair(fi, fj, voxel, min_inliers=10**6)
+    np.testing.assert_array_equal(barred.T, free.T)
+    assert (barred.inliers, barred.fitness) == (free.inliers, free.fitness)
+    assert free.information is not None and barred.information is None
+    assert register_pair(fi, fj, voxel, min_inliers=free.inliers).information is not None
+
+
 def test_unrelated_scans_give_few_inliers(boxes):
     # sc2 maximises agreement, so between unrelated box scenes it lines up one box with another: a
     # tenth of the right pair's inliers, but crowded in a few cells.
