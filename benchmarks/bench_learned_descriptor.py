@@ -285,7 +285,7 @@ def calibrate(weights: Path | None, scenes: int) -> None:
     from sghr_gtsam.config import MIN_INLIERS
 
     net = load_patch_net(weights)
-    rooms: dict[str, list[list[tuple[bool, int, int]]]] = {"fpfh": [], "learned": []}
+    rooms: dict[str, list[list[tuple[bool, int, int | None]]]] = {"fpfh": [], "learned": []}
     for index in range(HOLD_OUT - 1, HOLD_OUT * scenes, HOLD_OUT):  # every tenth: rooms ``train`` never sees
         scene, _ = _room(index)
         fpfh = [compute_features(P, scene.voxel) for P in scene.scans]

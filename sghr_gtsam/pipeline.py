@@ -117,7 +117,7 @@ class _Stages:
                     self.features, self.voxel, self.centres, self.config.inlier_bar, self.views
                 )
             if new:  # said again only when new registrations were checked (overrule rounds add none)
-                registered = sum(p.inliers >= self.config.inlier_bar for p in edges.pairs)
+                registered = int(edges.registered(self.config.inlier_bar).sum())
                 checked = int(np.isfinite(edges.conflict).sum())
                 self.log(
                     f"free space: {int(edges.contradicted().sum())} of {registered} registrations "

@@ -114,7 +114,7 @@ class EdgeSet:
         not seen from one origin (``visibility``), so only the coarse check judges them: in a scene of repeated
         desks, the look-alike registrations, 57 of its 127 wrong ones, none of its 256 right ones
         (the journal at 18b90a6: git show 18b90a6:docs/BENCHMARKS.md)."""
-        registered = np.array([p.inliers >= min_inliers for p in self.pairs], dtype=bool)
+        registered = self.registered(min_inliers)
         todo = np.flatnonzero(~self._checked & registered)
         if len(todo):
             T = np.stack([self.pairs[e].T for e in todo])
@@ -133,6 +133,10 @@ class EdgeSet:
         (``visibility.contradicted``)."""
         return contradicted(self.conflict)
 
+    def registered(self, min_inliers: int) -> np.ndarray:
+        """(E,) bool: the pairs whose registration has at least ``min_inliers`` inliers (the others failed)."""
+        return np.array([p.inliers >= min_inliers for p in self.pairs], dtype=bool)
+
     def contains(self, n: int) -> np.ndarray:
         """(n, n) bool: the pairs already registered, either way round."""
         has = np.zeros((n, n), dtype=bool)
@@ -146,7 +150,7 @@ class EdgeSet:
         i, j = self.ij[:, 0].copy(), self.ij[:, 1].copy()
         s = scores[i, j]
         r = np.array([p.inliers for p in self.pairs], dtype=float)
-        r[(r < min_inliers) | self.contradicted() | self.overruled] = 0.0
+        r[~self.registered(min_inliers) | self.contradicted() | self.overruled] = 0.0
         return PoseGraph(
             n=n,
             i=i,
