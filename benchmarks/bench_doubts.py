@@ -1,6 +1,6 @@
 """Doubts on generated scenes: do a run's doubts catch its misplaced scans, and how many right ones do they mark?
 
-    python benchmarks/bench_doubts.py [--kinds room building hotel] [--seeds 0 1 2] [--workers 2]
+    python benchmarks/bench_doubts.py [--kinds room building hotel] [--seeds 0 1 2] [--workers 2] [--set KEY=VALUE]
 
 Each scene is ``synthetic.make_scene(kind, scans, seed)`` (rooms of 10 scans; buildings of 12, 20 and 30; hotels,
 whose rooms are all alike, of 16 and 30), registered by ``pipeline.register`` with the default ``Config``
@@ -11,6 +11,10 @@ outside the largest rigid piece of all placed scans (where a scan alone in its p
 join, can be off). Per scene: parts, misplaced, off the whole model, doubted, and how the doubts split; a row per
 kind sums its scenes, and the notes give per kind the doubts' precision (doubted scans that are off, either way, of
 the doubted) and recall (scans off doubted, of them), and the share of scans doubted in scenes where none is off.
+
+``--set`` overrides a ``Config`` field in every run (such a run is printed, not saved): a change well below any
+registration's noise (``icp_distance=1.5015``, as in ``bench_stability.py``) shows how far these scenes' answers move
+by chance.
 """
 
 from __future__ import annotations
@@ -23,6 +27,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_3dmatch import parse_overrides  # noqa: E402
 
 from benchmarks._results import save  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
@@ -44,12 +51,12 @@ COLUMNS = [
 ]
 
 
-def scene_row(kind: str, scans: int, seed: int, workers: int) -> dict:
+def scene_row(kind: str, scans: int, seed: int, workers: int, overrides: dict | None = None) -> dict:
     """One generated scene run and scored (module doc)."""
     scene = make_scene(kind, scans, seed)
     result = register(
         [Scan(n, np.asarray(P)) for n, P in zip(scene.names, scene.scans)],
-        Config(record=False, workers=workers),
+        Config(**{**(overrides or {}), "record": False, "workers": workers}),
         log=lambda m: None,
     )
     names, poses = result.names, result.poses
@@ -112,12 +119,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-save", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="override a Config field")
     args = ap.parse_args(argv)
+    overrides = parse_overrides(args.set, Config)
     rows = []
     for kind in args.kinds:
         for scans in SCANS[kind]:
             for seed in args.seeds:
-                r = scene_row(kind, scans, seed, args.workers)
+                r = scene_row(kind, scans, seed, args.workers, overrides)
                 rows.append(r)
                 print(f"{r['scene']}: parts {r['parts']}, off {_labels(r['off'])}, doubted {_labels(r['doubted'])}")
     table = [
@@ -144,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     for row in table:
         print("| " + " | ".join(str(x) for x in row) + " |")
     print(summary)
-    if not args.no_save:
+    if not args.no_save and not overrides:
         save(
             "doubts_generated",
             table,
