@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.spatial.distance import pdist, squareform
 from scipy.spatial.transform import Rotation
 
 from sghr_gtsam.features.local import compute_features, default_voxel
-from sghr_gtsam.registration.estimators import _first_stage, sc2_estimate
+from sghr_gtsam.registration.estimators import _compatibility, _first_stage, _pick_seeds, sc2_estimate
 from sghr_gtsam.registration.information import registration_information
 from sghr_gtsam.registration.pairwise import mutual_matches, register_pair, score_pair
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors, transform_points
@@ -157,6 +158,36 @@ def test_sc2_first_stage_ranks_each_seed_by_its_definition(seed, n, density, k1)
         both = C[np.ix_(nbr, nbr)].sum(axis=1)
         ranked = nbr[sorted(range(len(nbr)), key=lambda m: (-both[m], m))][:k1]
         np.testing.assert_array_equal(picked, np.concatenate([ranked, np.full(k1 - len(ranked), s)]))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(2, 300), spread=st.floats(1.0, 50.0))
+def test_sc2_compatibility_tests_each_pair_by_its_distances(seed, n, spread):
+    """The banded matrix is, to the bit, each pair's test on pdist's distances, mirrored, with a unit diagonal."""
+    rng = np.random.default_rng(seed)
+    a, b = rng.uniform(0, spread, (n, 3)), rng.uniform(0, spread, (n, 3))
+    C = squareform((np.abs(pdist(a) - pdist(b)) < 2.0).astype(np.float32))
+    np.fill_diagonal(C, 1.0)
+    np.testing.assert_array_equal(_compatibility(a, b, 2.0), C)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 400), spread=st.floats(1.0, 30.0), count=st.integers(1, 120))
+def test_sc2_seeds_are_the_greedy_suppression(seed, n, spread, count):
+    """The blocked non-maximum suppression picks what the greedy pass over all correspondences picks: by
+    decreasing score (ties by index), each one unless an earlier seed lies within the radius."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(0, spread, (n, 3))
+    score = rng.integers(0, 5, n).astype(np.float32)  # ties
+    seeds: list[int] = []
+    taken = np.zeros(n, dtype=bool)
+    for k in np.argsort(-score, kind="stable"):
+        if not taken[k]:
+            seeds.append(int(k))
+            if len(seeds) == count:
+                break
+            taken |= np.sum((p - p[k]) ** 2, axis=1) < 2.0**2
+    np.testing.assert_array_equal(_pick_seeds(score, p, 2.0, count), seeds)
 
 
 def test_sc2_with_too_few_correspondences_is_the_identity():
