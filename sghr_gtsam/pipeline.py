@@ -10,6 +10,7 @@ from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,7 +26,6 @@ from sghr_gtsam.io.atomic import staged_folder
 from sghr_gtsam.io.results import CACHE, check_output_folder, write_results
 from sghr_gtsam.merged import merged_cloud
 from sghr_gtsam.progress import QUIET, Progress
-from sghr_gtsam.recording import Recorder
 from sghr_gtsam.registration import WORKER_MODULES
 from sghr_gtsam.registration.batch import register_edges
 from sghr_gtsam.registration.densify import DensifyReport, close_loops, refine_edges, register_weak_groups, retry_weak
@@ -41,6 +41,9 @@ from sghr_gtsam.store import Attribute, Store, Stored
 from sghr_gtsam.sync import synchronize, unverified
 from sghr_gtsam.types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
 from sghr_gtsam.verify import Verdict, Verification, verify
+
+if TYPE_CHECKING:
+    from sghr_gtsam.recording import Recorder  # rerun is imported only for a run that records (~0.5 s)
 
 
 class _Timer:
@@ -603,6 +606,8 @@ def run(
         try:
             recorder = None
             if config.record:
+                from sghr_gtsam.recording import Recorder
+
                 name = f"{Path(scene_dir).resolve().name} → {out.resolve().name}"  # two runs side by side told apart
                 recorder = Recorder(stage / "recording.rrd", min_weight=config.min_weight, name=name)
                 recorder.end_stage("load", timer.seconds["load"])

@@ -56,6 +56,23 @@ def test_default_overlap_scoring_runs_without_torch():
     assert seen == ["True", "False", "True"]
 
 
+def test_a_run_without_recording_imports_neither_rerun_nor_scipy_stats():
+    """rerun is for a run that records, scipy.stats for nothing a run does; together ~0.6 s of every run's start."""
+    seen = _python(
+        "import sys, tempfile\n"
+        "import numpy as np\n"
+        "import sghr_gtsam as sg\n"
+        "from sghr_gtsam.synthetic import make_scene, write_scene\n"
+        "folder = tempfile.mkdtemp()\n"
+        "write_scene(make_scene('room', 4, 0), folder + '/scans')\n"
+        "sg.run(folder + '/scans', folder + '/out', sg.Config(record=False, workers=1))\n"
+        "print('rerun' in sys.modules, 'scipy.stats' in sys.modules)\n"
+        "sg.run(folder + '/scans', folder + '/out2', sg.Config(workers=1))\n"
+        "print('rerun' in sys.modules)\n"
+    )
+    assert seen == ["False", "False", "True"]
+
+
 def test_every_benchmark_script_imports():
     """A benchmark whose imports fall behind the package fails here, not when its numbers are next needed
     (bench_overlap.py imported a class renamed months before anyone ran it again)."""
