@@ -116,7 +116,7 @@ def real(names: list[str], data: Path) -> list[list]:
         sigma = "-"
         if batch.covariances is not None and np.isfinite(batch.covariances[worst]).all():
             C = batch.covariances[worst]
-            sigma = f"{np.degrees(np.sqrt(np.trace(C[:3, :3]))):.2f} / {1e3 * np.sqrt(np.trace(C[3:, 3:])):.0f}"
+            sigma = f"{np.degrees(np.sqrt(np.trace(C[:3, :3]))):.2f} / {1e3 * np.sqrt(np.trace(C[3:, 3:])):.1f}"
         rows.append(
             [
                 scene,
