@@ -1,13 +1,13 @@
 """What the Rerun recording costs: the recorder calls of one run, replayed into this Recorder and a former one.
 
-    python benchmarks/bench_recording.py SCENE_DIR [--baseline COMMIT] [--repeat 3]
+    python benchmarks/bench_recording.py SCENE_DIR [SCENE_DIR ...] [--baseline COMMIT] [--repeat 3]
 
-The scene runs once through ``pipeline.register`` (``workers=1``) with a stand-in recorder that keeps every
+Each scene runs once through ``pipeline.register`` (``workers=1``) with a stand-in recorder that keeps every
 call and its arguments; the calls are then replayed into ``sghr_gtsam.recording.Recorder`` and, with
 ``--baseline``, into the ``Recorder`` of that commit (calls it does not have are skipped; ``log_final``'s
 flags are passed as it takes them), each in a fresh process. Reported: process CPU (every thread, rerun's
 encoder included) and wall time from the Recorder's creation to its ``close``, medians over ``--repeat``
-replays, and the .rrd size.
+replays, and the .rrd size; a row a scene, written for the benchmarks page.
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks._results import save  # noqa: E402
 
 
 class _Trace:
@@ -42,7 +44,7 @@ class _Trace:
         return call
 
 
-def _capture(scene: str, path: Path) -> int:
+def _capture(scene: str, path: Path) -> tuple[int, list[int]]:
     from sghr_gtsam.config import Config
     from sghr_gtsam.pipeline import load_scene, register
 
@@ -51,7 +53,8 @@ def _capture(scene: str, path: Path) -> int:
     trace = _Trace()
     register(scans, config, recorder=trace, log=lambda m: None, skipped=skipped)
     path.write_bytes(pickle.dumps(trace.calls))
-    return len(scans)
+    edges = [args[0].num_edges for name, args in trace.calls if name == "log_graph"]
+    return len(scans), list(dict.fromkeys(edges))  # each graph size once, in the order synchronized
 
 
 def _replay(module_dir: str, trace: str, out: str) -> None:
@@ -104,50 +107,87 @@ def _module_dir(commit: str | None, tmp: Path) -> str:
     return str(folder)
 
 
+COLUMNS = [
+    "scene",
+    "scans",
+    "edges",
+    "records",
+    "CPU new",
+    "CPU before",
+    "wall new",
+    "wall before",
+    ".rrd new",
+    ".rrd before",
+]
+
+
+def _replays(scene: str, folder: str, tmp: Path, repeat: int) -> dict:
+    """Medians of ``repeat`` replays of the captured trace into the Recorder in ``folder``, each in a fresh process."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1"}
+    runs = [
+        json.loads(
+            subprocess.run(
+                [sys.executable, __file__, scene, "--replay", folder, str(tmp / "trace.pkl"), str(tmp / "r.rrd")],
+                env=env,
+                check=True,
+                capture_output=True,
+                text=True,
+            ).stdout.splitlines()[-1]
+        )
+        for _ in range(repeat)
+    ]
+    return {
+        "cpu": statistics.median(r["cpu"] for r in runs),
+        "wall": statistics.median(r["wall"] for r in runs),
+        "records": runs[0]["records"],
+        "mb": runs[0]["mb"],
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("scene")
+    parser.add_argument("scenes", nargs="+")
     parser.add_argument("--baseline", help="commit whose Recorder to compare with")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--replay", nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.replay:
         return _replay(*args.replay)
-    with tempfile.TemporaryDirectory() as tmp_name:
-        tmp = Path(tmp_name)
-        t0 = time.perf_counter()
-        n = _capture(args.scene, tmp / "trace.pkl")
-        print(f"{args.scene}: {n} scans, run {time.perf_counter() - t0:.1f} s")
-        env = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1"}
-        targets = [("this tree", None)] + ([(f"baseline {args.baseline}", args.baseline)] if args.baseline else [])
-        for label, commit in targets:
-            folder = _module_dir(commit, tmp)
-            runs = [
-                json.loads(
-                    subprocess.run(
-                        [
-                            sys.executable,
-                            __file__,
-                            args.scene,
-                            "--replay",
-                            folder,
-                            str(tmp / "trace.pkl"),
-                            str(tmp / "r.rrd"),
-                        ],
-                        env=env,
-                        check=True,
-                        capture_output=True,
-                        text=True,
-                    ).stdout.splitlines()[-1]
-                )
-                for _ in range(args.repeat)
+    rows, shares = [], []
+    for scene in args.scenes:
+        with tempfile.TemporaryDirectory() as tmp_name:
+            tmp = Path(tmp_name)
+            t0 = time.perf_counter()
+            n, edges = _capture(scene, tmp / "trace.pkl")
+            run = time.perf_counter() - t0
+            print(f"{scene}: {n} scans, run {run:.1f} s")
+            new = _replays(scene, _module_dir(None, tmp), tmp, args.repeat)
+            old = _replays(scene, _module_dir(args.baseline, tmp), tmp, args.repeat) if args.baseline else None
+        shares.append(new["wall"] / run)
+        per_record = f"{new['cpu']:.2f} s ({1000 * new['cpu'] / new['records']:.1f} ms a record)"
+        rows.append(
+            [
+                Path(scene).name,
+                n,
+                ", then ".join(map(str, edges)),
+                new["records"],
+                per_record,
+                "-" if old is None else f"{old['cpu']:.2f} s ({1000 * old['cpu'] / old['records']:.1f} ms)",
+                f"{new['wall']:.2f} s",
+                "-" if old is None else f"{old['wall']:.2f} s",
+                f"{new['mb']:.1f} MB",
+                "-" if old is None else f"{old['mb']:.1f} MB",
             ]
-            cpu = statistics.median(r["cpu"] for r in runs)
-            wall = statistics.median(r["wall"] for r in runs)
-            print(
-                f"{label}: {runs[0]['records']} records, CPU {cpu:.2f} s ({1000 * cpu / runs[0]['records']:.1f} ms "
-                f"a record), wall {wall:.2f} s, {runs[0]['mb']:.1f} MB"
-            )
+        )
+        print(" | ".join(map(str, rows[-1])), flush=True)
+    save(
+        "recording",
+        rows,
+        COLUMNS,
+        notes=f"The recorder's wall time is {100 * max(shares):.1f} % of the run or less (the run: one process).",
+        section="Scale and speed",
+        title="What the Rerun recording costs",
+    )
 
 
 if __name__ == "__main__":
