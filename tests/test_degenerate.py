@@ -74,9 +74,10 @@ def test_free_directions_of_planes_cylinders_corridors_and_a_corner(kind, free):
 def test_a_corridor_is_free_along_its_axis_and_fixed_across_it():
     """Placed anywhere, a corridor pair's information lets the scan's points spread along one direction, a slide
     along the corridor, 100× more than along any other, and pins every other direction to a tenth of a voxel.
-    Whether the slide is free is a significance test on the residuals' rise (``information.FREE_QUANTILE``), which
-    the voxel grid's aliasing of a turned corridor sometimes passes: 192 of the first 200 placements are found
-    free, so 60 fixed ones must give at least 95 % (eight random placements a run failed now and then, e.g. 977)."""
+    Whether the slide is free is a significance test on the residuals' rise (``information.FREE_QUANTILE``), and on
+    a turned corridor that rise sometimes reads as significant (the voxel grid's aliasing, likely; not examined):
+    192 of the first 200 placements are found free, so 60 fixed ones must give at least 95 % (eight random
+    placements a run failed now and then, e.g. 977)."""
     found = 0
     for seed in range(60):
         target, source, T = _scan_pair("corridor", seed)
