@@ -527,30 +527,41 @@ def _min_cut(graph: PoseGraph, edges: np.ndarray, k: int, targets: np.ndarray) -
 
 def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[Dispute]:
     """The scans, and linkage groups, held where dropped registrations that agree on another placement of
-    them outweigh what holds them (module doc, test 3). Of nested disputed groups, the largest
+    them outweigh what holds them (module doc, test 3). A dropped registration says that one of its two ends is
+    misplaced, not both: the groups are taken by the weight of the dropped registrations that agree on moving them
+    (then the least held first), and a registration that already moved a disputed group counts
+    no more against a group disjoint from it (a right scan whose one dropped registration reaches a wrong one is not
+    disputed by it). Of nested disputed groups, the largest
     only: the same dropped registrations move any of its subgroups as well, which says nothing of the registrations
     inside it."""
     i, j, w = graph.i, graph.j, graph.weight
     inside = (w > 0) & placed[i] & placed[j]
     tolerance = translation_tolerance(graph)
-    disputed: list[np.ndarray] = []
+    candidates = []  # (order, group, agreeing, held, move)
     singles = (np.arange(graph.n) == k for k in np.flatnonzero(placed))
     for group in chain(singles, linkage_groups(graph, kept, placed)):
         leaving = inside & (group[i] != group[j])
-        holding = leaving & kept
-        held = w[holding].sum()
+        held = w[leaving & kept].sum()
         dropped = elsewhere(graph, poses, group, np.flatnonzero(leaving & ~kept), tolerance)
         if w[dropped].sum() <= held:  # also when none is dropped: the weights are not negative
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
+        if w[agreeing].sum() > held:
+            candidates.append((len(candidates), group, agreeing, held, move))
+    disputed: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
+    for order, group, agreeing, held, move in sorted(candidates, key=lambda c: (-w[c[2]].sum(), c[3])):
+        spent = [a for _, g, a, _ in disputed if not (g & group).any()]
+        agreeing = np.setdiff1d(agreeing, np.concatenate(spent)) if spent else agreeing
         if w[agreeing].sum() <= held:
             continue
         accused = np.zeros(graph.n, dtype=bool)
         accused[np.where(group[i[agreeing]], j[agreeing], i[agreeing])] = True
         if w[inside & kept & (accused[i] != accused[j])].sum() >= held:  # else they accuse their far ends
-            disputed.append(Dispute(group, _distance(poses, group, move), OUTWEIGHED))
+            disputed.append((order, group, agreeing, move))
     return [
-        d for d in disputed if not any(o.group.sum() > d.group.sum() and np.all(o.group[d.group]) for o in disputed)
+        Dispute(g, _distance(poses, g, move), OUTWEIGHED)
+        for _, g, _, move in sorted(disputed, key=lambda d: d[0])
+        if not any(o.sum() > g.sum() and np.all(o[g]) for _, o, _, _ in disputed)
     ]
 
 
