@@ -373,6 +373,9 @@ def test_a_cluster_hung_on_one_wrong_edge_is_flagged_unverified():
 @FAST
 @given(seed=st.integers(0, 10**6), weak=st.integers(3, 8), heavier=st.floats(1.2, 20.0))
 @example(seed=1410, weak=3, heavier=2.0)  # a right partner left on one registration once the wrong scan is cut off
+@example(seed=5463, weak=6, heavier=2.0)  # a right partner whose one dropped registration reaches the wrong scan
+@example(seed=219699, weak=4, heavier=12.84515004772806)  # the same, the partner held less than the wrong scan
+@example(seed=64890, weak=4, heavier=20.0)  # a right partner with one other registration goes with the wrong scan
 def test_a_look_alike_placement_is_right_or_set_apart(seed, weak, heavier):
     """``weak`` light edges put a scan 90° off; two edges whose summed initial weight is ``heavier`` times theirs
     put it right. Whatever the polish chooses, the scan is right, or wrong and doubted or a part of its own: the
