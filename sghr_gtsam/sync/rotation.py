@@ -149,7 +149,7 @@ FILL_CHECK_SIZE = 2000
 """Matrices smaller than this are always factorized: their fill cannot cost much, and the estimate is skipped."""
 _CG_TOL = 1e-10
 _CG_ITERS = 5000
-_last_judged: list[tuple[int, int, bool]] = []  # (size, stored entries, too costly) of the last matrix judged
+_judged: dict[int, tuple[int, bool]] = {}  # size -> (stored entries, too costly) of the last matrix of that size judged
 
 
 def factor_spd(A: sp.spmatrix):
@@ -165,20 +165,25 @@ def factor_spd(A: sp.spmatrix):
 def _heavy(A: sp.csc_matrix) -> bool:
     """Whether a direct factorization of ``A`` costs more than ``FACTOR_FLOPS``. The estimate takes seconds on the
     largest graphs and IRLS factorizes one graph's Laplacian many times, its edges reweighted and some dropped: a
-    matrix of the same size with stored entries within ``_SAME_GRAPH`` of the last one judged gets its answer."""
+    matrix of the same size with stored entries within ``_SAME_GRAPH`` of the last one of that size judged gets its
+    answer. Remembered by size, as the rotations' and the scalar Laplacians (3N and N) alternate."""
     size, entries = A.shape[0], A.nnz
-    if _last_judged and _last_judged[0][0] == size and abs(entries - _last_judged[0][1]) <= _SAME_GRAPH * entries:
-        return _last_judged[0][2]
+    if size in _judged and abs(entries - _judged[size][0]) <= _SAME_GRAPH * entries:
+        return _judged[size][1]
     from sghr_gtsam.sync.fill import direct_cost
 
     upper = sp.triu(A, 1).tocoo()
     heavy = direct_cost(size, upper.row, upper.col, dof=1) > FACTOR_FLOPS
-    _last_judged[:] = [(size, entries, heavy)]
+    if len(_judged) >= _JUDGED_SIZES:
+        _judged.clear()
+    _judged[size] = (entries, heavy)
     return heavy
 
 
 _SAME_GRAPH = 0.1
 """``_heavy``: matrices of one size whose stored entries differ by at most this fraction are one graph's."""
+_JUDGED_SIZES = 8
+"""``_heavy`` remembers the matrices of at most this many sizes (one graph's parts)."""
 
 
 class _ConjugateGradients:
