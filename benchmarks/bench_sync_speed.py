@@ -146,10 +146,19 @@ def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str,
 
 
 def all_pairs(poses: np.ndarray, truth: np.ndarray) -> float:
-    """Share of all node pairs within 5° / 0.2 m of their true relative pose."""
-    a, b = np.triu_indices(len(truth), 1)
-    rot, trans = relative_errors(inv_T(poses[a]) @ poses[b], inv_T(truth[a]) @ truth[b])
-    return float(np.mean((rot <= 5.0) & (trans <= 0.2)))
+    """Share of all node pairs within 5° / 0.2 m of their true relative pose, a block of rows at a time (all pairs
+    at once held 8 GB at N = 5,000, and mapping it was most of the benchmark's process time)."""
+    n, within = len(truth), 0
+    for start in range(0, n, _PAIR_ROWS):
+        rows = np.arange(start, min(start + _PAIR_ROWS, n))
+        a = np.repeat(rows, n - 1 - rows)
+        b = np.concatenate([np.arange(r + 1, n) for r in rows])
+        rot, trans = relative_errors(inv_T(poses[a]) @ poses[b], inv_T(truth[a]) @ truth[b])
+        within += int(np.sum((rot <= 5.0) & (trans <= 0.2)))
+    return within / (n * (n - 1) / 2)
+
+
+_PAIR_ROWS = 250
 
 
 def main() -> None:
