@@ -21,7 +21,9 @@ standard one:
    it there, one or several, and moving the scans at their far ends instead would cost as much, the evidence
    against the join passes the same test as the evidence for it: the join is disputed and the group is a part of
    its own. (Asking for two or more let a scan turned 180° stand verified on three light look-alike registrations
-   whose loops close, against the one right registration that outweighed them: a generated 12-scan building.) So
+   whose loops close, against the one right registration that outweighed them: a generated 12-scan building.) A
+   dropped registration disputes one of its two ends, not both: one that moved a disputed group does not count
+   against another group apart from it (a right scan whose one dropped registration reaches a wrong one). So
    is a group that several dropped registrations place elsewhere where the free space cannot tell the two
    placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever the weights.
 4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
