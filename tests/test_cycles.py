@@ -12,6 +12,7 @@ from test_sync import FAST, max_errors, random_graph
 
 from sghr_gtsam.se3 import inv_T, make_T, relative_errors
 from sghr_gtsam.sync import synchronize
+from sghr_gtsam.sync.consensus import MARGIN
 from sghr_gtsam.sync.cycles import (
     credibility,
     cut_moves,
@@ -206,9 +207,10 @@ def _at(poses: np.ndarray, target: np.ndarray, anchor: int) -> np.ndarray:
 def test_a_group_held_by_several_wrong_edges_moves_across_the_cut_its_right_edges_outvote(seed, wrong):
     """The small cluster placed by the heavy wrong edges agrees with itself and with them: it is no block hung on
     one edge (``replace_groups`` leaves it) and no scan gains alone. Its right edges, more votes than the wrong
-    ones, agree on one correction, and the minimum cut between their ends is the wrong edges: it moves back. A scan
-    whose own wrong edges outvote its right ones may go either way."""
-    right = 2 * wrong + 2
+    ones by the margin a move needs (``consensus.MARGIN``) with one to spare (the noise may leave one out of their
+    family), agree on one correction, and the minimum cut between their ends is the wrong edges: it moves back. A
+    scan whose own wrong edges outvote its right ones may go either way."""
+    right = int(np.ceil(2 * (1 + MARGIN) * wrong)) + 1  # a wrong edge carries two votes, a right one one
     graph, truth, start = _held_group(seed, wrong, right)
     votes = credibility(graph)
     assert max_errors(replace_groups(graph, start, votes), truth)[0] > 80.0

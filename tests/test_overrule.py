@@ -160,7 +160,7 @@ def test_a_room_hung_on_one_edge_is_not_handed_to_a_heavier_wrong_registration(
     them cannot hang the room on that family instead; the right family stays."""
     truth, room, views = building.truth, building.room, building.views
     held = _moved(truth, room, sign * degrees, inward * building.towards)
-    assume(abs(sign * degrees - other_sign * other) > 20)
+    assume(abs((sign * degrees - other_sign * other + 180) % 360 - 180) > 20)  # turns about one axis: modulo 360°
     elsewhere = _moved(truth, room, other_sign * other, building.towards)
     graph, result, holding, (heavier, lighter, end) = _held_by_one_edge(held, [(elsewhere, 15.0), (truth, 10.0)], room)
     overruled = overruled_edges(views, graph, result)
