@@ -528,14 +528,13 @@ def _min_cut(graph: PoseGraph, edges: np.ndarray, k: int, targets: np.ndarray) -
 
 
 def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.ndarray) -> list[Dispute]:
-    """The scans, and linkage groups, held where dropped registrations that agree on another placement of
-    them outweigh what holds them (module doc, test 3). A dropped registration says that one of its two ends is
-    misplaced, not both: the groups are taken by the weight of the dropped registrations that agree on moving them
-    (then the least held first), and a registration that already moved a disputed group counts
+    """The scans, and linkage groups, held where dropped registrations that agree on another placement of them
+    outweigh what holds them (module doc, test 3), in the order they were found. A dropped registration says that
+    one of its two ends is misplaced, not both: the groups are taken by the weight of the dropped registrations that
+    agree on moving them (then the least held first), and a registration that already moved a disputed group counts
     no more against a group disjoint from it (a right scan whose one dropped registration reaches a wrong one is not
-    disputed by it). Of nested disputed groups, the largest
-    only: the same dropped registrations move any of its subgroups as well, which says nothing of the registrations
-    inside it."""
+    disputed by it). Of nested disputed groups, the largest only: the same dropped registrations move any of its
+    subgroups as well, which says nothing of the registrations inside it."""
     i, j, w = graph.i, graph.j, graph.weight
     inside = (w > 0) & placed[i] & placed[j]
     tolerance = translation_tolerance(graph)
