@@ -19,6 +19,7 @@ from sghr_gtsam.registration.refine import confirms, register_from_guesses, stay
 from sghr_gtsam.registration.retry import retry_pairs, weak_scans
 from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.store import Attribute, Stored
+from sghr_gtsam.sync.consensus import MIN_AGREEING
 from sghr_gtsam.types import PoseGraph, SyncResult
 
 
@@ -203,6 +204,7 @@ def register_weak_groups(
             cache,
             "group",
             "group closure",
+            MIN_AGREEING,
         )
         report.group_edges += closed
         added += closed
@@ -231,6 +233,7 @@ def _register_guessed(
     cache: Cache | None,
     origin: str,
     label: str,
+    min_entered: int = 1,
 ) -> tuple[int, int]:
     """Multi-scale ICP from ``poses`` of the ``placed`` pairs that overlap under them (``loops.propose_loops``; not
     those in ``skip``, (n, n) bool); those that pass (``refine.confirms``) enter with ``origin``, replacing the pair's
@@ -246,10 +249,13 @@ def _register_guessed(
     known = [edges.pairs[index[(int(a), int(b))]].matches if (int(a), int(b)) in index else None for a, b in ij]
     with progress.stage(label, len(ij)) as tick:
         results, near = register_from_guesses(features, pyramids, ij, guesses, voxel, config, known, tick, cache)
+    passing = [
+        (a, b, result) for (a, b), result, ok in zip(ij, results, near) if confirms(result, ok, config.inlier_bar)
+    ]
+    if len(passing) < min_entered:
+        return len(ij), 0
     entered = 0
-    for (a, b), result, ok in zip(ij, results, near):
-        if not confirms(result, ok, config.inlier_bar):
-            continue
+    for a, b, result in passing:
         entered += 1
         e = index.get((int(a), int(b)))
         if e is None:
