@@ -145,6 +145,10 @@ def run(truth: np.ndarray, graph: PoseGraph, outlier: np.ndarray, reweight: str,
     }
 
 
+_PAIR_ROWS = 250
+"""``all_pairs`` scores the pairs of this many rows at a time."""
+
+
 def all_pairs(poses: np.ndarray, truth: np.ndarray) -> float:
     """Share of all node pairs within 5° / 0.2 m of their true relative pose, a block of rows at a time (all pairs
     at once held 8 GB at N = 5,000, and mapping it was most of the benchmark's process time)."""
@@ -156,9 +160,6 @@ def all_pairs(poses: np.ndarray, truth: np.ndarray) -> float:
         rot, trans = relative_errors(inv_T(poses[a]) @ poses[b], inv_T(truth[a]) @ truth[b])
         within += int(np.sum((rot <= 5.0) & (trans <= 0.2)))
     return within / (n * (n - 1) / 2)
-
-
-_PAIR_ROWS = 250
 
 
 def main() -> None:

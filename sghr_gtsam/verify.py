@@ -538,7 +538,7 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
     i, j, w = graph.i, graph.j, graph.weight
     inside = (w > 0) & placed[i] & placed[j]
     tolerance = translation_tolerance(graph)
-    candidates = []  # (order, group, agreeing, held, move)
+    candidates = []  # (order, group, agreeing, their weight, held, move)
     singles = (np.arange(graph.n) == k for k in np.flatnonzero(placed))
     for group in chain(singles, linkage_groups(graph, kept, placed)):
         leaving = inside & (group[i] != group[j])
@@ -547,10 +547,11 @@ def _disputed(graph: PoseGraph, kept: np.ndarray, placed: np.ndarray, poses: np.
         if w[dropped].sum() <= held:  # also when none is dropped: the weights are not negative
             continue
         agreeing, move = agreeing_edges(graph, poses, group, dropped, tolerance)
-        if w[agreeing].sum() > held:
-            candidates.append((len(candidates), group, agreeing, held, move))
+        against = w[agreeing].sum()
+        if against > held:
+            candidates.append((len(candidates), group, agreeing, against, held, move))
     disputed: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
-    for order, group, agreeing, held, move in sorted(candidates, key=lambda c: (-w[c[2]].sum(), c[3])):
+    for order, group, agreeing, _, held, move in sorted(candidates, key=lambda c: (-c[3], c[4])):
         spent = [a for _, g, a, _ in disputed if not (g & group).any()]
         agreeing = np.setdiff1d(agreeing, np.concatenate(spent)) if spent else agreeing
         if w[agreeing].sum() <= held:
