@@ -38,7 +38,7 @@ from sghr_gtsam.se3 import inv_T, rotation_angle
 from sghr_gtsam.store import Stored, pair_map
 from sghr_gtsam.types import Scan
 
-LEVELS = (1.0, 0.5)
+LEVELS = (1.0,)
 """Grid of each level, in voxels v. Open3D's refine_registration adds v/4; on six object pairs started a voxel
 off GT, v/4 landed within 0.03° of what v/2 gives (0.03-0.38° from GT) at 3× the time (0.24 s a pair against
 0.08 s), and on dense 3DMatch fragments its 100k-point grids cost 0.7-2.5 s a pair."""
