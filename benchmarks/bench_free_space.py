@@ -2,6 +2,7 @@
 scans the check can see at all.
 
     python benchmarks/bench_free_space.py --run SCENE OUT [--run SCENE OUT ...] [--real DATA]
+    python benchmarks/bench_free_space.py --placements [--draws 20]
 
 ``--run``: a generated scene (``gt_poses.txt`` beside its scans) and a finished run of it (OUT with edges.csv,
 graph.g2o, graph_rejected.g2o, report.json; with or without the check). Every registered pair (status other than
@@ -9,6 +10,11 @@ failed) is scored against GT (right: within 5° / 0.2 m) and its ``free_space_co
 at the run's voxel; the table gives the conflict's quantiles for right and wrong pairs, and how many of each lie above
 ``visibility.CONFLICT``. ``--real``: the shared data folder; per scene, how many scans ``seen_from_origin`` accepts
 and the fraction of its own points each hides (the test the check needs before it says anything).
+``--placements``: the placement test of verification (``visibility.placement_conflicts``) on generated scenes, with
+and without its allowance for the loop test's rotation budget: in how many draws it blames a scan of a right model
+whose every scan is turned by up to half that budget about its viewpoint (so any two up to the budget), and in how
+many it blames a scan misplaced on purpose (turned about the vertical through its viewpoint, or moved 1 m sideways)
+in the true model. Saved as the table ``free_space_placements``.
 """
 
 from __future__ import annotations
@@ -26,15 +32,20 @@ from scipy.spatial.transform import Rotation
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks._results import save  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.io.scans import list_scans, load_scan  # noqa: E402
 from sghr_gtsam.registration.visibility import (  # noqa: E402
     CONFLICT,
     SELF_HIDDEN,
+    contradicted_scans,
     free_space_conflict,
     hidden_fraction,
+    placement_conflicts,
 )
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
+from sghr_gtsam.sync import consensus  # noqa: E402
+from sghr_gtsam.synthetic import make_scene  # noqa: E402
 
 MAX_DEG, MAX_TRANS = 5.0, 0.2
 REAL = (
@@ -46,8 +57,9 @@ REAL = (
 )
 
 
-def _grid(path: Path, voxel: float) -> np.ndarray:
-    P = np.asarray(load_scan(path), dtype=np.float64)
+def _grid(P: np.ndarray, voxel: float) -> np.ndarray:
+    """Scan points ``P`` on the features' voxel grid."""
+    P = np.asarray(P, dtype=np.float64)
     return np.asarray(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(P)).voxel_down_sample(voxel).points)
 
 
@@ -77,7 +89,7 @@ def _run_row(scene: Path, out: Path) -> dict:
 
     def grid(k: int) -> np.ndarray:
         if k not in grids:
-            grids[k] = _grid(scene / names[k], voxel)
+            grids[k] = _grid(load_scan(scene / names[k]), voxel)
         return grids[k]
 
     right, wrong = [], []
@@ -94,18 +106,83 @@ def _quantiles(x: np.ndarray) -> str:
 
 
 def _real_row(data: Path, folder: str, voxel: float) -> str:
-    h = np.array([hidden_fraction(_grid(path, voxel), voxel) for path in list_scans(data / folder)])
+    h = np.array([hidden_fraction(_grid(load_scan(path), voxel), voxel) for path in list_scans(data / folder)])
     return (
         f"| {folder} | {len(h)} | {h.min():.3f} / {np.median(h):.3f} / {h.max():.3f} | "
         f"{int((h <= SELF_HIDDEN).sum())} |"
     )
 
 
+PLACEMENT_SCENES = (("room", 10, 0), ("building", 12, 1), ("building", 20, 0))
+"""Generated scenes (kind, scans, seed) of the placement table: seen from their origins, unlike hotels' identical
+rooms, which the free space cannot tell apart."""
+MISPLACED = (("turned 30°", 30.0, 0.0), ("turned 90°", 90.0, 0.0), ("turned 180°", 180.0, 0.0), ("moved 1 m", 0.0, 1.0))
+"""The misplacements of one scan: a turn about the vertical through its viewpoint (degrees), a sideways move (m)."""
+
+
+def _turned(T: np.ndarray, rotvec: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """Pose ``T`` turned by ``rotvec`` about its own origin (the viewpoint) and moved by ``shift`` in the world."""
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ Rotation.from_rotvec(rotvec).as_matrix()
+    out[:3, 3] += shift
+    return out
+
+
+def _placement_rows(draws: int) -> list[list]:
+    rows = []
+    for kind, n, seed in PLACEMENT_SCENES:
+        scene = make_scene(kind, n, seed=seed)
+        grids = [_grid(P, scene.voxel) for P in scene.scans]
+        checked = np.ones(n, dtype=bool)
+        for turn_deg in (0.0, consensus.MAX_DEG):
+            rng = np.random.default_rng(0)
+            blamed_right = 0
+            for _ in range(draws):
+                axes = rng.normal(size=(n, 3))
+                axes *= np.radians(rng.uniform(0, consensus.MAX_DEG / 2, n) / np.linalg.norm(axes, axis=1))[:, None]
+                poses = np.stack([_turned(T, a, np.zeros(3)) for T, a in zip(scene.poses, axes)])
+                blamed_right += bool(
+                    contradicted_scans(placement_conflicts(grids, poses, checked, scene.voxel, turn_deg)).any()
+                )
+            caught = []
+            for _, angle, move in MISPLACED:
+                hits = 0
+                for _ in range(draws):
+                    k, heading = int(rng.integers(n)), rng.uniform(0, 2 * np.pi)
+                    poses = scene.poses.copy()
+                    vertical = inv_T(poses[k])[:3, :3] @ np.array([0.0, 0.0, np.radians(angle)])
+                    poses[k] = _turned(poses[k], vertical, move * np.array([np.cos(heading), np.sin(heading), 0.0]))
+                    hits += bool(
+                        contradicted_scans(placement_conflicts(grids, poses, checked, scene.voxel, turn_deg))[k]
+                    )
+                caught.append(f"{hits}/{draws}")
+            rows.append([f"{kind} {n}/{seed}", f"{turn_deg:g}°", f"{blamed_right}/{draws}", *caught])
+            print(rows[-1], flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", nargs=2, action="append", default=[], metavar=("SCENE", "OUT"))
     ap.add_argument("--real", type=Path)
+    ap.add_argument("--placements", action="store_true")
+    ap.add_argument("--draws", type=int, default=20)
     args = ap.parse_args()
+    if args.placements:
+        columns = [
+            "scene",
+            "turn allowed",
+            "right model, every scan turned ≤ 5°: draws with a scan blamed",
+            *[f"one scan {what}: it is blamed" for what, _, _ in MISPLACED],
+        ]
+        rows = _placement_rows(args.draws)
+        save(
+            "free_space_placements",
+            rows,
+            columns,
+            section="Other",
+            title="The free space between placed scans: right models within the loop test's budget, misplaced scans",
+        )
     if args.run:
         print(
             f"| run | right pairs | conflict of right: 10/50/90/100 % | right above {CONFLICT} | wrong pairs | "
