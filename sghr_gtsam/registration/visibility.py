@@ -18,7 +18,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from sghr_gtsam.store import Attribute, Stored
-from sghr_gtsam.sync.consensus import MAX_DEG
 
 BIN_DEG = 1.0
 """Angular size of the range image's cells (azimuth x elevation); a cell keeps its nearest point."""
@@ -98,37 +97,23 @@ def in_front_of(
     margin: float = MARGIN_VOXELS,
     bin_deg: float = BIN_DEG,
     min_seen: int = 1,
-    turn: tuple[float, np.ndarray] | None = None,
 ) -> float:
     """Fraction of points ``P`` (in the frame of the scan whose range image of ``bin_deg`` cells is ``image``) that
     lie in front of its surface by more than ``margin`` voxels, among those in cells it observed (0 with fewer than
-    ``min_seen``). ``turn``: (degrees, (n,) each point's range from its own scan's viewpoint): a point must also lie
-    in front by more than that turn about either viewpoint moves it (``placement_conflicts``)."""
-    seen, fraction = seen_in_front_of(image, P, voxel, margin, bin_deg, turn)
+    ``min_seen``)."""
+    seen, fraction = seen_in_front_of(image, P, voxel, margin, bin_deg)
     return fraction if seen >= min_seen else 0.0
 
 
 def seen_in_front_of(
-    image: np.ndarray,
-    P: np.ndarray,
-    voxel: float,
-    margin: float = MARGIN_VOXELS,
-    bin_deg: float = BIN_DEG,
-    turn: tuple[float, np.ndarray] | None = None,
+    image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS, bin_deg: float = BIN_DEG
 ) -> tuple[int, float]:
     """``in_front_of``'s count of points in observed cells, and the fraction (NaN for none)."""
     r, cell, _ = _cells(P, bin_deg)
     surface = image[cell]
     seen = np.isfinite(surface)
     count = int(seen.sum())
-    if not count:
-        return 0, float("nan")
-    r, surface = r[seen], surface[seen]
-    allowed = surface - margin * voxel
-    if turn is not None:
-        degrees, own_range = turn
-        allowed = allowed - 2 * np.sin(np.radians(degrees) / 2) * np.maximum(surface, own_range[seen])
-    return count, float(np.mean(r < allowed))
+    return count, float(np.mean(r[seen] < surface[seen] - margin * voxel)) if count else float("nan")
 
 
 def _in_front(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, voxel: float) -> float:
@@ -173,17 +158,13 @@ def conflicts(features: Stored, ij: np.ndarray, T: np.ndarray, voxel: float, cen
 
 
 def placement_conflicts(
-    points: Sequence[np.ndarray], poses: np.ndarray, checked: np.ndarray, voxel: float, turn_deg: float = MAX_DEG
+    points: Sequence[np.ndarray], poses: np.ndarray, checked: np.ndarray, voxel: float
 ) -> np.ndarray:
     """(N, N) symmetric bool: pairs of ``checked`` scans that the poses (N, 4, 4; ``points[k]`` in scan k's frame)
     place so that one's points lie in the other's free space (``free_space_conflict`` above ``CONFLICT``, judged on
-    at least ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. A point counts only when in
-    front by more than the margin plus what a turn of ``turn_deg`` about either scan's viewpoint moves it (2 sin(5°)
-    of the larger of its ranges from the two): the loop test accepts poses ``consensus.MAX_DEG`` off, and without
-    that allowance the two tests disagree about what a right pose may carry (generated scenes with every scan turned
-    by up to 5°, and fused RGB-D fragments at their ground truth, had right scans blamed:
-    ``benchmarks/bench_free_space.py --placements``). Each scan is tested against the ``MAX_PARTNERS`` scans nearest
-    to it (box centres) among those whose boxes meet its own; each scan's range image is built once."""
+    at least ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. Each scan is tested against
+    the ``MAX_PARTNERS`` scans nearest to it (box centres) among those whose boxes meet its own; each scan's range
+    image is built once."""
     n = len(poses)
     index = np.flatnonzero(checked)
     boxes = np.zeros((len(index), 2, 3))
@@ -201,9 +182,9 @@ def placement_conflicts(
         near = near[np.argsort(np.linalg.norm(centre[near] - centre[x], axis=1), kind="stable")[:MAX_PARTNERS]]
         for b in index[near]:
             T_ab = np.linalg.solve(poses[a], poses[b])
-            moved = points[b] @ T_ab[:3, :3].T + T_ab[:3, 3]
-            turn = (turn_deg, np.linalg.norm(points[b], axis=1))
-            clash[a, b] = in_front_of(image, moved, voxel, min_seen=MIN_IN_VIEW, turn=turn) > CONFLICT
+            clash[a, b] = (
+                in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel, min_seen=MIN_IN_VIEW) > CONFLICT
+            )
     return clash | clash.T
 
 
