@@ -40,7 +40,7 @@ from sghr_gtsam.se3 import inv_T
 from sghr_gtsam.store import Attribute, Store, Stored
 from sghr_gtsam.sync import synchronize, unverified
 from sghr_gtsam.types import InputError, IterationRecord, PoseGraph, Scan, ScanStats, SyncResult
-from sghr_gtsam.verify import Verdict, Verification, verify
+from sghr_gtsam.verify import Verdict, Verification, placement_turns, verify
 
 if TYPE_CHECKING:
     from sghr_gtsam.recording import Recorder  # rerun is imported only for a run that records (~0.5 s)
@@ -557,7 +557,8 @@ def _verdict(stages: _Stages, edges: EdgeSet, run: RunResult, first_weak: np.nda
         with stages.timer.stage("free_space"):
             alike = look_alikes(stages.views, graph, run.sync)
     if stages.config.free_space:
-        conflicts = viewpoint_conflicts(stages.features, run.poses, placed, stages.voxel, stages.centres)
+        turns = placement_turns(graph, kept, run.poses)
+        conflicts = viewpoint_conflicts(stages.features, run.poses, placed, stages.voxel, stages.centres, turns)
 
     return verify(
         run.names,

@@ -61,9 +61,12 @@ from itertools import chain
 import gtsam
 import networkx as nx
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import shortest_path
 
 from sghr_gtsam.registration.visibility import contradicted_scans
 from sghr_gtsam.sync.consensus import (
+    MAX_DEG,
     consistent_edges,
     edge_residuals,
     mahalanobis,
@@ -74,6 +77,9 @@ from sghr_gtsam.sync.disputes import agreeing_edges, elsewhere, linkage_groups, 
 from sghr_gtsam.sync.rotation import connected_components
 from sghr_gtsam.types import PoseGraph
 
+RESIDUAL_QUANTILE = 0.9
+"""The error a registration of the run carries: the level this share of the kept ones stay within at the final poses
+(``placement_turns``)."""
 STIFFEN = 100.0
 """How much stiffer the free directions' bounds are made to tell a spread they set from a measured one: one they
 set shrinks by √STIFFEN = 10, one the measurements set does not move."""
@@ -221,6 +227,24 @@ class Verdict:
         if unplaced:
             lines.append(f"{len(unplaced)} scan(s) unplaced: {_names(unplaced)}")
         return lines
+
+
+def placement_turns(graph: PoseGraph, kept: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """(N, N) the rotation error (degrees) the placement of two scans may carry, for the free-space test
+    (``registration.visibility.placement_conflicts``): registration errors add up along the path that joins the two
+    scans as a random walk, so the error ``RESIDUAL_QUANTILE`` of the ``kept`` registrations stay within at ``poses``
+    times √(registrations on the shortest path), at most the loop test's budget (``consensus.MAX_DEG``); 0 between
+    scans no kept registrations join."""
+    n = len(poses)
+    if not kept.any():
+        return np.zeros((n, n))
+    _, degrees, _ = edge_residuals(graph, poses)
+    step = float(np.quantile(degrees[kept], RESIDUAL_QUANTILE))
+    adjacency = coo_matrix((np.ones(int(kept.sum())), (graph.i[kept], graph.j[kept])), shape=(n, n))
+    hops = shortest_path(adjacency, directed=False, unweighted=True)
+    turns = np.minimum(step * np.sqrt(hops), MAX_DEG)
+    turns[~np.isfinite(hops)] = 0.0
+    return turns
 
 
 def _names(names: list[str], most: int = 6) -> str:

@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from sghr_gtsam.se3 import inv_T, make_T
 from sghr_gtsam.sync.consensus import MAX_DEG
 from sghr_gtsam.types import PoseGraph
-from sghr_gtsam.verify import REASONS, SEEN_THROUGH, STATUSES, Verification, verify
+from sghr_gtsam.verify import REASONS, SEEN_THROUGH, STATUSES, Verification, placement_turns, verify
 
 
 def _poses(n: int, seed: int) -> np.ndarray:
@@ -234,3 +234,28 @@ def test_the_verdict_reads_as_strict_json_and_says_itself_in_few_lines():
     assert set(data["status"].values()) <= set(STATUSES) and set(data["doubts"].values()) <= set(REASONS)
     lines = verdict.summary()
     assert len(lines) <= 15 and "36 scan(s) on their own" in lines[-1], lines
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(3, 9), st.floats(0.0, 4.0), st.integers(0, 10**6))
+def test_placement_turns_grow_as_a_random_walk_along_the_kept_path(n, step, seed):
+    """A chain of n scans whose kept registrations each disagree with the poses by a turn of ``step``° (and one
+    dropped registration far off, which counts for nothing): two scans k registrations apart may carry
+    step·√k, at most the loop test's budget; a scan no kept registration reaches carries nothing."""
+    rng = np.random.default_rng(seed)
+    poses = np.stack([make_T(Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)) for _ in range(n + 1)])
+    i, j = np.arange(n - 1), np.arange(1, n)
+    axes = rng.normal(size=(n - 1, 3))
+    turns = [
+        make_T(Rotation.from_rotvec(np.radians(step) * a / np.linalg.norm(a)).as_matrix(), np.zeros(3)) for a in axes
+    ]
+    T = np.stack([inv_T(poses[a]) @ poses[b] @ t for a, b, t in zip(i, j, turns)])
+    far = (
+        inv_T(poses[0])[None] @ poses[n - 1][None] @ make_T(Rotation.from_rotvec([0, 0, 1.0]).as_matrix(), np.zeros(3))
+    )
+    graph = PoseGraph(n + 1, np.r_[i, 0], np.r_[j, n - 1], np.concatenate([T, far]), np.ones(n))
+    kept = np.r_[np.ones(n - 1, dtype=bool), False]
+    out = placement_turns(graph, kept, poses)
+    hops = np.abs(np.arange(n)[:, None] - np.arange(n)[None])
+    np.testing.assert_allclose(out[:n, :n], np.minimum(step * np.sqrt(hops), MAX_DEG), atol=1e-6)
+    assert not out[n].any() and not out[:, n].any()

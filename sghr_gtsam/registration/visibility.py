@@ -97,23 +97,37 @@ def in_front_of(
     margin: float = MARGIN_VOXELS,
     bin_deg: float = BIN_DEG,
     min_seen: int = 1,
+    turn: tuple[float, np.ndarray] | None = None,
 ) -> float:
     """Fraction of points ``P`` (in the frame of the scan whose range image of ``bin_deg`` cells is ``image``) that
     lie in front of its surface by more than ``margin`` voxels, among those in cells it observed (0 with fewer than
-    ``min_seen``)."""
-    seen, fraction = seen_in_front_of(image, P, voxel, margin, bin_deg)
+    ``min_seen``). ``turn``: (degrees, (n,) each point's range from its own scan's viewpoint): a point must also lie
+    in front by more than that turn about either viewpoint moves it (``placement_conflicts``)."""
+    seen, fraction = seen_in_front_of(image, P, voxel, margin, bin_deg, turn)
     return fraction if seen >= min_seen else 0.0
 
 
 def seen_in_front_of(
-    image: np.ndarray, P: np.ndarray, voxel: float, margin: float = MARGIN_VOXELS, bin_deg: float = BIN_DEG
+    image: np.ndarray,
+    P: np.ndarray,
+    voxel: float,
+    margin: float = MARGIN_VOXELS,
+    bin_deg: float = BIN_DEG,
+    turn: tuple[float, np.ndarray] | None = None,
 ) -> tuple[int, float]:
     """``in_front_of``'s count of points in observed cells, and the fraction (NaN for none)."""
     r, cell, _ = _cells(P, bin_deg)
     surface = image[cell]
     seen = np.isfinite(surface)
     count = int(seen.sum())
-    return count, float(np.mean(r[seen] < surface[seen] - margin * voxel)) if count else float("nan")
+    if not count:
+        return 0, float("nan")
+    r, surface = r[seen], surface[seen]
+    allowed = surface - margin * voxel
+    if turn is not None:
+        degrees, own_range = turn
+        allowed = allowed - 2 * np.sin(np.radians(degrees) / 2) * np.maximum(surface, own_range[seen])
+    return count, float(np.mean(r < allowed))
 
 
 def _in_front(P_i: np.ndarray, P_j: np.ndarray, T_ij: np.ndarray, voxel: float) -> float:
@@ -158,13 +172,19 @@ def conflicts(features: Stored, ij: np.ndarray, T: np.ndarray, voxel: float, cen
 
 
 def placement_conflicts(
-    points: Sequence[np.ndarray], poses: np.ndarray, checked: np.ndarray, voxel: float
+    points: Sequence[np.ndarray],
+    poses: np.ndarray,
+    checked: np.ndarray,
+    voxel: float,
+    turns: np.ndarray | None = None,
 ) -> np.ndarray:
-    """(N, N) symmetric bool: pairs of ``checked`` scans that the poses (N, 4, 4; ``points[k]`` in scan k's frame)
-    place so that one's points lie in the other's free space (``free_space_conflict`` above ``CONFLICT``, judged on
-    at least ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. Each scan is tested against
-    the ``MAX_PARTNERS`` scans nearest to it (box centres) among those whose boxes meet its own; each scan's range
-    image is built once."""
+    """(N, N) symmetric bool: pairs of ``checked`` scans that the poses (N, 4, 4; ``points[k]`` in scan k's frame) place
+    so that one's points lie in the other's free space (``free_space_conflict`` above ``CONFLICT``, judged on at least
+    ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. ``turns``: (N, N) the error, in degrees,
+    the two scans' placement may carry (``verify.placement_turns``; None: none); a point counts only when in front by
+    more than the margin plus what that turn about either scan's viewpoint moves it (2 sin(turn / 2) of the larger of
+    its ranges from the two). Each scan is tested against the ``MAX_PARTNERS`` scans nearest to it (box centres) among
+    those whose boxes meet its own; each scan's range image is built once."""
     n = len(poses)
     index = np.flatnonzero(checked)
     boxes = np.zeros((len(index), 2, 3))
@@ -182,9 +202,9 @@ def placement_conflicts(
         near = near[np.argsort(np.linalg.norm(centre[near] - centre[x], axis=1), kind="stable")[:MAX_PARTNERS]]
         for b in index[near]:
             T_ab = np.linalg.solve(poses[a], poses[b])
-            clash[a, b] = (
-                in_front_of(image, points[b] @ T_ab[:3, :3].T + T_ab[:3, 3], voxel, min_seen=MIN_IN_VIEW) > CONFLICT
-            )
+            moved = points[b] @ T_ab[:3, :3].T + T_ab[:3, 3]
+            turn = None if turns is None else (turns[a, b], np.linalg.norm(points[b], axis=1))
+            clash[a, b] = in_front_of(image, moved, voxel, min_seen=MIN_IN_VIEW, turn=turn) > CONFLICT
     return clash | clash.T
 
 
@@ -210,9 +230,14 @@ def contradicted_scans(clash: np.ndarray, parts: np.ndarray | None = None) -> np
 
 
 def viewpoint_conflicts(
-    features: Stored, poses: np.ndarray, placed: np.ndarray, voxel: float, centres: np.ndarray
+    features: Stored,
+    poses: np.ndarray,
+    placed: np.ndarray,
+    voxel: float,
+    centres: np.ndarray,
+    turns: np.ndarray | None = None,
 ) -> np.ndarray:
     """(N, N) bool: ``placement_conflicts`` under ``poses`` (scan k's feature grid in its centred frame to the
-    world) among the ``placed`` scans that can say where there is nothing (``viewpoints``)."""
+    world) among the ``placed`` scans that can say where there is nothing (``viewpoints``), allowing ``turns``."""
     points = Attribute(features, "points")
-    return placement_conflicts(points, poses, placed & viewpoints(points, voxel, centres), voxel)
+    return placement_conflicts(points, poses, placed & viewpoints(points, voxel, centres), voxel, turns)
