@@ -61,7 +61,7 @@ from itertools import chain
 import gtsam
 import networkx as nx
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 
 from sghr_gtsam.registration.visibility import contradicted_scans
@@ -240,7 +240,7 @@ def placement_turns(graph: PoseGraph, kept: np.ndarray, poses: np.ndarray) -> np
         return np.zeros((n, n))
     _, degrees, _ = edge_residuals(graph, poses)
     step = float(np.quantile(degrees[kept], RESIDUAL_QUANTILE))
-    adjacency = coo_matrix((np.ones(int(kept.sum())), (graph.i[kept], graph.j[kept])), shape=(n, n))
+    adjacency = csr_matrix((np.ones(int(kept.sum())), (graph.i[kept], graph.j[kept])), shape=(n, n))
     hops = shortest_path(adjacency, directed=False, unweighted=True)
     turns = np.minimum(step * np.sqrt(hops), MAX_DEG)
     turns[~np.isfinite(hops)] = 0.0
