@@ -26,17 +26,17 @@ standard one:
    against another group apart from it (a right scan whose one dropped registration reaches a wrong one). So
    is a group that several dropped registrations place elsewhere where the free space cannot tell the two
    placements apart (identical rooms: ``registration.overrule.look_alikes``), whatever the weights.
-4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement
-   that puts one scan's surfaces where another saw empty space is contradicted
-   (``registration.visibility.placement_conflicts``). Within a part, such conflicts say a registration on the
-   path between the two scans is wrong. The join is found as the minimum cut of the part's verified graph between
+4. **Free space.** Where scans are seen from their frame's origin (a laser station, a depth frame), a placement that
+   puts one scan's surfaces where another saw empty space, farther than the error the placement of the two may carry
+   (``placement_turns``: the run's registration error grown as a random walk along the path that joins them), is
+   contradicted (``registration.visibility.placement_conflicts``). Within a part, such conflicts say a registration on
+   the path between the two scans is wrong. The join is found as the minimum cut of the part's verified graph between
    the scan in most conflicts and the scans it conflicts with; when the pairs of scans in conflict across that cut
-   outnumber the registrations that hold it, the free space contradicts the join, its registrations fail, and the
-   two sides are parts of their own. (Look-alike rooms: a generated 100-scan building's two wings held 11 m
-   apart by two light registrations that close loops, against 288 conflicting pairs across them.) A scan left in
-   conflict with others of its part that no cut separates is blamed as a scan
-   (``registration.visibility.contradicted_scans``); a conflict between two parts is about their join, which is
-   already unverified.
+   outnumber the registrations that hold it, the free space contradicts the join, its registrations fail, and the two
+   sides are parts of their own. (Look-alike rooms: a generated 100-scan building's two wings held 11 m apart by two
+   light registrations that close loops, against 288 conflicting pairs across them.) A scan left in conflict with others
+   of its part that no cut separates is blamed as a scan (``registration.visibility.contradicted_scans``); a conflict
+   between two parts is about their join, which is already unverified.
 
 A scan's pose may also be held but loose: the registrations leave a direction (a plane, a corridor, a cylinder)
 that only the bounds of their overlap fix (``registration.information.free_directions``). Its covariance comes
