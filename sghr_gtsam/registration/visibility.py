@@ -202,8 +202,9 @@ def placement_conflicts(
         near = near[np.argsort(np.linalg.norm(centre[near] - centre[x], axis=1), kind="stable")[:MAX_PARTNERS]]
         for b in index[near]:
             T_ab = np.linalg.solve(poses[a], poses[b])
-            moved = points[b] @ T_ab[:3, :3].T + T_ab[:3, 3]
-            turn = None if turns is None else (turns[a, b], np.linalg.norm(points[b], axis=1))
+            P = points[b]  # read once: a stored scan's points may come from disk
+            moved = P @ T_ab[:3, :3].T + T_ab[:3, 3]
+            turn = None if turns is None else (turns[a, b], np.linalg.norm(P, axis=1))
             clash[a, b] = in_front_of(image, moved, voxel, min_seen=MIN_IN_VIEW, turn=turn) > CONFLICT
     return clash | clash.T
 
