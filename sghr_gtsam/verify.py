@@ -54,7 +54,7 @@ placed where its best join puts it, and marked so (``Part.join``).
 from __future__ import annotations
 
 from collections import defaultdict
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from itertools import chain
 
@@ -229,21 +229,24 @@ class Verdict:
         return lines
 
 
-def placement_turns(graph: PoseGraph, kept: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """(N, N) the rotation error (degrees) the placement of two scans may carry, for the free-space test
-    (``registration.visibility.placement_conflicts``): registration errors add up along the path that joins the two
-    scans as a random walk, so the error ``RESIDUAL_QUANTILE`` of the ``kept`` registrations stay within at ``poses``
-    times √(registrations on the shortest path), at most the loop test's budget (``consensus.MAX_DEG``); 0 between
-    scans no kept registrations join."""
+def placement_turns(graph: PoseGraph, kept: np.ndarray, poses: np.ndarray) -> Callable[[int], np.ndarray]:
+    """``turns(a)``: (N,) the rotation error (degrees) the placement of scan a and each scan may carry, for the
+    free-space test (``registration.visibility.placement_conflicts``): registration errors add up along the path that
+    joins two scans as a random walk, so the error ``RESIDUAL_QUANTILE`` of the ``kept`` registrations stay within at
+    ``poses`` times √(registrations on the shortest path), at most the loop test's budget (``consensus.MAX_DEG``); 0
+    between scans no kept registrations join. One scan's row at a time (one breadth-first search): the test asks for
+    a few partners of each scan, and an N × N matrix would not stay bounded (0.8 GB at 10,000 scans)."""
     n = len(poses)
     if not kept.any():
-        return np.zeros((n, n))
+        return lambda a: np.zeros(n)
     _, degrees, _ = edge_residuals(graph, poses)
     step = float(np.quantile(degrees[kept], RESIDUAL_QUANTILE))
     adjacency = csr_matrix((np.ones(int(kept.sum())), (graph.i[kept], graph.j[kept])), shape=(n, n))
-    hops = shortest_path(adjacency, directed=False, unweighted=True)
-    turns = np.minimum(step * np.sqrt(hops), MAX_DEG)
-    turns[~np.isfinite(hops)] = 0.0
+
+    def turns(a: int) -> np.ndarray:
+        hops = shortest_path(adjacency, directed=False, unweighted=True, indices=a)
+        return np.where(np.isfinite(hops), np.minimum(step * np.sqrt(hops), MAX_DEG), 0.0)
+
     return turns
 
 

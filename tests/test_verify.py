@@ -255,7 +255,7 @@ def test_placement_turns_grow_as_a_random_walk_along_the_kept_path(n, step, seed
     )
     graph = PoseGraph(n + 1, np.r_[i, 0], np.r_[j, n - 1], np.concatenate([T, far]), np.ones(n))
     kept = np.r_[np.ones(n - 1, dtype=bool), False]
-    out = placement_turns(graph, kept, poses)
+    out = np.stack([placement_turns(graph, kept, poses)(a) for a in range(n + 1)])
     hops = np.abs(np.arange(n)[:, None] - np.arange(n)[None])
     np.testing.assert_allclose(out[:n, :n], np.minimum(step * np.sqrt(hops), MAX_DEG), atol=1e-6)
     assert not out[n].any() and not out[:, n].any()

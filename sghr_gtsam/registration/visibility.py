@@ -13,7 +13,7 @@ vouch for the scene's frames (``overrule.Viewpoints.vouch``)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -176,15 +176,15 @@ def placement_conflicts(
     poses: np.ndarray,
     checked: np.ndarray,
     voxel: float,
-    turns: np.ndarray | None = None,
+    turns: Callable[[int], np.ndarray] | None = None,
 ) -> np.ndarray:
     """(N, N) symmetric bool: pairs of ``checked`` scans that the poses (N, 4, 4; ``points[k]`` in scan k's frame) place
     so that one's points lie in the other's free space (``free_space_conflict`` above ``CONFLICT``, judged on at least
-    ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. ``turns``: (N, N) the error, in degrees,
-    the two scans' placement may carry (``verify.placement_turns``; None: none); a point counts only when in front by
-    more than the margin plus what that turn about either scan's viewpoint moves it (2 sin(turn / 2) of the larger of
-    its ranges from the two). Each scan is tested against the ``MAX_PARTNERS`` scans nearest to it (box centres) among
-    those whose boxes meet its own; each scan's range image is built once."""
+    ``MIN_IN_VIEW`` points in view), whether or not they were ever registered. ``turns(a)``: (N,) the error, in
+    degrees, the placement of scan a and each scan may carry (``verify.placement_turns``; None: none); a point counts
+    only when in front by more than the margin plus what that turn about either scan's viewpoint moves it
+    (2 sin(turn / 2) of the larger of its ranges from the two). Each scan is tested against the ``MAX_PARTNERS`` scans
+    nearest to it (box centres) among those whose boxes meet its own; each scan's range image is built once."""
     n = len(poses)
     index = np.flatnonzero(checked)
     boxes = np.zeros((len(index), 2, 3))
@@ -200,11 +200,12 @@ def placement_conflicts(
         image = range_image(points[a])
         near = np.flatnonzero(meet[x])
         near = near[np.argsort(np.linalg.norm(centre[near] - centre[x], axis=1), kind="stable")[:MAX_PARTNERS]]
+        row = None if turns is None or not len(near) else turns(int(a))
         for b in index[near]:
             T_ab = np.linalg.solve(poses[a], poses[b])
             P = points[b]  # read once: a stored scan's points may come from disk
             moved = P @ T_ab[:3, :3].T + T_ab[:3, 3]
-            turn = None if turns is None else (turns[a, b], np.linalg.norm(P, axis=1))
+            turn = None if row is None else (row[b], np.linalg.norm(P, axis=1))
             clash[a, b] = in_front_of(image, moved, voxel, min_seen=MIN_IN_VIEW, turn=turn) > CONFLICT
     return clash | clash.T
 
@@ -236,7 +237,7 @@ def viewpoint_conflicts(
     placed: np.ndarray,
     voxel: float,
     centres: np.ndarray,
-    turns: np.ndarray | None = None,
+    turns: Callable[[int], np.ndarray] | None = None,
 ) -> np.ndarray:
     """(N, N) bool: ``placement_conflicts`` under ``poses`` (scan k's feature grid in its centred frame to the
     world) among the ``placed`` scans that can say where there is nothing (``viewpoints``), allowing ``turns``."""
