@@ -397,7 +397,9 @@ def verify(
         p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, seen_through, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
-    contradicted = contradicted_scans(conflicts, label)
+    ends = np.r_[graph.i[passed], graph.j[passed]]
+    held = np.bincount(ends, weights=np.tile(graph.weight[passed], 2), minlength=n)
+    contradicted = contradicted_scans(conflicts, label, held)
     max_sigma = translation_tolerance(kept_graph) if params.max_sigma is None else params.max_sigma
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information

@@ -99,6 +99,23 @@ def test_blame_falls_on_the_scans_in_conflict_with_many(n, seed):
     assert (clash[np.ix_(~blamed, ~blamed)].sum(axis=1) < 2).all()
 
 
+@given(st.integers(3, 12), st.integers(0, 10**6))
+def test_blame_does_not_depend_on_the_order_of_the_scans(n, seed):
+    """Listed in another order, the same scans are blamed: of scans in as many conflicts, the one its registrations
+    hold least (a path of conflicts 0-1-2-3 ties its two middle scans)."""
+    rng = np.random.default_rng(seed)
+    clash = np.triu(rng.random((n, n)) < 0.4, 1)
+    clash |= clash.T
+    held = rng.permutation(n).astype(float)
+    order = rng.permutation(n)
+    blamed = contradicted_scans(clash, held=held)
+    np.testing.assert_array_equal(contradicted_scans(clash[np.ix_(order, order)], held=held[order]), blamed[order])
+    path = np.zeros((4, 4), dtype=bool)
+    path[[0, 1, 2], [1, 2, 3]] = path[[1, 2, 3], [0, 1, 2]] = True
+    np.testing.assert_array_equal(np.flatnonzero(contradicted_scans(path, held=np.array([5.0, 3.0, 2.0, 5.0]))), [2])
+    np.testing.assert_array_equal(np.flatnonzero(contradicted_scans(path, held=np.array([5.0, 2.0, 3.0, 5.0]))), [1])
+
+
 def test_conflicts_between_parts_blame_no_one():
     """14 scans of a corridor placed 177° off, 6 right scans that look into it, each in conflict with about half of
     them. As one part, the conflicts blame the 6 right scans, the fewest that explain them; as two parts (their join

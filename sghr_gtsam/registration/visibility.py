@@ -210,21 +210,26 @@ def placement_conflicts(
     return clash | clash.T
 
 
-def contradicted_scans(clash: np.ndarray, parts: np.ndarray | None = None) -> np.ndarray:
+def contradicted_scans(
+    clash: np.ndarray, parts: np.ndarray | None = None, held: np.ndarray | None = None
+) -> np.ndarray:
     """(N,) bool: the scans to blame for the conflicts ``clash`` ((N, N) symmetric, ``placement_conflicts``):
     repeatedly the scan in conflict with the most others not blamed yet, while that is at least
     ``MIN_CONFLICTS``. A scan placed wrong cuts through the free space of every scan around it (a 50-scan room: six
     misplaced scans in conflict with 14-31 scans each, the right ones only with those six); a single conflicting
-    pair (a depth edge, a handful of points in view) blames no one. ``parts``: (N,) labels of rigid parts (None:
-    one part); only conflicts within a part blame. A conflict between two parts says their relative placement is
-    wrong, which is a join the parts already leave unverified, not which scans are: where a group placed wrong
-    outnumbers the right scans that see it (a corridor placed 177° off, 14 of its scans in view of 6 right ones),
-    the most conflicts are the right scans'."""
+    pair (a depth edge, a handful of points in view) blames no one. Of scans in as many conflicts, the one the
+    registrations hold least (``held``: (N,) e.g. the summed w⁰ of its verified registrations; None: no tie is
+    broken but by index): a conflict says one of two placements is wrong, and the listing order of the scans must
+    not choose which. ``parts``: (N,) labels of rigid parts (None: one part); only conflicts within a part blame. A
+    conflict between two parts says their relative placement is wrong, which is a join the parts already leave
+    unverified, not which scans are: where a group placed wrong outnumbers the right scans that see it (a corridor
+    placed 177° off, 14 of its scans in view of 6 right ones), the most conflicts are the right scans'."""
     left = clash.copy() if parts is None else clash & (parts[:, None] == parts[None])
+    held = np.zeros(len(clash)) if held is None else held
     blamed = np.zeros(len(clash), dtype=bool)
     while True:
         degree = left.sum(axis=1)
-        k = int(np.argmax(degree))
+        k = int(np.lexsort((held, -degree))[0])
         if degree[k] < MIN_CONFLICTS:
             return blamed
         blamed[k] = True
