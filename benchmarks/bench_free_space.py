@@ -3,6 +3,7 @@ scans the check can see at all.
 
     python benchmarks/bench_free_space.py --run SCENE OUT [--run SCENE OUT ...] [--real DATA]
     python benchmarks/bench_free_space.py --placements [--draws 20]
+    python benchmarks/bench_free_space.py --viewpoints
 
 ``--run``: a generated scene (``gt_poses.txt`` beside its scans) and a finished run of it (OUT with edges.csv,
 graph.g2o, graph_rejected.g2o, report.json; with or without the check). Every registered pair (status other than
@@ -15,6 +16,14 @@ many draws it blames a scan of a right model whose every scan is turned by up to
 (any two then up to twice that apart; the loop test accepts 10°), and in how many it blames a scan misplaced on
 purpose (turned about the vertical through its viewpoint, or moved 1 m sideways) in the true model. Saved as the
 table ``free_space_placements``.
+``--viewpoints``: which generated scans the test takes as seen from their origin (``seen_from_origin``): stations
+(rooms, buildings, hotels: one sensor each) and RGB-D fragments (``make_scene("fragments")``: frames of a walking
+camera fused in the first frame's camera frame, whose origin is one viewpoint of many). Per kind the fraction of
+its own points a scan hides, and under ``visibility.SELF_HIDDEN`` and a looser bar how many pass, and at the ground
+truth the pairs of passing scans in conflict (``placement_conflicts``) and the scans blamed: every such blame is a
+false alarm. The bar the
+fragments calibrate: the largest hidden fraction (on a 0.1 % step) at or under which at most ``FRAGMENTS_PASSING`` of
+the fragments fall. Saved as the table ``free_space_viewpoints``.
 """
 
 from __future__ import annotations
@@ -121,6 +130,36 @@ MISPLACED = (("turned 30°", 30.0, 0.0), ("turned 90°", 90.0, 0.0), ("turned 18
 """The misplacements of one scan: a turn about the vertical through its viewpoint (degrees), a sideways move (m)."""
 
 
+VIEWPOINT_SCENES = (("room", 10, 8), ("building", 20, 4), ("hotel", 16, 4), ("fragments", 12, 8))
+"""Generated scenes (kind, scans, seeds) of the viewpoint table."""
+FRAGMENTS_PASSING = 0.01
+"""The share of generated fragments the calibrated bar lets pass as seen from their origin."""
+LOOSER_BAR = 0.05
+"""A looser bar on the hidden fraction, for comparison: what generated stations alone would suggest."""
+
+
+def _viewpoint_rows() -> tuple[list[list], float]:
+    """The viewpoint table's rows, and the bar the fragments calibrate (module doc)."""
+    rows, hidden = [], {}
+    for kind, n, seeds in VIEWPOINT_SCENES:
+        fractions, counts = [], np.zeros((2, 3), dtype=int)  # per bar: passing, pairs in conflict, blamed
+        for seed in range(seeds):
+            scene = make_scene(kind, n, seed=seed)
+            grids = [_grid(P, scene.voxel) for P in scene.scans]
+            h = np.array([hidden_fraction(g, scene.voxel) for g in grids])
+            fractions += h.tolist()
+            for row, bar in zip(counts, (LOOSER_BAR, SELF_HIDDEN)):
+                clash = placement_conflicts(grids, scene.poses, h <= bar, scene.voxel)
+                row += [(h <= bar).sum(), clash.sum() // 2, contradicted_scans(clash).sum()]
+        hidden[kind] = np.array(fractions)
+        q = np.quantile(hidden[kind], [0.01, 0.5, 0.99]) * 100
+        cells = [f"{c[0]}/{len(fractions)} · {c[1]} · {c[2]}" for c in counts]
+        rows.append([f"{kind} {n} × {seeds} seeds", len(fractions), " / ".join(f"{x:.1f}" for x in q), *cells])
+        print(rows[-1], flush=True)
+    bar = np.floor(np.quantile(hidden["fragments"], FRAGMENTS_PASSING) * 1000) / 1000
+    return rows, float(bar)
+
+
 def _turned(T: np.ndarray, rotvec: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """Pose ``T`` turned by ``rotvec`` about its own origin (the viewpoint) and moved by ``shift`` in the world."""
     out = T.copy()
@@ -164,7 +203,27 @@ def main() -> None:
     ap.add_argument("--real", type=Path)
     ap.add_argument("--placements", action="store_true")
     ap.add_argument("--draws", type=int, default=20)
+    ap.add_argument("--viewpoints", action="store_true")
     args = ap.parse_args()
+    if args.viewpoints:
+        rows, bar = _viewpoint_rows()
+        columns = [
+            "generated scans",
+            "scans",
+            "own points hidden % (1 / 50 / 99 % of scans)",
+            *[
+                f"hiding ≤ {b:.1%}: seen from origin · pairs in conflict at GT · scans blamed at GT"
+                for b in (LOOSER_BAR, SELF_HIDDEN)
+            ],
+        ]
+        print(f"the bar the fragments calibrate: {bar:.1%} hidden (at most {FRAGMENTS_PASSING:.0%} at or under it)")
+        save(
+            "free_space_viewpoints",
+            rows,
+            columns,
+            section="Other",
+            title="Which scans the free space can speak for: stations and fused RGB-D fragments",
+        )
     if args.placements:
         columns = [
             "scene",

@@ -411,7 +411,8 @@ def run(
         _close(result, out, cfg.record)
 
 
-_SCENE_KINDS = ("room", "object", "building", "hotel")  # synthetic.SCENE_KINDS, spelled out as _METHOD_NAMES are
+# synthetic.SCENE_KINDS, spelled out as _METHOD_NAMES are
+_SCENE_KINDS = ("room", "object", "fragments", "building", "hotel")
 _ONE_ROOM = 12  # --kind auto: the most scans it generates as one room
 _DEMO_ROWS = 40  # the most scans the demo lists one by one
 _MOST_SCANS = 10_000
@@ -466,7 +467,8 @@ def demo(
     kind: str = typer.Option(
         "auto",
         help="Generated scene: room (one furnished room scanned from around its "
-        "table), object (a lumpy object seen from around it), building (furnished rooms along "
+        "table), object (a lumpy object seen from around it), fragments (the room seen by a walking "
+        "depth camera, each scan fused from its frames, as RGB-D fragments are), building (furnished rooms along "
         "corridors, growing with --scans so that each scan overlaps a bounded number of others; "
         "at least 9 scans), hotel (the building with every room the same: scans that fit "
         f"several places) or auto (room up to {_ONE_ROOM} scans, building above).",

@@ -26,6 +26,7 @@ from sghr_gtsam.io.scans import write_scan
 from sghr_gtsam.synthetic.building import make_building
 from sghr_gtsam.synthetic.geometry import (
     SyntheticScene,
+    _fragment,
     _look_at,
     _object,
     _object_sensors,
@@ -34,17 +35,18 @@ from sghr_gtsam.synthetic.geometry import (
     _scan,
 )
 
-KINDS = ("room", "object")
+KINDS = ("room", "object", "fragments")
 """The kinds of one mesh scanned from around it; ``SCENE_KINDS`` adds the buildings (``synthetic.building``)."""
 SCENE_KINDS = (*KINDS, "building", "hotel")
 
 
 def make_scene(kind: str = "room", n_scans: int = 6, seed: int = 0, noise: float = 0.003) -> SyntheticScene:
-    """Generate a scene of ``kind`` ("room": ~5 m furnished room, voxel 5 cm; "object": ~1 m bumpy
-    object, voxel 2 cm; "building": rooms along corridors growing with ``n_scans``, at least 9; "hotel": the
-    building with every room the same, ``synthetic.building``) seen by ``n_scans`` sensors, with Gaussian range
-    noise of std ``noise`` metres. About 5-15k points a scan; well under a second for 6 scans; deterministic for a
-    given seed."""
+    """Generate a scene of ``kind`` ("room": ~5 m furnished room, voxel 5 cm; "object": ~1 m bumpy object, voxel
+    2 cm; "fragments": the room seen by a handheld depth camera, each scan fused from the frames of a short walk, in
+    its first frame's camera frame, as RGB-D fragments are (``geometry._fragment``); "building": rooms along
+    corridors growing with ``n_scans``, at least 9; "hotel": the building with every room the same,
+    ``synthetic.building``) seen by ``n_scans`` sensors, with Gaussian range noise of std ``noise`` metres. About
+    5-15k points a scan (fragments: more); well under a second for 6 scans; deterministic for a given seed."""
     if kind not in SCENE_KINDS:
         raise ValueError(f"unknown scene kind {kind!r} (choose from {', '.join(SCENE_KINDS)})")
     if n_scans < 2:
@@ -54,13 +56,16 @@ def make_scene(kind: str = "room", n_scans: int = 6, seed: int = 0, noise: float
     if kind not in KINDS:
         return make_building(n_scans, seed, noise, identical_rooms=kind == "hotel")
     rng = np.random.default_rng(seed)
-    if kind == "room":
+    if kind in ("room", "fragments"):
         mesh, sensor, voxel = _room(rng), _room_sensors(n_scans, rng), 0.05
     else:
         mesh, sensor, voxel = _object(rng), _object_sensors(n_scans, rng), 0.02
     raycaster = o3d.t.geometry.RaycastingScene()
     raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
 
+    if kind == "fragments":
+        scans, poses = zip(*(_fragment(raycaster, e, t, noise, rng) for e, t in zip(sensor.eyes, sensor.targets)))
+        return SyntheticScene([f"scan_{k:02d}.ply" for k in range(n_scans)], list(scans), np.stack(poses), voxel)
     rolls = rng.uniform(-sensor.max_roll, sensor.max_roll, len(sensor.eyes))
     poses = np.stack([_look_at(e, t, roll) for e, t, roll in zip(sensor.eyes, sensor.targets, rolls)])
     scans = [_scan(raycaster, T, sensor, noise, rng) for T in poses]

@@ -218,6 +218,38 @@ def _room_sensors(n: int, rng: np.random.Generator) -> _Sensor:
     return _Sensor(eyes, targets, fov_deg=(120.0, 80.0), grid=(150, 100), max_roll=0.4)
 
 
+DEPTH_CAMERA = _Sensor(np.zeros((0, 3)), np.zeros((0, 3)), fov_deg=(58.0, 45.0), grid=(80, 60), max_roll=0.0)
+"""One frame of a handheld depth camera (a Kinect's field of view, fewer rays): ``_fragment`` fuses many."""
+FRAMES = 25
+"""Depth frames fused into one fragment."""
+TRAVEL = (0.2, 0.6)
+"""How far (metres) the camera walks while it takes one fragment's frames, uniform in this range."""
+SWEEP_DEG = 30.0
+"""The camera turns from up to this far left of its start direction to as far right while it walks."""
+
+
+def _fragment(
+    scene: o3d.t.geometry.RaycastingScene, eye: np.ndarray, target: np.ndarray, noise: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """An RGB-D fragment: ``FRAMES`` depth frames of a camera that walks ``TRAVEL`` along the ellipse of
+    ``_room_sensors`` (clear of table and furniture) from ``eye`` while sweeping its view across ``target``, fused
+    into the first frame's camera frame (as 3DMatch's fragments are) on a grid of half the scene's voxel. Returns
+    the points and the first frame's pose. Its frame's origin is one viewpoint of many: seen from there, surfaces
+    that later frames saw around an object lie where the first frame saw nothing."""
+    tangent = np.array([-eye[1] / 1.1**2, eye[0] / 1.5**2, 0.0])
+    tangent *= rng.choice([-1.0, 1.0]) * rng.uniform(*TRAVEL) / np.linalg.norm(tangent)
+    sweep = np.radians(rng.uniform(-SWEEP_DEG, SWEEP_DEG))
+    points, first = [], None
+    for s in np.linspace(0.0, 1.0, FRAMES):
+        at, turn = eye + s * tangent, _rot_z(sweep * (2 * s - 1))[:3, :3]
+        T = _look_at(at, at + turn @ (target - eye), 0.0)
+        first = T if first is None else first
+        move = np.linalg.solve(first, T)
+        points.append(_scan(scene, T, DEPTH_CAMERA, noise, rng) @ move[:3, :3].T + move[:3, 3])
+    fused = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points))).voxel_down_sample(0.025)
+    return np.asarray(fused.points), first
+
+
 def _object(rng: np.random.Generator) -> o3d.geometry.TriangleMesh:
     """A closed irregular object about 1 m across: a rock with smaller rocks, blocks and pegs stuck
     into it at random points of its surface. A lone rock is still round enough for a flipped view
