@@ -1,16 +1,17 @@
 """Doubts on generated scenes: do a run's doubts catch its misplaced scans, and how many right ones do they mark?
 
-    python benchmarks/bench_doubts.py [--kinds room building hotel] [--seeds 0 1 2] [--workers 2] [--set KEY=VALUE]
+    python benchmarks/bench_doubts.py [--kinds room fragments building hotel] [--seeds 0 1 2] [--workers 2]
+        [--set KEY=VALUE]
 
-Each scene is ``synthetic.make_scene(kind, scans, seed)`` (rooms of 10 scans; buildings of 12, 20 and 30; hotels,
-whose rooms are all alike, of 16 and 30), registered by ``pipeline.register`` with the default ``Config``
-(``record=False``); the scene column reads kind, scans / seed. Its parts
-(``verify``) are scored against GT by ``evaluate.score_parts`` as ``bench_3dmatch.py`` scores the real scenes: a scan
-is *misplaced* when outside the largest rigid piece of its own part (15° / 0.6 m), and *off the whole model* when
-outside the largest rigid piece of all placed scans (where a scan alone in its part, or a part placed by a failed
-join, can be off). Per scene: parts, misplaced, off the whole model, doubted, and how the doubts split; a row per
-kind sums its scenes, and the notes give per kind the doubts' precision (doubted scans that are off, either way, of
-the doubted) and recall (scans off doubted, of them), and the share of scans doubted in scenes where none is off.
+Each scene is ``synthetic.make_scene(kind, scans, seed)`` (rooms of 10 scans; RGB-D fragments of a room, fused from a
+walking camera's frames, of 12; buildings of 12, 20 and 30; hotels, whose rooms are all alike, of 16 and 30), registered
+by ``pipeline.register`` with the default ``Config`` (``record=False``); the scene column reads kind, scans / seed. Its
+parts (``verify``) are scored against GT by ``evaluate.score_parts`` as ``bench_3dmatch.py`` scores the real scenes: a
+scan is *misplaced* when outside the largest rigid piece of its own part (15° / 0.6 m), and *off the whole model* when
+outside the largest rigid piece of all placed scans (where a scan alone in its part, or a part placed by a failed join,
+can be off). Per scene: parts, misplaced, off the whole model, doubted, and how the doubts split; a row per kind sums
+its scenes, and the notes give per kind the doubts' precision (doubted scans that are off, either way, of the doubted)
+and recall (scans off doubted, of them), and the share of scans doubted in scenes where none is off.
 
 ``--set`` overrides a ``Config`` field in every run (such a run is printed, not saved): a change well below any
 registration's noise (``icp_distance=1.5015``, as in ``bench_stability.py``) shows how far these scenes' answers move
@@ -37,7 +38,7 @@ from sghr_gtsam.evaluate import score_parts  # noqa: E402
 from sghr_gtsam.pipeline import Scan, register  # noqa: E402
 from sghr_gtsam.synthetic import make_scene  # noqa: E402
 
-SCANS = {"room": (10,), "object": (10,), "building": (12, 20, 30), "hotel": (16, 30)}
+SCANS = {"room": (10,), "object": (10,), "fragments": (12,), "building": (12, 20, 30), "hotel": (16, 30)}
 COLUMNS = [
     "scene (scans / seed)",
     "scans",
@@ -115,7 +116,7 @@ def _labels(names: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kinds", nargs="+", default=["room", "building", "hotel"], choices=list(SCANS))
+    ap.add_argument("--kinds", nargs="+", default=["room", "fragments", "building", "hotel"], choices=list(SCANS))
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-save", action="store_true")
