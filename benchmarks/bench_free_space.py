@@ -44,13 +44,19 @@ sys.path.insert(0, str(ROOT))
 from benchmarks._results import save  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.io.scans import list_scans, load_scan  # noqa: E402
+from sghr_gtsam.registration.overrule import COARSE_BIN_DEG, COARSE_MARGIN_VOXELS  # noqa: E402
 from sghr_gtsam.registration.visibility import (  # noqa: E402
+    BIN_DEG,
     CONFLICT,
+    MARGIN_VOXELS,
+    MIN_IN_VIEW,
     SELF_HIDDEN,
     contradicted_scans,
     free_space_conflict,
     hidden_fraction,
     placement_conflicts,
+    range_image,
+    seen_in_front_of,
 )
 from sghr_gtsam.se3 import inv_T, relative_errors  # noqa: E402
 from sghr_gtsam.synthetic import make_scene  # noqa: E402
@@ -160,6 +166,49 @@ def _viewpoint_rows() -> tuple[list[list], float]:
     return rows, float(bar)
 
 
+FRAGMENT_SEEDS = 6
+"""Generated 12-fragment scenes of the fragments' range-image table."""
+
+
+def _fragment_image_rows() -> list[list]:
+    """Every ordered pair of generated fragments (``FRAGMENT_SEEDS`` scenes) with ``MIN_IN_VIEW`` points of one in
+    cells the other observed: the fraction in front of its surface at the true pose (right) and with the second
+    turned 90° or 180° about the vertical through the first's viewpoint (wrong), on the per-pair check's range image
+    and on the overrule's coarser one."""
+    images = (("per-pair check", BIN_DEG, MARGIN_VOXELS), ("overrule", COARSE_BIN_DEG, COARSE_MARGIN_VOXELS))
+    found = {(name, kind): [] for name, _, _ in images for kind in ("right", "wrong")}
+    rng = np.random.default_rng(0)
+    for seed in range(FRAGMENT_SEEDS):
+        scene = make_scene("fragments", 12, seed=seed)
+        grids = [_grid(P, scene.voxel) for P in scene.scans]
+        for a in range(len(grids)):
+            built = {name: range_image(grids[a], bins) for name, bins, _ in images}
+            for b in range(len(grids)):
+                if a == b:
+                    continue
+                T = np.linalg.solve(scene.poses[a], scene.poses[b])
+                vertical = inv_T(scene.poses[a])[:3, :3] @ np.array([0.0, 0.0, np.radians(rng.choice([90.0, 180.0]))])
+                for kind, T_ab in (("right", T), ("wrong", _turned(np.eye(4), vertical, np.zeros(3)) @ T)):
+                    moved = grids[b] @ T_ab[:3, :3].T + T_ab[:3, 3]
+                    for name, bins, margin in images:
+                        seen, fraction = seen_in_front_of(built[name], moved, scene.voxel, margin, bins)
+                        if seen >= MIN_IN_VIEW:
+                            found[name, kind].append(fraction)
+    rows = []
+    for name, bins, margin in images:
+        row = [f"{name}: {bins:g}° cells, {margin:g} voxels"]
+        for kind in ("right", "wrong"):
+            x = np.array(found[name, kind])
+            row += [
+                len(x),
+                " / ".join(f"{q:.3f}" for q in np.quantile(x, [0.5, 0.9, 0.99])),
+                f"{np.mean(x > CONFLICT):.3f}",
+            ]
+        rows.append(row)
+        print(rows[-1], flush=True)
+    return rows
+
+
 def _turned(T: np.ndarray, rotvec: np.ndarray, shift: np.ndarray) -> np.ndarray:
     """Pose ``T`` turned by ``rotvec`` about its own origin (the viewpoint) and moved by ``shift`` in the world."""
     out = T.copy()
@@ -223,6 +272,21 @@ def main() -> None:
             columns,
             section="Other",
             title="Which scans the free space can speak for: stations and fused RGB-D fragments",
+        )
+        save(
+            "free_space_fragments",
+            _fragment_image_rows(),
+            [
+                "range image",
+                "right pairs",
+                "right: in front 50 / 90 / 99 %",
+                f"right: share above {CONFLICT}",
+                "wrong pairs",
+                "wrong: in front 50 / 90 / 99 %",
+                f"wrong: share above {CONFLICT}",
+            ],
+            section="Other",
+            title="Generated RGB-D fragments' free space on a fine and a coarse range image",
         )
     if args.placements:
         columns = [
