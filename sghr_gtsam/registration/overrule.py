@@ -53,8 +53,9 @@ from sghr_gtsam.types import PoseGraph, SyncResult
 
 COARSE_BIN_DEG = 3.0
 """Angular cells of the range image (degrees). Fused fragments' free space is blurred by their many cameras: on
-real fused fragments' right registrations, 3° and 6 voxels keep 99 % of the conflicts below 0.07 where 1° and 3
-voxels (the per-pair check's) reach 0.21; wrong ones read 0.13 at the median (docs/benchmarks.md, free space)."""
+generated fragments at their true poses, 3° and 6 voxels keep 99 % of the pairs' fractions in front below 0.11 (0.3 %
+above ``CONFLICT``) where 1° and 3 voxels (the per-pair check's) reach 0.34 (14 % above); turned 90° or 180°, 87 %
+read above it (``benchmarks/bench_free_space.py --viewpoints``)."""
 COARSE_MARGIN_VOXELS = 6.0
 """A point is in front of a surface when nearer along the ray by more than this many voxels."""
 RATIO = 0.5
@@ -78,8 +79,9 @@ MIN_LOOPED = 20
 """Loop-checked registrations a scene must have judged before its scans' frames count as seen from their sensors
 (``Viewpoints.vouch``): one conflict among them is then at most 5 %."""
 MAX_FALSE_ALARMS = 0.05
-"""... and the largest fraction of them in conflict: fused fragments read 0-2.7 % after the first synchronization,
-only wrong registrations; an object scan in its object's frame 28 %, all right (docs/benchmarks.md, free space)."""
+"""... and the largest fraction of them in conflict: right pairs of generated fragments read 0.3 %
+(``benchmarks/bench_free_space.py --viewpoints``); a frame whose origin is no viewpoint reads right registrations
+as conflicts by the quarter (an object scan in its object's frame: 28 %, docs/benchmarks.md, free space)."""
 CONE_DEG = 80.0
 """A scan takes part when its points lie within this angle of their mean direction from its origin (a camera's or
 a scanner's view; the 99th percentile), or it is seen from its origin all around (``visibility.seen_from_origin``)."""
