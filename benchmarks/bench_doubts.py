@@ -80,10 +80,14 @@ def scene_row(kind: str, scans: int, seed: int, workers: int, overrides: dict | 
     }
 
 
+def _plural(kind: str) -> str:
+    return kind if kind.endswith("s") else kind + "s"
+
+
 def _total(kind: str, rows: list[dict]) -> list:
     """The table's row summing ``rows``."""
     return [
-        f"all {kind}s",
+        f"all {_plural(kind)}",
         sum(r["scans"] for r in rows),
         sum(r["placed"] for r in rows),
         "",
@@ -104,8 +108,8 @@ def _summary(kind: str, rows: list[dict]) -> str:
     precision = f"{caught / doubted:.2f}" if doubted else "-"
     recall = f"{caught / off:.2f}" if off else "-"
     return (
-        f"{kind.capitalize()}s: precision {precision} ({caught} of {doubted} doubts on scans off), recall {recall} "
-        f"({caught} of {off} scans off doubted); in the {len(clean)} with no scan off, "
+        f"{_plural(kind).capitalize()}: precision {precision} ({caught} of {doubted} doubts on scans off), "
+        f"recall {recall} ({caught} of {off} scans off doubted); in the {len(clean)} with no scan off, "
         f"{sum(len(r['doubted']) for r in clean)} of {sum(r['scans'] for r in clean)} scans doubted."
     )
 
