@@ -938,7 +938,8 @@ def test_demo_with_an_absurd_scan_count_is_refused_before_any_work(tmp_path):
 
 def test_demo_with_an_unknown_kind_or_too_small_a_building_is_one_line_error(tmp_path):
     code, lines = _cli("demo", "--kind", "garden", "--out", tmp_path / "d")
-    assert code == 2 and lines == ["error: --kind must be auto or one of room, object, building, hotel; got 'garden'"]
+    kinds = "room, object, fragments, building, hotel"
+    assert code == 2 and lines == [f"error: --kind must be auto or one of {kinds}; got 'garden'"]
     code, lines = _cli("demo", "--kind", "hotel", "--scans", "5", "--out", tmp_path / "d")
     assert code == 2 and lines == ["error: --scans 5: a building needs at least 9 scans, got 5"]
     assert not (tmp_path / "d").exists()
