@@ -397,9 +397,7 @@ def verify(
         p.join = _join(p.id, label, graph.i, graph.j, kept, passed, disputes, seen_through, graph.weight, names)
     sizes = np.bincount(label[label >= 0], minlength=len(parts))
     alone = placed & (label >= 0) & (sizes[np.maximum(label, 0)] == 1)
-    ends = np.r_[graph.i[passed], graph.j[passed]]
-    held = np.bincount(ends, weights=np.tile(graph.weight[passed], 2), minlength=n)
-    contradicted = contradicted_scans(conflicts, label, held)
+    contradicted = contradicted_scans(conflicts, label, _held(graph, passed))
     max_sigma = translation_tolerance(kept_graph) if params.max_sigma is None else params.max_sigma
     spreads, stiff, axes = np.full(n, np.nan), np.full(n, np.nan), np.full((n, 3), np.nan)
     information = graph.information if information is None else information
@@ -461,9 +459,8 @@ def _part_spreads(
     edges = np.flatnonzero(passed & members[graph.i] & members[graph.j])
     factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     nodes = np.flatnonzero(members)
-    ends = np.r_[graph.i[edges], graph.j[edges]]
-    degree = np.bincount(ends, minlength=len(poses))[nodes]
-    weight = np.bincount(ends, weights=np.r_[graph.weight[edges], graph.weight[edges]], minlength=len(poses))[nodes]
+    degree = np.bincount(np.r_[graph.i[edges], graph.j[edges]], minlength=len(poses))[nodes]
+    weight = _held(graph, edges)[nodes]
     anchor = int(nodes[np.lexsort((-weight, -degree))[0]])
     for k in nodes:
         values.insert(int(k), gtsam.Pose3(poses[k]))
@@ -490,6 +487,15 @@ def _part_spreads(
     for k in nodes:
         covariances[k] = marginals.marginalCovariance(int(k))
     spreads[nodes], axes[nodes] = (a[nodes] for a in loosest(covariances, points, nodes))
+
+
+def _held(graph: PoseGraph, edges: np.ndarray) -> np.ndarray:
+    """(N,) the summed w⁰ of the registrations ``edges`` (a mask or indices) at each scan."""
+    return np.bincount(
+        np.r_[graph.i[edges], graph.j[edges]],
+        weights=np.r_[graph.weight[edges], graph.weight[edges]],
+        minlength=graph.n,
+    )
 
 
 def _alone_reason(

@@ -64,7 +64,9 @@ def make_scene(kind: str = "room", n_scans: int = 6, seed: int = 0, noise: float
     raycaster.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
 
     if kind == "fragments":
-        scans, poses = zip(*(_fragment(raycaster, e, t, noise, rng) for e, t in zip(sensor.eyes, sensor.targets)))
+        scans, poses = zip(
+            *(_fragment(raycaster, e, t, voxel, noise, rng) for e, t in zip(sensor.eyes, sensor.targets))
+        )
         return SyntheticScene([f"scan_{k:02d}.ply" for k in range(n_scans)], list(scans), np.stack(poses), voxel)
     rolls = rng.uniform(-sensor.max_roll, sensor.max_roll, len(sensor.eyes))
     poses = np.stack([_look_at(e, t, roll) for e, t, roll in zip(sensor.eyes, sensor.targets, rolls)])

@@ -205,13 +205,18 @@ def _room(
     return mesh
 
 
+ROOM_PATH = (1.5, 1.1)
+"""Semi-axes (x, y; metres) of the ellipse the room's sensors stand on, between the table and the furniture."""
+
+
 def _room_sensors(n: int, rng: np.random.Generator) -> _Sensor:
     """Sensors on an ellipse between the table and the furniture (clear of both), at most 45 degrees
     apart (60 leaves some consecutive pairs at 30% overlap), each looking across the room towards a
     point near the centre, so consecutive views share the middle and part of the walls while the
     wall behind each sensor stays unseen."""
     angles = np.radians(min(360.0 / n, 45.0)) * np.arange(n) + rng.uniform(-0.08, 0.08, n)
-    eyes = np.stack([1.5 * np.cos(angles), 1.1 * np.sin(angles), rng.uniform(1.2, 1.7, n)], axis=1)
+    a, b = ROOM_PATH
+    eyes = np.stack([a * np.cos(angles), b * np.sin(angles), rng.uniform(1.2, 1.7, n)], axis=1)
     targets = np.concatenate([rng.uniform(-0.3, 0.3, (n, 2)), rng.uniform(0.5, 1.0, (n, 1))], axis=1)
     # Roll kept small as for a scanner on a tripod: rolled 90 degrees, the wide field would look at
     # floor and ceiling instead of along the walls and consecutive views would overlap much less.
@@ -229,24 +234,30 @@ SWEEP_DEG = 30.0
 
 
 def _fragment(
-    scene: o3d.t.geometry.RaycastingScene, eye: np.ndarray, target: np.ndarray, noise: float, rng: np.random.Generator
+    scene: o3d.t.geometry.RaycastingScene,
+    eye: np.ndarray,
+    target: np.ndarray,
+    voxel: float,
+    noise: float,
+    rng: np.random.Generator,
 ) -> tuple[np.ndarray, np.ndarray]:
     """An RGB-D fragment: ``FRAMES`` depth frames of a camera that walks ``TRAVEL`` along the ellipse of
-    ``_room_sensors`` (clear of table and furniture) from ``eye`` while sweeping its view across ``target``, fused
-    into the first frame's camera frame (as 3DMatch's fragments are) on a grid of half the scene's voxel. Returns
-    the points and the first frame's pose. Its frame's origin is one viewpoint of many: seen from there, surfaces
-    that later frames saw around an object lie where the first frame saw nothing."""
-    tangent = np.array([-eye[1] / 1.1**2, eye[0] / 1.5**2, 0.0])
+    ``_room_sensors`` (``ROOM_PATH``, clear of table and furniture) from ``eye`` while sweeping its view across
+    ``target``, fused into the first frame's camera frame (as 3DMatch's fragments are) on a grid of half the scene's
+    ``voxel``. Returns the points and the first frame's pose. Its frame's origin is one viewpoint of many: seen from
+    there, surfaces that later frames saw around an object lie where the first frame saw nothing."""
+    a, b = ROOM_PATH
+    tangent = np.array([-eye[1] / b**2, eye[0] / a**2, 0.0])
     tangent *= rng.choice([-1.0, 1.0]) * rng.uniform(*TRAVEL) / np.linalg.norm(tangent)
     sweep = np.radians(rng.uniform(-SWEEP_DEG, SWEEP_DEG))
     points, first = [], None
     for s in np.linspace(0.0, 1.0, FRAMES):
-        at, turn = eye + s * tangent, _rot_z(sweep * (2 * s - 1))[:3, :3]
+        at, turn = eye + s * tangent, _rot_z(sweep * (2 * s - 1))
         T = _look_at(at, at + turn @ (target - eye), 0.0)
         first = T if first is None else first
         move = np.linalg.solve(first, T)
         points.append(_scan(scene, T, DEPTH_CAMERA, noise, rng) @ move[:3, :3].T + move[:3, 3])
-    fused = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points))).voxel_down_sample(0.025)
+    fused = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(points))).voxel_down_sample(voxel / 2)
     return np.asarray(fused.points), first
 
 
