@@ -243,10 +243,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_save:
             save(
                 "ablation_polish",
-                f"The loop polish without each of its steps: all-pairs recall (8 scenes × seeds {seeds})",
-                columns,
                 rows,
+                columns,
                 section="Synchronization",
+                title=f"The loop polish without each of its steps: all-pairs recall (8 scenes × seeds {seeds})",
             )
     if "verify" in args.part:
         columns = [
@@ -265,10 +265,9 @@ def main(argv: list[str] | None = None) -> int:
         if not args.no_save:
             save(
                 "ablation_verify",
-                f"Parts and doubts without each rule (generated scenes of bench_doubts, seeds {seeds})",
-                columns,
                 rows,
-                section="Parts and doubts",
+                columns,
+                title=f"Parts and doubts without each rule (the generated scenes of bench_doubts, seeds {seeds})",
             )
     return 0
 
