@@ -1,19 +1,19 @@
 """What each rule of the trust machinery buys: the default run against the same run with one rule switched off.
 
-    python benchmarks/bench_ablation.py [--part polish verify] [--seeds 0 1 2] [--real home_at ...]
-        [--data ../shared/data] [--workers 2]
+    python benchmarks/bench_ablation.py [--part graphs scenes] [--seeds 0 1 2] [--rules ...]
+        [--real home_at ...] [--data ../shared/data] [--workers 2]
 
 A rule is switched off in this process only, by replacing the function that applies it with one that changes nothing
-(``RULES``); the package itself has no switch for it. Two parts:
+(``POLISH_RULES``, ``VERIFY_RULES``); the package itself has no switch for it. Two parts:
 
-- ``polish``: the steps of synchronization's loop polish (``sync._loop_placement``, ``sync._readmit``) on the pose
+- ``graphs``: the steps of synchronization's loop polish (``sync._loop_placement``, ``sync._readmit``) on the pose
   graphs of ``bench_robustness.py`` (8 3DMatch scenes' ground truth, top-10 partners, a share ρ of the edges replaced
   by random or structured outliers; seeds ``--seeds``), scored by the recall over all node pairs (5° / 0.2 m).
-- ``verify``: the free-space and dispute rules that decide parts and doubts (``registration.overrule``,
-  ``registration.visibility``, ``verify``) and the front end's weak-group stage, on the generated scenes of
-  ``bench_doubts.py`` (rooms, fragments, buildings, hotels; seeds ``--seeds``) and on the real scenes ``--real``,
-  scored as there: scans in parts of two or more, misplaced in their part, off the whole model, doubted, doubted and
-  off (either way), off and not doubted.
+- ``scenes``: the free-space and dispute rules that decide parts and doubts (``registration.overrule``,
+  ``registration.visibility``, ``verify``), the front end's weak-group stage, and the polish steps ``--rules`` names,
+  each through whole runs on the generated scenes of ``bench_doubts.py`` (rooms, fragments, buildings, hotels; seeds
+  ``--seeds``) and on the real scenes ``--real``, scored as there: scans in parts of two or more, misplaced in their
+  part, off the whole model, doubted, doubted and off (either way), off and not doubted.
 
 A rule that buys nothing on any of these is a candidate for removal; one that buys something says here what a change
 to it can break.
@@ -131,6 +131,7 @@ VERIFY_RULES: dict[str, tuple[str, Callable[[], None] | dict]] = {
     ),
     "weak groups": ("weak groups registered whole (Config.groups off)", {"groups": False}),
 }
+SCENE_RULES = {**VERIFY_RULES, **POLISH_RULES}
 
 
 def _polish_task(task: tuple[str, str, int, str, float]) -> float:
@@ -189,13 +190,14 @@ def _counts(rows: list[dict]) -> list[int]:
     ]
 
 
-def verify_table(seeds: list[int], real: list[str], data: Path | None, workers: int) -> list[list]:
-    """Per rule switched off: the counts of ``_counts`` over the generated scenes, then over the real ones."""
+def scenes_table(rules: list[str], seeds: list[int], real: list[str], data: Path | None, workers: int) -> list[list]:
+    """Per rule switched off (``VERIFY_RULES`` or ``POLISH_RULES``): the counts of ``_counts`` over the generated
+    scenes, then over the real ones."""
     rows = []
-    for rule in ["default", *VERIFY_RULES]:
-        switch = VERIFY_RULES[rule][1] if rule != "default" else {}
+    for rule in ["default", *rules]:
+        what, switch = SCENE_RULES.get(rule, ("every rule on", {}))
         overrides = switch if isinstance(switch, dict) else {}
-        saved = {(m, n): getattr(m, n) for m in (pipeline, verify) for n in _PATCHED if hasattr(m, n)}
+        saved = {m: dict(vars(m)) for m in (pipeline, verify, sync)}
         if callable(switch):
             switch()
         try:
@@ -206,9 +208,8 @@ def verify_table(seeds: list[int], real: list[str], data: Path | None, workers: 
                         generated.append(scene_row(kind, scans, seed, workers, overrides))
             measured = [_real_row(data, name, workers, overrides) for name in real] if data else []
         finally:
-            for (m, n), value in saved.items():
-                setattr(m, n, value)
-        what = "every rule on" if rule == "default" else VERIFY_RULES[rule][0]
+            for m, names in saved.items():
+                vars(m).update(names)
         label = rule if rule == "default" else f"− {rule}"
         rows.append([label, what, "generated", *_counts(generated)])
         print(" | ".join(map(str, rows[-1])), flush=True)
@@ -218,12 +219,12 @@ def verify_table(seeds: list[int], real: list[str], data: Path | None, workers: 
     return rows
 
 
-_PATCHED = ("overruled_edges", "look_alikes", "GUESSED", "_disputed", "_seen_through", "contradicted_scans")
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", nargs="+", default=["polish", "verify"], choices=["polish", "verify"])
+    ap.add_argument("--part", nargs="+", default=["graphs", "scenes"], choices=["graphs", "scenes"])
+    ap.add_argument(
+        "--rules", nargs="+", default=list(VERIFY_RULES), choices=list(SCENE_RULES), help="those switched off in scenes"
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--real", nargs="*", default=[], help="shared real scenes with gt_poses.txt, e.g. home_at")
     ap.add_argument("--data", type=Path, default=None, help="the shared data (default: $SGHR_DATA or ../shared/data)")
@@ -237,7 +238,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"no shared data at {data}: the real scenes are left out")
             data = None
     seeds = " ".join(map(str, args.seeds))
-    if "polish" in args.part:
+    if "graphs" in args.part:
         columns = ["switched off", "what it does", *(f"{k} ρ={r}" for k in KINDS for r in RATIOS)]
         rows = polish_table(args.seeds, args.workers)
         if not args.no_save:
@@ -248,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
                 section="Synchronization",
                 title=f"The loop polish without each of its steps: all-pairs recall (8 scenes × seeds {seeds})",
             )
-    if "verify" in args.part:
+    if "scenes" in args.part:
         columns = [
             "switched off",
             "what it does",
@@ -261,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
             "doubted and off",
             "off, not doubted",
         ]
-        rows = verify_table(args.seeds, args.real, data, args.workers)
+        rows = scenes_table(args.rules, args.seeds, args.real, data, args.workers)
         if not args.no_save:
             save(
                 "ablation_verify",
