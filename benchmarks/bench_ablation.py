@@ -65,7 +65,10 @@ class _Challengers:
     def install(self) -> None:
         def placement(*args, **kwargs):
             self.calls = 0
-            return self.placement(*args, **kwargs)
+            result = self.placement(*args, **kwargs)
+            if self.calls != 2:  # a row would switch off another challenger than it names
+                raise RuntimeError(f"the loop polish asked _overturns {self.calls} times, not 2: update _Challengers")
+            return result
 
         def overturns(*args):
             self.calls += 1
