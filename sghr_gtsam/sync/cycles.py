@@ -41,7 +41,7 @@ import heapq
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import breadth_first_order, maximum_flow, shortest_path
+from scipy.sparse.csgraph import breadth_first_order, maximum_flow
 from scipy.spatial import cKDTree
 from scipy.special import chdtri
 
@@ -370,37 +370,24 @@ def _families(
         & (np.linalg.norm(np.einsum("kab,kb->ka", R[a] - R[b], p[b]) + t[a] - t[b], axis=1) <= max_trans)
     )
     x, y = np.r_[a[ok], b[ok]], np.r_[b[ok], a[ok]]
-    # An edge whose two readings both agree with x (a half-turn: its own inverse) does not say which of its ends
-    # moves: it takes the reading that points as x's does (its fixed end nearer x's fixed end in the kept edges).
+    # An edge whose two readings both agree with x says nothing about which side moves.
     key = x * graph.num_edges + edge[y]
     _, inverse, twice = np.unique(key, return_inverse=True, return_counts=True)
-    either = twice[inverse] == 2
-    forward = y < len(dropped)
-    x, y = x[~either | forward], y[~either | forward]
-    either = either[~either | forward]
+    one_way = twice[inverse] == 1
+    x, y = x[one_way], y[one_way]
     score = votes[edge] + np.bincount(x, votes[edge[y]], len(edge))
     by_x = np.argsort(x, kind="stable")
-    x, y, either = x[by_x], y[by_x], either[by_x]
+    x, y = x[by_x], y[by_x]
     start = np.searchsorted(x, np.arange(len(edge) + 1))
     taken = np.zeros(len(edge), dtype=bool)
     out = []
     heads = np.flatnonzero(start[1:] > start[:-1])  # readings that some other edge agrees with
-    adjacency = sp.csr_matrix((np.ones(int(kept.sum())), (graph.i[kept], graph.j[kept])), shape=(graph.n,) * 2)
     for r in heads[np.argsort(-score[heads], kind="stable")]:
         if len(out) == count:
             break
         if taken[r]:
             continue
-        others = y[start[r] : start[r + 1]]
-        turn = either[start[r] : start[r + 1]]
-        if turn.any():
-            hops = shortest_path(adjacency, directed=False, unweighted=True, indices=[fixed[r], moving[r]])
-            hops = np.where(np.isfinite(hops), hops, graph.n)
-            q = others[turn]
-            flip = hops[0, fixed[q]] + hops[1, moving[q]] > hops[0, moving[q]] + hops[1, fixed[q]]
-            others = others.copy()
-            others[turn] = np.where(flip, (q + len(dropped)) % len(edge), q)
-        members = np.r_[r, others]
+        members = np.r_[r, y[start[r] : start[r + 1]]]
         members = members[~taken[members]]
         taken[members] = True
         # A scan both fixed and moved by the family: the role with fewer votes loses its edges.
