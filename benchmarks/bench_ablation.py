@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_doubts import SCANS, scene_row  # noqa: E402
+from bench_doubts import SCANS, scene_row, scored_row  # noqa: E402
 from bench_robustness import all_pairs_recall  # noqa: E402
 
 import sghr_gtsam.pipeline as pipeline  # noqa: E402
@@ -43,7 +43,6 @@ from benchmarks._results import save  # noqa: E402
 from data_tools.outlier_graphs import KINDS, SCENES, ground_truth, make_graph  # noqa: E402
 from data_tools.scene_gt import data_root  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
-from sghr_gtsam.evaluate import score_parts  # noqa: E402
 from sghr_gtsam.io.poses import read_poses  # noqa: E402
 from sghr_gtsam.scene import load_scene  # noqa: E402
 
@@ -165,17 +164,8 @@ def _real_row(data: Path, name: str, workers: int, overrides: dict) -> dict:
     config = Config(**{**overrides, "record": False, "workers": workers})
     scans, _ = load_scene(folder, config, lambda m: None)
     result = pipeline.register(scans, config)
-    gt_names, gt = read_poses(folder / "gt_poses.txt")
-    truth = dict(zip(gt_names, gt))
-    names = result.names
-    placed = [names[k] for k in result.registered]
-    doubted = list(result.verdict.doubts)
-    parts = [p.scans for p in result.verdict.parts]
-    truth_poses = np.stack([truth[n] for n in names])
-    by_part = score_parts(names, result.poses, truth_poses, parts, doubted)
-    off = set(by_part.misplaced) | set(score_parts(names, result.poses, truth_poses, [placed], doubted).misplaced)
-    parts_label = " + ".join(str(len(p)) for p in parts)
-    return {"scans": len(names), "parts": parts_label, "misplaced": by_part.misplaced, "off": off, "doubted": doubted}
+    truth = dict(zip(*read_poses(folder / "gt_poses.txt")))
+    return scored_row(name, result, np.stack([truth[n] for n in result.names]))
 
 
 def _counts(rows: list[dict]) -> list[int]:

@@ -36,6 +36,7 @@ from benchmarks._results import save  # noqa: E402
 from sghr_gtsam.config import Config  # noqa: E402
 from sghr_gtsam.evaluate import score_parts  # noqa: E402
 from sghr_gtsam.pipeline import Scan, register  # noqa: E402
+from sghr_gtsam.result import RunResult  # noqa: E402
 from sghr_gtsam.synthetic import make_scene  # noqa: E402
 
 SCANS = {"room": (10,), "object": (10,), "fragments": (12,), "building": (12, 20, 30), "hotel": (16, 30)}
@@ -60,15 +61,20 @@ def scene_row(kind: str, scans: int, seed: int, workers: int, overrides: dict | 
         Config(**{**(overrides or {}), "record": False, "workers": workers}),
         log=lambda m: None,
     )
+    return scored_row(f"{kind} {scans}/{seed}", result, scene.poses)
+
+
+def scored_row(label: str, result: RunResult, truth: np.ndarray) -> dict:
+    """A run's parts and doubts scored against the ground truth ``truth`` ((N, 4, 4), in ``result.names``' order)."""
     names, poses = result.names, result.poses
     placed = [names[k] for k in result.registered]
     parts = [p.scans for p in result.verdict.parts]
     doubted = sorted(result.verdict.doubts, key=names.index)
-    by_part = score_parts(names, poses, scene.poses, parts, doubted)
-    whole = score_parts(names, poses, scene.poses, [placed], doubted)
+    by_part = score_parts(names, poses, truth, parts, doubted)
+    whole = score_parts(names, poses, truth, [placed], doubted)
     off = set(whole.misplaced) | set(by_part.misplaced)
     return {
-        "scene": f"{kind} {scans}/{seed}",
+        "scene": label,
         "scans": len(names),
         "placed": len(placed),
         "parts": " + ".join(str(len(p)) for p in parts),
