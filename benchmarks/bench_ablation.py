@@ -262,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                 "ablation_verify",
                 rows,
                 columns,
-                title=f"Parts and doubts without each rule (the generated scenes of bench_doubts, seeds {seeds})",
+                title=f"Parts and doubts without each rule (bench_doubts' generated scenes, seeds {seeds}; "
+                + (f"{' '.join(args.real)})" if data else "no real scene)"),
             )
     return 0
 
