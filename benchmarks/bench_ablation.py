@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from bench_doubts import KINDS as SCENE_KINDS  # noqa: E402
 from bench_doubts import SCANS, scene_row, scored_row  # noqa: E402
 from bench_robustness import all_pairs_recall  # noqa: E402
 
@@ -137,10 +138,8 @@ VERIFY_RULES: dict[str, tuple[str, Callable[[], None] | dict]] = {
 SCENE_RULES = {**VERIFY_RULES, **POLISH_RULES}
 
 
-def _polish_task(task: tuple[str, str, int, str, float]) -> float:
-    rule, scene, seed, kind, ratio = task
-    if rule != "default":
-        POLISH_RULES[rule][1]()
+def _polish_task(task: tuple[str, int, str, float]) -> float:
+    scene, seed, kind, ratio = task
     graph, _, _ = make_graph(scene, ratio, kind, seed)
     return all_pairs_recall(sync.synchronize(graph).poses, ground_truth(scene, seed).poses)
 
@@ -149,8 +148,8 @@ def polish_table(seeds: list[int], jobs: int) -> list[list]:
     """Per rule switched off: the all-pairs recall per kind and ratio, averaged over the scenes and seeds."""
     rows = []
     for rule in ["default", *POLISH_RULES]:
-        tasks = [(rule, s, seed, k, r) for k in KINDS for r in RATIOS for s in SCENES for seed in seeds]
-        with Pool(jobs) as pool:
+        tasks = [(s, seed, k, r) for k in KINDS for r in RATIOS for s in SCENES for seed in seeds]
+        with Pool(jobs, initializer=None if rule == "default" else POLISH_RULES[rule][1]) as pool:
             recall = np.array(pool.map(_polish_task, tasks)).reshape(len(KINDS), len(RATIOS), -1).mean(axis=2)
         what = "every rule on" if rule == "default" else POLISH_RULES[rule][0]
         rows.append([rule if rule == "default" else f"− {rule}", what, *(f"{x:.3f}" for x in recall.ravel())])
@@ -196,7 +195,7 @@ def scenes_table(rules: list[str], seeds: list[int], real: list[str], data: Path
             switch()
         try:
             generated = []
-            for kind in ("room", "fragments", "building", "hotel"):
+            for kind in SCENE_KINDS:
                 for scans in SCANS[kind]:
                     for seed in seeds:
                         generated.append(scene_row(kind, scans, seed, workers, overrides))

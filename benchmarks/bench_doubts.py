@@ -40,6 +40,8 @@ from sghr_gtsam.result import RunResult  # noqa: E402
 from sghr_gtsam.synthetic import make_scene  # noqa: E402
 
 SCANS = {"room": (10,), "object": (10,), "fragments": (12,), "building": (12, 20, 30), "hotel": (16, 30)}
+KINDS = ("room", "fragments", "building", "hotel")
+"""The kinds a run takes unless ``--kinds`` names others."""
 COLUMNS = [
     "scene (scans / seed)",
     "scans",
@@ -126,7 +128,7 @@ def _labels(names: list[str]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--kinds", nargs="+", default=["room", "fragments", "building", "hotel"], choices=list(SCANS))
+    ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(SCANS))
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-save", action="store_true")
